@@ -1,0 +1,366 @@
+"""Camera-pose grids and their homographies.
+
+Conventions (used everywhere in reblur)
+---------------------------------------
+* Pixel coordinates are ``(x, y)`` = (column, row) with pixel centres on integers.
+* A homography ``H`` maps a *reference* pixel to the *observation* pixel it lands on:
+  ``x_obs ~ H @ [x_ref, y_ref, 1]``.  Warping the reference by ``H`` gives the image
+  ``warp(f, H)(x) = f(H^-1 x)`` (what ``cv2.warpPerspective(f, H, ...)`` computes).
+* The pose ``p = (tx, ty, tz, rx, ry, rz)`` gives
+  ``H(p) = T(tx, ty) @ T(c) @ diag(1 + tz, 1 + tz, 1) @ T(-c) @ K R K^-1`` where ``c`` is
+  the principal point of the FULL image, ``K = [[f, 0, cx], [0, f, cy], [0, 0, 1]]``,
+  ``R = Rz(rz) @ Ry(ry) @ Rx(rx)`` (angles in degrees).  For ``rx = ry = 0``, ``K R K^-1``
+  is the in-plane rotation by ``rz`` about ``c`` and does not depend on ``f``.
+  ``Rz(a) = [[cos a, -sin a, 0], [sin a, cos a, 0], [0, 0, 1]]`` in ``(x, y)`` coordinates
+  (image rows grow downwards, so a positive ``rz`` turns the picture clockwise on screen).
+* Translations are applied last, in the image plane, so every pose is a *base* pose
+  ``(tz, rx, ry, rz)`` followed by an image translation: with integer translations, the
+  column of ``F`` for pose ``(b, t)`` is the base-warped reference shifted by ``t``.
+* Weights are stored as an array of shape ``grid.shape = (n_bases, len(ty), len(tx))``.
+* A crop keeps full-image geometry: a window whose top-left pixel is ``(x0, y0)`` uses
+  ``T(-x0, -y0) @ H @ T(x0', y0')`` (see :func:`local_homography`), never a re-centred grid.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = [
+    "PoseGrid",
+    "pose_homography",
+    "translation",
+    "local_homography",
+    "map_points",
+]
+
+_AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
+
+
+def translation(tx: float, ty: float) -> np.ndarray:
+    """Return the 3x3 homography of an image translation by ``(tx, ty)`` pixels."""
+    return np.array([[1.0, 0.0, tx], [0.0, 1.0, ty], [0.0, 0.0, 1.0]])
+
+
+def _rot(axis: str, deg: float) -> np.ndarray:
+    a = np.deg2rad(deg)
+    c, s = np.cos(a), np.sin(a)
+    if axis == "x":
+        return np.array([[1, 0, 0], [0, c, -s], [0, s, c]], dtype=float)
+    if axis == "y":
+        return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=float)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]], dtype=float)
+
+
+def pose_homography(
+    tx: float = 0.0,
+    ty: float = 0.0,
+    tz: float = 0.0,
+    rx: float = 0.0,
+    ry: float = 0.0,
+    rz: float = 0.0,
+    *,
+    center: tuple[float, float],
+    focal: float | None = None,
+) -> np.ndarray:
+    """Homography (reference -> observation) of one camera pose, full-image coordinates.
+
+    Parameters
+    ----------
+    tx, ty : float
+        In-plane translation in pixels (applied last).
+    tz : float
+        Relative scale change (``0.01`` enlarges by 1 %) about the principal point.
+    rx, ry, rz : float
+        Rotations in degrees; ``rz`` is the in-plane roll about the principal point.
+    center : (float, float)
+        Principal point ``(cx, cy)`` of the FULL image, in pixels.
+    focal : float, optional
+        Focal length in pixels; required when ``rx`` or ``ry`` is non-zero.
+
+    Returns
+    -------
+    H : (3, 3) ndarray
+        Normalised so that ``H[2, 2] == 1``.
+    """
+    cx, cy = center
+    if (rx or ry) and not focal:
+        raise ValueError("focal length (pixels) is required for out-of-plane rotations rx, ry")
+    f = float(focal) if focal else 1.0
+    K = np.array([[f, 0.0, cx], [0.0, f, cy], [0.0, 0.0, 1.0]])
+    Kinv = np.array([[1.0 / f, 0.0, -cx / f], [0.0, 1.0 / f, -cy / f], [0.0, 0.0, 1.0]])
+    R = _rot("z", rz) @ _rot("y", ry) @ _rot("x", rx)
+    s = 1.0 + tz
+    S = translation(cx, cy) @ np.diag([s, s, 1.0]) @ translation(-cx, -cy)
+    H = translation(tx, ty) @ S @ K @ R @ Kinv
+    return H / H[2, 2]
+
+
+def local_homography(
+    H: np.ndarray, src_offset: tuple[int, int], dst_offset: tuple[int, int]
+) -> np.ndarray:
+    """Express a full-image homography in window-local coordinates.
+
+    Parameters
+    ----------
+    H : (3, 3) ndarray
+        Reference -> observation homography in full-image pixel coordinates.
+    src_offset : (int, int)
+        ``(x0, y0)`` of the reference window's top-left pixel.
+    dst_offset : (int, int)
+        ``(x0, y0)`` of the output window's top-left pixel.
+
+    Returns
+    -------
+    (3, 3) ndarray
+        ``T(-dst) @ H @ T(src)``: maps window-local source pixels to window-local output
+        pixels.  Building warps this way keeps coordinates small, which matters for
+        OpenCV's single-precision warps on images tens of thousands of pixels wide.
+    """
+    M = translation(-dst_offset[0], -dst_offset[1]) @ H @ translation(*src_offset)
+    return M / M[2, 2]
+
+
+def map_points(H: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    """Apply a homography to an ``(n, 2)`` array of ``(x, y)`` points."""
+    pts = np.asarray(pts, dtype=float)
+    q = pts @ H[:, :2].T + H[:, 2]
+    return q[:, :2] / q[:, 2:3]
+
+
+def _as_values(name: str, v) -> tuple[float, ...]:
+    arr = np.atleast_1d(np.asarray(v, dtype=float)).ravel()
+    if arr.size == 0:
+        raise ValueError(f"PoseGrid.{name} must hold at least one value")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"PoseGrid.{name} must be finite")
+    if np.unique(arr).size != arr.size:
+        raise ValueError(f"PoseGrid.{name} has repeated values")
+    return tuple(float(x) for x in np.sort(arr))
+
+
+def arange_inclusive(lo: float, hi: float, step: float) -> np.ndarray:
+    """``[lo:step:hi]`` as MATLAB writes it, robust to floating-point steps."""
+    if step <= 0:
+        raise ValueError("step must be positive")
+    n = int(np.floor((hi - lo) / step + 1e-9)) + 1
+    return lo + step * np.arange(max(n, 1))
+
+
+@dataclass(frozen=True)
+class PoseGrid:
+    """A discrete set of camera poses: base poses x in-plane translations.
+
+    The grid is the Cartesian product of ``tz x rx x ry x rz`` (the *bases*, in that order,
+    ``rz`` fastest) with ``ty x tx``.  Weights on the grid have shape ``self.shape``.
+
+    Parameters
+    ----------
+    image_shape : (int, int)
+        ``(height, width)`` of the FULL observation image: sets the default principal
+        point, the centre of every rotation.
+    tx, ty : sequence of float
+        Translations in pixels.  Integer values enable the fast FFT engine.
+    rz : sequence of float
+        In-plane rotations, degrees.
+    tz, rx, ry : sequence of float
+        Scale changes and out-of-plane rotations (degrees); default ``(0,)``.
+    focal : float, optional
+        Focal length in pixels (needed when ``rx``/``ry`` hold non-zero values).
+    center : (float, float), optional
+        Principal point ``(cx, cy)``; default the full image centre
+        ``((width - 1) / 2, (height - 1) / 2)``.
+
+    Examples
+    --------
+    >>> g = PoseGrid.paper((1000, 1000))
+    >>> g.size, g.shape
+    (8125, (13, 25, 25))
+    """
+
+    image_shape: tuple[int, int]
+    tx: tuple[float, ...]
+    ty: tuple[float, ...]
+    rz: tuple[float, ...] = (0.0,)
+    tz: tuple[float, ...] = (0.0,)
+    rx: tuple[float, ...] = (0.0,)
+    ry: tuple[float, ...] = (0.0,)
+    focal: float | None = None
+    center: tuple[float, float] | None = None
+    _bases: tuple = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self):
+        shape = tuple(int(s) for s in self.image_shape)
+        if len(shape) != 2 or min(shape) < 1:
+            raise ValueError(f"image_shape must be (height, width) > 0, got {self.image_shape}")
+        object.__setattr__(self, "image_shape", shape)
+        for name in _AXES:
+            object.__setattr__(self, name, _as_values(name, getattr(self, name)))
+        if self.center is None:
+            object.__setattr__(self, "center", ((shape[1] - 1) / 2.0, (shape[0] - 1) / 2.0))
+        else:
+            object.__setattr__(self, "center", (float(self.center[0]), float(self.center[1])))
+        if any(v != 0 for v in self.rx + self.ry):
+            if self.focal is None or not self.focal > 0:
+                raise ValueError("PoseGrid needs a positive focal length (pixels) when rx/ry vary")
+        bases = tuple(itertools.product(self.tz, self.rx, self.ry, self.rz))
+        object.__setattr__(self, "_bases", bases)
+
+    # ------------------------------------------------------------------ builders
+    @classmethod
+    def paper(
+        cls, image_shape: tuple[int, int], *, center: tuple[float, float] | None = None
+    ) -> PoseGrid:
+        """The paper's grid: tx, ty in [-12:1:12] px, rz in [-3:0.5:3] degrees (8125 poses)."""
+        t = np.arange(-12, 13)
+        return cls(image_shape, tx=t, ty=t, rz=arange_inclusive(-3, 3, 0.5), center=center)
+
+    @classmethod
+    def from_ranges(
+        cls,
+        image_shape: tuple[int, int],
+        *,
+        t_max: int = 12,
+        rz_max: float = 3.0,
+        rz_step: float | None = 0.5,
+        corner_px: float | None = None,
+        center: tuple[float, float] | None = None,
+    ) -> PoseGrid:
+        """Symmetric grid: integer ``|tx|, |ty| <= t_max`` and ``|rz| <= rz_max`` degrees.
+
+        ``corner_px`` (if given) overrides ``rz_step`` so that one rotation step moves the
+        pixel farthest from the principal point by at most ``corner_px`` pixels.
+        """
+        t = np.arange(-int(t_max), int(t_max) + 1)
+        shape = tuple(int(s) for s in image_shape)
+        if corner_px is not None:
+            rz_step = rotation_step_for(shape, corner_px, center)
+        if rz_max <= 0:
+            rz = np.array([0.0])
+        else:
+            n = int(np.ceil(rz_max / rz_step - 1e-9))
+            rz = rz_step * np.arange(-n, n + 1)
+        return cls(shape, tx=t, ty=t, rz=rz, center=center)
+
+    def with_translations(self, tx, ty) -> PoseGrid:
+        """Copy of this grid with other translation values."""
+        return self._replace(tx=tx, ty=ty)
+
+    def with_bases(self, rz, tz=None, rx=None, ry=None) -> PoseGrid:
+        """Copy of this grid with other base-pose values."""
+        return self._replace(
+            rz=rz, tz=self.tz if tz is None else tz, rx=self.rx if rx is None else rx,
+            ry=self.ry if ry is None else ry,
+        )
+
+    def _replace(self, **kw) -> PoseGrid:
+        args = {n: getattr(self, n) for n in _AXES}
+        args.update(kw)
+        return PoseGrid(self.image_shape, focal=self.focal, center=self.center, **args)
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def bases(self) -> tuple[tuple[float, float, float, float], ...]:
+        """Base poses ``(tz, rx, ry, rz)`` in weight order."""
+        return self._bases
+
+    @property
+    def n_bases(self) -> int:
+        return len(self._bases)
+
+    @property
+    def shape(self) -> tuple[int, int, int]:
+        """Shape of a weight array: ``(n_bases, len(ty), len(tx))``."""
+        return (len(self._bases), len(self.ty), len(self.tx))
+
+    @property
+    def size(self) -> int:
+        """Number of poses."""
+        return int(np.prod(self.shape))
+
+    @property
+    def integer_translations(self) -> bool:
+        """True when every translation is a whole number of pixels (fast engine applies)."""
+        return all(float(v).is_integer() for v in self.tx + self.ty)
+
+    @property
+    def ndim_active(self) -> int:
+        """How many of the six pose axes take more than one value."""
+        return sum(len(getattr(self, n)) > 1 for n in _AXES)
+
+    @property
+    def radius(self) -> float:
+        """Distance from the principal point to the farthest image corner, in pixels."""
+        h, w = self.image_shape
+        cx, cy = self.center
+        return float(max(np.hypot(x - cx, y - cy) for x in (0, w - 1) for y in (0, h - 1)))
+
+    def poses(self) -> np.ndarray:
+        """All poses as an ``(size, 6)`` array of ``(tx, ty, tz, rx, ry, rz)`` in weight order."""
+        out = np.empty((self.size, 6))
+        k = 0
+        for tz, rx, ry, rz in self._bases:
+            for ty in self.ty:
+                for tx in self.tx:
+                    out[k] = (tx, ty, tz, rx, ry, rz)
+                    k += 1
+        return out
+
+    def base_homography(self, b: int) -> np.ndarray:
+        """Homography of base pose ``b`` (no translation), full-image coordinates."""
+        tz, rx, ry, rz = self._bases[b]
+        return pose_homography(0.0, 0.0, tz, rx, ry, rz, center=self.center, focal=self.focal)
+
+    def homography(self, index) -> np.ndarray:
+        """Homography of one pose, given by flat index or ``(b, iy, ix)``."""
+        b, iy, ix = np.unravel_index(index, self.shape) if np.isscalar(index) else index
+        return translation(self.tx[ix], self.ty[iy]) @ self.base_homography(int(b))
+
+    def nonzero(self, weights: np.ndarray, rtol: float = 0.0) -> list[tuple[int, int, int, float]]:
+        """Poses carrying weight: list of ``(b, iy, ix, w)`` with ``w > rtol * max(w)``."""
+        w = self.check_weights(weights)
+        thr = rtol * float(w.max()) if w.size and w.max() > 0 else 0.0
+        idx = np.argwhere(w > thr)
+        return [(int(b), int(i), int(j), float(w[b, i, j])) for b, i, j in idx]
+
+    def check_weights(self, weights: np.ndarray) -> np.ndarray:
+        """Return ``weights`` reshaped to ``self.shape``; raise ValueError if it does not fit."""
+        w = np.asarray(weights, dtype=float)
+        if w.size != self.size:
+            raise ValueError(f"weights have {w.size} values, the grid has {self.size} poses")
+        w = w.reshape(self.shape)
+        if not np.all(np.isfinite(w)) or np.any(w < 0):
+            raise ValueError("pose weights must be finite and non-negative")
+        return w
+
+    def to_dict(self) -> dict:
+        """JSON-ready description of the grid."""
+        d = {n: list(getattr(self, n)) for n in _AXES}
+        d.update(image_shape=list(self.image_shape), center=list(self.center), focal=self.focal)
+        return d
+
+    def __repr__(self) -> str:
+        def rng(v: Sequence[float]) -> str:
+            if len(v) == 1:
+                return f"{v[0]:g}"
+            step = (v[-1] - v[0]) / (len(v) - 1)
+            return f"[{v[0]:g}:{step:g}:{v[-1]:g}]"
+
+        parts = [f"{n}={rng(getattr(self, n))}" for n in _AXES if getattr(self, n) != (0.0,)]
+        return (
+            f"PoseGrid({self.size} poses, image {self.image_shape[0]}x{self.image_shape[1]}, "
+            f"center=({self.center[0]:g}, {self.center[1]:g}), " + ", ".join(parts) + ")"
+        )
+
+
+def rotation_step_for(
+    image_shape: tuple[int, int], corner_px: float = 1.0, center: tuple[float, float] | None = None
+) -> float:
+    """Rotation step (degrees) that moves the farthest image pixel by ``corner_px`` pixels."""
+    h, w = image_shape
+    cx, cy = center if center is not None else ((w - 1) / 2.0, (h - 1) / 2.0)
+    r = max(np.hypot(x - cx, y - cy) for x in (0, w - 1) for y in (0, h - 1))
+    return float(np.rad2deg(corner_px / max(r, 1.0)))

@@ -1,0 +1,178 @@
+"""Window-local homography warps of (possibly huge, on-disk) images.
+
+Every warp in reblur goes through :func:`warp_window`: it maps the corners of the output
+window back through the homography, reads only the reference window they cover (plus a
+small interpolation margin), and warps it with OpenCV in window-local coordinates.  Output
+pixels whose source lies outside the reference are *unknown*: ``valid`` is False there and
+the value is 0.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from .grid import local_homography, map_points
+
+__all__ = ["Box", "as_channels", "read_window", "source_box", "warp_window"]
+
+#: Extra source pixels read around the mapped window (bilinear needs 1, keep 2).
+_PAD = 2
+
+
+@dataclass(frozen=True)
+class Box:
+    """A window ``rows y0:y0+h, cols x0:x0+w`` (may extend outside an image)."""
+
+    y0: int
+    x0: int
+    h: int
+    w: int
+
+    @property
+    def y1(self) -> int:
+        return self.y0 + self.h
+
+    @property
+    def x1(self) -> int:
+        return self.x0 + self.w
+
+    @property
+    def slices(self) -> tuple[slice, slice]:
+        return slice(self.y0, self.y1), slice(self.x0, self.x1)
+
+    def grow(self, top: int, bottom: int, left: int, right: int) -> Box:
+        return Box(self.y0 - top, self.x0 - left, self.h + top + bottom, self.w + left + right)
+
+    def corners(self) -> np.ndarray:
+        """Pixel-centre corners ``(x, y)`` of the window."""
+        x0, y0, x1, y1 = self.x0, self.y0, self.x1 - 1, self.y1 - 1
+        return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], dtype=float)
+
+    def as_tuple(self) -> tuple[int, int, int, int]:
+        return (self.y0, self.x0, self.h, self.w)
+
+
+def as_box(box) -> Box:
+    """Accept a :class:`Box` or a ``(y0, x0, h, w)`` tuple."""
+    if isinstance(box, Box):
+        return box
+    y0, x0, h, w = (int(v) for v in box)
+    if h < 1 or w < 1:
+        raise ValueError(f"window must have positive size, got {box}")
+    return Box(y0, x0, h, w)
+
+
+def as_channels(a: np.ndarray) -> np.ndarray:
+    """View a 2-D image as ``(h, w, 1)``; 3-D images are returned unchanged."""
+    a = np.asarray(a)
+    return a[:, :, None] if a.ndim == 2 else a
+
+
+def read_window(image, box: Box, dtype=np.float32) -> np.ndarray:
+    """Read ``box`` from an array-like image (numpy, zarr, ...), zero outside the image.
+
+    Returns an ``(h, w, C)`` array of ``dtype``.  Only the part inside the image is read.
+    """
+    H, W = image.shape[:2]
+    C = image.shape[2] if len(image.shape) == 3 else 1
+    out = np.zeros((box.h, box.w, C), dtype=dtype)
+    ya, yb = max(box.y0, 0), min(box.y1, H)
+    xa, xb = max(box.x0, 0), min(box.x1, W)
+    if ya < yb and xa < xb:
+        out[ya - box.y0 : yb - box.y0, xa - box.x0 : xb - box.x0] = as_channels(
+            np.asarray(image[ya:yb, xa:xb])
+        )
+    return out
+
+
+def source_box(H: np.ndarray, dst: Box, pad: int = _PAD) -> Box:
+    """Bounding box, in reference pixels, of what the output window ``dst`` reads.
+
+    A homography maps a rectangle to a quadrilateral (when the horizon is far outside),
+    so the box of the four back-mapped corners bounds every source pixel.
+    """
+    src = map_points(np.linalg.inv(H), dst.corners())
+    x0, y0 = np.floor(src.min(axis=0)).astype(int) - pad
+    x1, y1 = np.ceil(src.max(axis=0)).astype(int) + pad
+    return Box(int(y0), int(x0), int(y1 - y0 + 1), int(x1 - x0 + 1))
+
+
+def _warp(src: np.ndarray, M: np.ndarray, dst: Box, interpolation: int) -> np.ndarray:
+    flags = interpolation
+    out = np.empty((dst.h, dst.w, src.shape[2]), dtype=src.dtype)
+    for c0 in range(0, src.shape[2], 4):  # OpenCV warps at most 4 channels at once
+        c1 = min(c0 + 4, src.shape[2])
+        part = cv2.warpPerspective(
+            np.ascontiguousarray(src[:, :, c0:c1]), M, (dst.w, dst.h), flags=flags,
+            borderMode=cv2.BORDER_CONSTANT, borderValue=0,
+        )
+        out[:, :, c0:c1] = part.reshape(dst.h, dst.w, c1 - c0)
+    return out
+
+
+def warp_window(
+    reference,
+    H: np.ndarray,
+    dst,
+    *,
+    dtype=np.float32,
+    interpolation: int = cv2.INTER_LINEAR,
+    source: tuple[np.ndarray, Box] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Warp the reference by ``H`` into the output window ``dst``.
+
+    Parameters
+    ----------
+    reference : array-like, (H, W) or (H, W, C)
+        The full reference image (numpy, zarr, or anything sliceable).  Only the window
+        that ``dst`` maps to is read.
+    H : (3, 3) ndarray
+        Reference -> observation homography in full-image coordinates.
+    dst : Box or (y0, x0, h, w)
+        Output window in observation coordinates.
+    dtype : numpy dtype
+        Working precision (float32 or float64).
+    interpolation : int
+        OpenCV interpolation flag (bilinear by default).
+    source : (array, Box), optional
+        An already-read reference window (``(h, w, C)``) and its box, to avoid re-reading
+        when several warps share a source.  It must cover :func:`source_box`.
+
+    Returns
+    -------
+    out : (h, w, C) ndarray
+        Warped window (0 where unknown).
+    valid : (h, w) bool ndarray
+        True where the whole bilinear footprint lies inside the reference.
+    """
+    dst = as_box(dst)
+    Href, Wref = reference.shape[:2]
+    need = source_box(H, dst)
+    if source is None:
+        # clip to the image: outside pixels are unknown anyway
+        y0, x0 = max(need.y0, 0), max(need.x0, 0)
+        y1, x1 = min(need.y1, Href), min(need.x1, Wref)
+        if y0 >= y1 or x0 >= x1:
+            C = reference.shape[2] if len(reference.shape) == 3 else 1
+            return np.zeros((dst.h, dst.w, C), dtype), np.zeros((dst.h, dst.w), bool)
+        sbox = Box(y0, x0, y1 - y0, x1 - x0)
+        src = read_window(reference, sbox, dtype)
+    else:
+        src, sbox = source
+        src = as_channels(src).astype(dtype, copy=False)
+    M = local_homography(H, (sbox.x0, sbox.y0), (dst.x0, dst.y0))
+    out = _warp(src, M, dst, interpolation)
+    # validity: the reference extent expressed in the source window, warped like the data
+    inside = np.zeros(src.shape[:2], np.float32)
+    ya, yb = max(-sbox.y0, 0), min(Href - sbox.y0, sbox.h)
+    xa, xb = max(-sbox.x0, 0), min(Wref - sbox.x0, sbox.w)
+    if ya < yb and xa < xb:
+        inside[ya:yb, xa:xb] = 1.0
+    cover = cv2.warpPerspective(
+        inside, M, (dst.w, dst.h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )
+    return out, cover >= 1.0 - 1e-3
