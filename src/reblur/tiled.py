@@ -1,0 +1,178 @@
+"""Reblur a (huge) reference with estimated pose weights, tile by tile.
+
+Each output tile reads only the reference window its non-zero poses touch: the halo comes
+from the poses and the tile's position (a rotation about a distant principal point moves a
+pixel by radius x angle), never from a fixed margin.  Per tile there is one warp per distinct
+non-zero base pose (rotation / scale / tilt), built in tile-local coordinates; whole-pixel
+translations are then slices added in place with their weight.  Grids with fractional
+translations fall back to one warp per non-zero pose.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import defaultdict
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+
+import cv2
+import numpy as np
+
+from .grid import PoseGrid, translation
+from .warp import Box, as_box, warp_window
+
+__all__ = ["reblur", "reblur_tile", "iter_tiles", "SparsePoses"]
+
+
+class SparsePoses:
+    """The non-zero poses of a weight array, grouped by base pose.
+
+    Parameters
+    ----------
+    weights : ndarray, ``grid.shape``
+    grid : PoseGrid
+    base : (3, 3) ndarray, optional
+        Coarse alignment composed before every pose.
+    rtol : float
+        Weights below ``rtol * max(w)`` are dropped (0 keeps every non-zero pose).
+    """
+
+    def __init__(self, weights, grid: PoseGrid, base=None, rtol: float = 0.0):
+        self.grid = grid
+        self.base = np.eye(3) if base is None else np.asarray(base, float)
+        w = grid.check_weights(weights)
+        groups: dict[int, list[tuple[float, float, float]]] = defaultdict(list)
+        for b, iy, ix, v in grid.nonzero(w, rtol):
+            groups[b].append((grid.tx[ix], grid.ty[iy], v))
+        self.groups = {b: np.array(v) for b, v in sorted(groups.items())}
+        self.base_h = {b: grid.base_homography(b) @ self.base for b in self.groups}
+        self.integer = grid.integer_translations
+
+    @property
+    def n_poses(self) -> int:
+        return sum(len(v) for v in self.groups.values())
+
+
+def reblur_tile(poses: SparsePoses, reference, box, *, dtype=np.float32):
+    """Reblurred reference on one observation window.
+
+    Returns
+    -------
+    out : (h, w, C) ndarray
+    valid : (h, w) bool ndarray
+        True where every non-zero pose reads real reference pixels.
+    """
+    box = as_box(box)
+    C = reference.shape[2] if len(reference.shape) == 3 else 1
+    out = np.zeros((box.h, box.w, C), dtype)
+    valid = np.ones((box.h, box.w), bool)
+    if not poses.groups:
+        return out, np.zeros_like(valid)
+    for b, tw in poses.groups.items():
+        Hb = poses.base_h[b]
+        if not poses.integer:
+            for tx, ty, v in tw:
+                img, ok = warp_window(reference, translation(tx, ty) @ Hb, box, dtype=dtype)
+                out += np.asarray(v, dtype) * img
+                valid &= ok
+            continue
+        tx = tw[:, 0].astype(int)
+        ty = tw[:, 1].astype(int)
+        txmax, txmin, tymax, tymin = tx.max(), tx.min(), ty.max(), ty.min()
+        ext = box.grow(int(tymax), int(-tymin), int(txmax), int(-txmin))
+        img, ok = warp_window(reference, Hb, ext, dtype=dtype)
+        for sx, sy, v in zip(tx, ty, tw[:, 2], strict=True):
+            oy, ox = tymax - sy, txmax - sx
+            out += np.asarray(v, dtype) * img[oy : oy + box.h, ox : ox + box.w]
+            valid &= ok[oy : oy + box.h, ox : ox + box.w]
+    return out, valid
+
+
+def iter_tiles(shape: tuple[int, int], tile_size: int) -> Iterator[Box]:
+    """Row-major tiles covering an image of ``shape`` (last row/column may be smaller)."""
+    H, W = shape
+    if tile_size < 1:
+        raise ValueError("tile_size must be positive")
+    for y0 in range(0, H, tile_size):
+        for x0 in range(0, W, tile_size):
+            yield Box(y0, x0, min(tile_size, H - y0), min(tile_size, W - x0))
+
+
+def reblur(
+    reference,
+    weights: np.ndarray,
+    grid: PoseGrid,
+    *,
+    base: np.ndarray | None = None,
+    out_shape: tuple[int, int] | None = None,
+    tile_size: int = 1024,
+    workers: int = 1,
+    out=None,
+    valid_out=None,
+    dtype=np.float32,
+    progress: Callable[[int], None] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Reblur the whole reference with pose weights, in the observation's frame, by tiles.
+
+    Parameters
+    ----------
+    reference : array-like, (H, W) or (H, W, C)
+        Reference image (numpy, zarr, ...), in its own units (no rescaling is applied).
+    weights : ndarray, ``grid.shape``
+        Non-negative pose weights.
+    grid : PoseGrid
+        The grid of ``weights`` (its ``image_shape`` is the observation's).
+    base : (3, 3) ndarray, optional
+        Coarse alignment (reference -> observation) composed before every pose.
+    out_shape : (int, int), optional
+        Output size; default ``grid.image_shape``.
+    tile_size : int
+        Side of the output tiles.
+    workers : int
+        Threads pulling tiles (OpenCV runs single-threaded inside each).
+    out, valid_out : array-like, optional
+        Where to write (e.g. zarr or memmap arrays of shape ``(H, W, C)`` and ``(H, W)``);
+        default new numpy arrays.
+    dtype : numpy dtype
+        Working and output precision.
+    progress : callable, optional
+        Called with the number of pixels of each finished tile.
+
+    Returns
+    -------
+    image : (H, W) or (H, W, C) array-like
+        The reblurred reference (``out`` if given); 2-D when the reference is 2-D.
+    valid : (H, W) bool array-like
+        False where some non-zero pose reads outside the reference ("unknown").
+    """
+    poses = SparsePoses(weights, grid, base)
+    H, W = out_shape if out_shape is not None else grid.image_shape
+    C = reference.shape[2] if len(reference.shape) == 3 else 1
+    two_d = len(reference.shape) == 2
+    if out is None:
+        out = np.zeros((H, W) if two_d else (H, W, C), dtype)
+    if valid_out is None:
+        valid_out = np.zeros((H, W), bool)
+    lock = threading.Lock()
+
+    def run(box: Box) -> None:
+        img, ok = reblur_tile(poses, reference, box, dtype=dtype)
+        with lock:
+            out[box.slices] = img[:, :, 0] if two_d else img
+            valid_out[box.slices] = ok
+        if progress is not None:
+            progress(box.h * box.w)
+
+    tiles = list(iter_tiles((H, W), tile_size))
+    if workers <= 1:
+        for t in tiles:
+            run(t)
+    else:
+        n_cv = cv2.getNumThreads()
+        cv2.setNumThreads(1)
+        try:
+            with ThreadPoolExecutor(workers) as ex:
+                list(ex.map(run, tiles))
+        finally:
+            cv2.setNumThreads(n_cv)
+    return out, valid_out
