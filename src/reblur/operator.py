@@ -152,6 +152,9 @@ class BlurOperator:
             sfft.next_fast_len(self.ext.h, real=True),
             sfft.next_fast_len(self.ext.w, real=True),
         )
+        Fh = self._fshape[0]
+        k = np.arange(Fh)
+        self._row_idft = np.exp(2j * np.pi * np.outer(np.arange(self.Dy + 1), k) / Fh) / Fh
         if spectra:
             self.spec = sfft.rfft2(
                 self.stack, s=self._fshape, axes=(1, 2), workers=_WORKERS
@@ -235,7 +238,11 @@ class BlurOperator:
         R = sfft.rfft2(r, s=self._fshape, axes=(0, 1), workers=_WORKERS)
         # sum over bands before the inverse transform (linearity): one irfft2 per base
         cross = np.einsum("byxc,yxc->byx", self.spec, np.conj(R))
-        corr = sfft.irfft2(cross, s=self._fshape, axes=(1, 2), workers=_WORKERS)
+        # Only the lags 0..Dy (rows) and 0..Dx (columns) are needed: the inverse DFT along
+        # the rows is a small matrix product (Dy + 1 output rows), then a real inverse FFT
+        # along the columns.  Same values as irfft2(cross), a few times cheaper.
+        rows = self._row_idft @ cross  # (nb, Dy + 1, Fw // 2 + 1)
+        corr = sfft.irfft(rows, n=self._fshape[1], axis=2, workers=_WORKERS)
         return corr[:, self._oy[:, None], self._ox[None, :]]
 
     @property

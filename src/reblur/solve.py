@@ -30,6 +30,9 @@ from scipy.optimize import nnls
 
 from .operator import BlurOperator
 
+#: Pixels per block when building explicit active columns (bounds the solver's memory).
+_CHUNK = 32768
+
 __all__ = ["active_set", "fista", "huber_objective", "joint_objective", "power_norm"]
 
 
@@ -82,9 +85,10 @@ class _Window:
                 out += v * self.op.column(k)
         return out
 
-    def block_products(self, cols_all: list[int], cols_new: list[int], rows: int = 64):
+    def block_products(self, cols_all: list[int], cols_new: list[int]):
         """``A_all^T M A_new`` and ``A_new^T M g`` over valid pixels, by row blocks."""
         h = self.op.box.h
+        rows = max(1, _CHUNK // (self.op.box.w * self.op.dimsd[2]))
         G = np.zeros((len(cols_all), len(cols_new)))
         b = np.zeros(len(cols_new))
         for r0 in range(0, h, rows):
@@ -92,7 +96,12 @@ class _Window:
             mk = self.m[r0:r1]
             if not mk.any():
                 continue
-            A = np.stack([self.op.column(k)[r0:r1][mk].ravel() for k in cols_all], axis=1)
+            if mk.all():
+                A = np.empty((mk.size * self.op.dimsd[2], len(cols_all)))
+                for j, k in enumerate(cols_all):
+                    A[:, j] = self.op.column(k)[r0:r1].reshape(-1)
+            else:
+                A = np.stack([self.op.column(k)[r0:r1][mk].ravel() for k in cols_all], axis=1)
             An = A[:, len(cols_all) - len(cols_new) :]
             G += A.T @ An
             b += An.T @ self.g[r0:r1][mk].ravel()
@@ -175,7 +184,7 @@ def active_set(
     converged = False
     kkt = np.nan
     n_outer = 0
-    for n_outer in range(1, max_outer + 1):
+    for n_outer in range(1, max_outer + 1):  # noqa: B007 (reported after the loop)
         # residuals, Huber weights and the full gradient (one FFT adjoint per window)
         grad = np.full(P, lam)
         obj = lam * float(wa.sum())
@@ -289,14 +298,18 @@ def _irls(wins, active, wa, G0, b0, lam, delta, max_irls) -> np.ndarray:
             out = np.abs(r) > delta
             if not out.any():
                 continue
-            rows, cols, chans = np.nonzero(out)
-            n_out += rows.size
-            om = 1.0 - delta / np.abs(r[rows, cols, chans])  # 1 - omega
-            A = np.stack([win.op.gather(k, rows, cols)[np.arange(rows.size), chans]
-                          for k in active], axis=1)
-            Aw = A * om[:, None]
-            G -= A.T @ Aw
-            b -= Aw.T @ win.g[rows, cols, chans]
+            rows_all, cols_all, chans_all = np.nonzero(out)
+            n_out += rows_all.size
+            for c0 in range(0, rows_all.size, _CHUNK):  # bounded memory
+                rows = rows_all[c0 : c0 + _CHUNK]
+                cols = cols_all[c0 : c0 + _CHUNK]
+                chans = chans_all[c0 : c0 + _CHUNK]
+                om = 1.0 - delta / np.abs(r[rows, cols, chans])  # 1 - omega
+                sel = np.arange(rows.size)
+                A = np.stack([win.op.gather(k, rows, cols)[sel, chans] for k in active], axis=1)
+                Aw = A * om[:, None]
+                G -= A.T @ Aw
+                b -= Aw.T @ win.g[rows, cols, chans]
         if prev - obj <= 1e-10 * max(obj, 1e-300) and np.isfinite(prev):
             break
         prev = obj

@@ -1,0 +1,61 @@
+"""Helpers shared by the benchmarks: subprocess runs with peak RSS, machine description."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO.parent / "shared" / "data"
+LEVIR_A = DATA / "levir_whu_1024" / "samples_LEVIR" / "A"
+
+
+def machine() -> str:
+    """One line describing this machine."""
+    try:
+        import psutil
+
+        mem = f"{psutil.virtual_memory().total / 2**30:.0f} GiB RAM"
+    except Exception:  # pragma: no cover
+        mem = "unknown RAM"
+    cpu = platform.processor() or platform.machine()
+    return (
+        f"{os.cpu_count()} cores ({cpu}), {mem}, Python {platform.python_version()}, "
+        f"numpy {np.__version__}, OpenCV {cv2.__version__}"
+    )
+
+
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process so far, MB."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def run_case(module: str, *args: str, timeout: float = 1800) -> dict:
+    """Run ``python -m module args`` in a fresh process; it prints one JSON line last."""
+    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+    out = subprocess.run(
+        [sys.executable, "-m", module, *args], capture_output=True, text=True, cwd=REPO,
+        timeout=timeout, env=env, check=False,
+    )
+    if out.returncode != 0:
+        raise RuntimeError(f"{module} {args} failed:\n{out.stderr[-2000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def levir_gray(i: int = 0) -> np.ndarray:
+    files = sorted(LEVIR_A.glob("*.png"))
+    img = cv2.imread(str(files[i]))[:, :, ::-1]
+    return img.astype(np.float64).mean(axis=2) / 255.0
+
+
+def psnr(a: np.ndarray, b: np.ndarray, mask=None) -> float:
+    d = (a - b) if mask is None else (a - b)[mask]
+    return float(10 * np.log10(1.0 / np.mean(d * d)))

@@ -1,0 +1,395 @@
+"""Choosing where to estimate the motion: Algorithm 1 of the paper, and its multi-window form.
+
+All pixels see the same camera motion, so the weights can be estimated from a window, as long
+as the window is large enough for the blur to vary inside it (a small one looks
+space-invariant and gives the wrong weights).  The *kernel-similarity measure* ``m`` of a
+window tells: estimate a translation-only blur kernel (eq. 3) on ``gamma`` scattered patches,
+take for every pair the maximum of their normalised cross-correlation (eq. 7-8) and average.
+``m`` near 1 means the blur looks the same everywhere in the window.
+
+Constants (the paper's defaults, each a parameter of :class:`SelectParams`): ``beta = 6``
+initial 100 x 100 crops at good regions, ``gamma = 4`` patches, ``T_m = 0.6 m_1``, sizes
+``S = 2 .. 9`` (x 100 px), ``alpha = 5`` locations per size, reject a window more than 2/3
+occluded.  Patch side: 41 px as in the paper: with the grid's translation range (25 x 25
+kernel) a 41 x 41 patch gives 1681 equations for 625 non-negative unknowns of which only a
+few tens are non-zero, enough for a stable estimate, and four of them fit in the initial
+100 x 100 crop (quadrant centres) without overlapping.
+
+"Good regions to deblur" (Hu and Yang, ECCV 2012) are rich in strong edges of several
+orientations.  The score of a region here is the geometric mean, over four orientation bins,
+of the energy of its strong gradients: it is high only when every orientation is present
+(a region of parallel edges constrains the blur along one direction only).
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from scipy.signal import correlate
+from threadpoolctl import threadpool_limits
+
+from .estimate import estimate_motion
+from .grid import PoseGrid, map_points
+from .result import CropChoice, MotionEstimate
+from .warp import Box
+
+__all__ = ["SelectParams", "kernel_similarity", "region_scores", "select_windows"]
+
+
+@dataclass(frozen=True)
+class SelectParams:
+    """Constants of sub-image selection (paper's defaults)."""
+
+    beta: int = 6  #: initial crops of size S = 1
+    gamma: int = 4  #: patches per crop for the kernel-similarity measure
+    patch: int = 41  #: patch side (pixels)
+    unit: int = 100  #: the size unit (S = 1 is unit x unit pixels)
+    s_start: int = 2  #: first size tried after the initial crops
+    s_max: int = 9  #: largest size before declaring the blur space-invariant
+    alpha: int = 5  #: locations tried per size
+    ratio: float = 0.6  #: T_m = ratio * m_1
+    invariant_ratio: float = 0.9  #: no window passed T_m: space-invariant only if m >= this * m_1
+    max_occluded: float = 2.0 / 3.0  #: reject a window with more occluded pixels than this
+    windows: int = 1  #: windows estimated jointly (1 = the paper's Algorithm 1)
+    lam: float = 0.1
+    overview_side: int = 1024  #: resolution of the region-score map
+    extra: dict = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------------- scores
+def _gray_overview(image, max_side: int) -> tuple[np.ndarray, float]:
+    from .align import overview
+
+    return overview(image, max_side)
+
+
+def region_scores(gray: np.ndarray, cell: int) -> np.ndarray:
+    """Good-region score of every ``cell x cell`` block of a grayscale image.
+
+    Returns an array of shape ``(H // cell, W // cell)``: the geometric mean over four
+    orientation bins (0, 45, 90, 135 degrees) of the energy of the strong gradients (above
+    the image's 75th percentile of gradient magnitude) in the block.
+    """
+    g = gray.astype(np.float32)
+    gx = cv2.Sobel(g, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(g, cv2.CV_32F, 0, 1, ksize=3)
+    mag = np.hypot(gx, gy)
+    strong = mag > np.percentile(mag, 75)
+    ang = (np.rad2deg(np.arctan2(gy, gx)) + 180.0) % 180.0
+    bins = ((ang + 22.5) // 45).astype(int) % 4
+    ny, nx = g.shape[0] // cell, g.shape[1] // cell
+    if ny == 0 or nx == 0:
+        return np.zeros((max(ny, 0), max(nx, 0)))
+    e = np.zeros((4, ny, nx))
+    m2 = (mag * mag * strong)[: ny * cell, : nx * cell]
+    b = bins[: ny * cell, : nx * cell]
+    for k in range(4):
+        e[k] = (m2 * (b == k)).reshape(ny, cell, nx, cell).sum(axis=(1, 3))
+    return np.exp(np.log(e + 1e-12).mean(axis=0))
+
+
+def _window_scores(cells: np.ndarray, n: int) -> np.ndarray:
+    """Mean cell score of every ``n x n`` block of cells (summed-area table)."""
+    ny, nx = cells.shape
+    if n > ny or n > nx:
+        return np.zeros((0, 0))
+    sat = np.zeros((ny + 1, nx + 1))
+    sat[1:, 1:] = cells.cumsum(0).cumsum(1)
+    return (sat[n:, n:] - sat[:-n, n:] - sat[n:, :-n] + sat[:-n, :-n]) / (n * n)
+
+
+# ---------------------------------------------------------------------------- measure
+def _ncc_max(a: np.ndarray, b: np.ndarray, sigma: float = 1.0) -> float:
+    if sigma > 0:  # kernels from small patches are spiky: compare them at 1-px tolerance
+        a = cv2.GaussianBlur(a, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+        b = cv2.GaussianBlur(b, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
+    na, nb = np.linalg.norm(a), np.linalg.norm(b)
+    if na == 0 or nb == 0:
+        return 0.0
+    return float(correlate(a, b, mode="full", method="direct").max() / (na * nb))
+
+
+def _patch_boxes(box: Box, gamma: int, patch: int) -> list[Box]:
+    """``gamma`` scattered patches: centres spread over the window (quadrant centres for 4)."""
+    if gamma == 4:
+        fr = [(0.25, 0.25), (0.25, 0.75), (0.75, 0.25), (0.75, 0.75)]
+    else:
+        ang = np.linspace(0, 2 * np.pi, gamma, endpoint=False)
+        fr = [(0.5 + 0.3 * np.sin(a), 0.5 + 0.3 * np.cos(a)) for a in ang]
+    out = []
+    for fy, fx in fr:
+        cy = box.y0 + fy * box.h
+        cx = box.x0 + fx * box.w
+        y0 = int(np.clip(round(cy - patch / 2), box.y0, box.y1 - patch))
+        x0 = int(np.clip(round(cx - patch / 2), box.x0, box.x1 - patch))
+        out.append(Box(y0, x0, patch, patch))
+    return out
+
+
+def kernel_similarity(
+    reference, observed, box, grid: PoseGrid, *, base=None, gamma: int = 4, patch: int = 41,
+    lam: float = 0.1,
+) -> tuple[float, list[np.ndarray]]:
+    """Kernel-similarity measure ``m`` of a window (eq. 7-8).
+
+    Translation-only kernels (the grid's translations, no rotation) are estimated by eq. 3
+    on ``gamma`` scattered ``patch x patch`` patches; ``m`` is the mean over pairs of the
+    maximum normalised cross-correlation of their kernels (1 = identical kernels).
+
+    Returns
+    -------
+    m : float
+    kernels : list of (len(ty), len(tx)) arrays
+    """
+    from .warp import as_box
+
+    box = as_box(box)
+    tgrid = PoseGrid(grid.image_shape, tx=grid.tx, ty=grid.ty, center=grid.center)
+    kernels = []
+    for pb in _patch_boxes(box, gamma, min(patch, box.h, box.w)):
+        est = estimate_motion(
+            reference, observed, tgrid, boxes=[pb.as_tuple()], base=base, lam=lam,
+            occlusion=False, max_outer=20,
+        )
+        kernels.append(est.weights[0])
+    pairs = list(itertools.combinations(range(len(kernels)), 2))
+    m = float(np.mean([_ncc_max(kernels[i], kernels[j]) for i, j in pairs])) if pairs else 1.0
+    return m, kernels
+
+
+# ---------------------------------------------------------------------------- selection
+def _candidates(cells: np.ndarray, cover: np.ndarray, n: int, k: int, unit: int) -> list[Box]:
+    """Up to ``k`` best ``n x n``-cell windows, fully covered, not overlapping each other."""
+    sc = _window_scores(cells, n)
+    cv = _window_scores(cover.astype(float), n)
+    if sc.size == 0:
+        return []
+    sc = np.where(cv >= 1.0 - 1e-9, sc, -np.inf)
+    taken = np.zeros(sc.shape, bool)
+    out: list[Box] = []
+    order = np.argsort(sc, axis=None)[::-1]
+    for flat in order:
+        iy, ix = np.unravel_index(flat, sc.shape)
+        if not np.isfinite(sc[iy, ix]) or taken[iy, ix]:
+            continue
+        out.append(Box(int(iy * unit), int(ix * unit), n * unit, n * unit))
+        taken[max(iy - n + 1, 0) : iy + n, max(ix - n + 1, 0) : ix + n] = True
+        if len(out) >= k:
+            break
+    return out
+
+
+def _coverage_cells(ref_shape, obs_shape, base, grid: PoseGrid, unit: int) -> np.ndarray:
+    """Cells of the observation that every base pose maps inside the reference.
+
+    The reference must also hold the translation margin (the largest |t| plus 2 px), so that
+    a window made of covered cells has a valid pixel for every pose.
+    """
+    ny, nx = obs_shape[0] // unit, obs_shape[1] // unit
+    Hr, Wr = ref_shape[:2]
+    B0 = np.eye(3) if base is None else np.asarray(base, float)
+    margin = max(max(abs(v) for v in grid.tx), max(abs(v) for v in grid.ty)) + 2
+    ys, xs = np.mgrid[0:ny, 0:nx]
+    cover = np.ones((ny, nx), bool)
+    for b in range(grid.n_bases):
+        Hi = np.linalg.inv(grid.base_homography(b) @ B0)
+        for dy, dx in itertools.product((0, unit - 1), (0, unit - 1)):
+            pts = np.stack([xs.ravel() * unit + dx, ys.ravel() * unit + dy], axis=1)
+            q = map_points(Hi, pts.astype(float))
+            ok = (
+                (q[:, 0] >= margin) & (q[:, 0] <= Wr - 1 - margin)
+                & (q[:, 1] >= margin) & (q[:, 1] <= Hr - 1 - margin)
+            )
+            cover &= ok.reshape(ny, nx)
+    return cover
+
+
+def select_windows(
+    reference,
+    observed,
+    grid: PoseGrid,
+    *,
+    base: np.ndarray | None = None,
+    params: SelectParams | None = None,
+    progress=None,
+) -> tuple[CropChoice, MotionEstimate]:
+    """Algorithm 1: choose the estimation window(s) and estimate the motion on them.
+
+    Parameters
+    ----------
+    reference, observed : array-like
+        Full images (numpy or lazy arrays); the observation in [0, 1]-scaled or integer units.
+    grid : PoseGrid
+        Pose grid on the observation geometry.
+    base : (3, 3) ndarray, optional
+        Coarse alignment (reference -> observation).
+    params : SelectParams
+        The algorithm's constants.
+    progress : callable, optional
+        Called with a short text after each window tried.
+
+    Returns
+    -------
+    CropChoice
+        Accepted window(s), ``m_1``, ``T_m``, every window tried with its measure.
+    MotionEstimate
+        Weights estimated on the accepted window(s) by eq. 5.
+
+    Raises
+    ------
+    ValueError
+        When no window of the observation is covered by the reference for every pose, or
+        the images are textureless (the motion cannot be estimated).
+    """
+    p = params or SelectParams()
+    H, W = observed.shape[:2]
+    unit = p.unit
+    if min(H, W) < unit:
+        raise ValueError(f"the observation ({H}x{W}) is smaller than one {unit}-px crop")
+    gray, s = _gray_overview(observed, p.overview_side)
+    # cells of `unit` full-resolution pixels on the overview
+    cell_small = max(int(round(unit * s)), 2)
+    cells_small = region_scores(gray, cell_small)
+    ny, nx = H // unit, W // unit
+    cells = np.zeros((ny, nx))
+    cy, cx = min(ny, cells_small.shape[0]), min(nx, cells_small.shape[1])
+    cells[:cy, :cx] = cells_small[:cy, :cx]
+    if not np.any(cells > 1e-9):
+        raise ValueError("motion cannot be estimated: the observation is textureless")
+    cover = _coverage_cells(reference.shape, (H, W), base, grid, unit)
+    if not cover.any():
+        raise ValueError(
+            "motion cannot be estimated: no part of the observation is covered by the "
+            "reference for every pose of the grid (align first or shrink the grid)"
+        )
+    tried: list[dict] = []
+
+    def measure(b: Box) -> float:
+        m, _ = kernel_similarity(
+            reference, observed, b.as_tuple(), grid, base=base, gamma=p.gamma, patch=p.patch,
+            lam=p.lam,
+        )
+        return m
+
+    with threadpool_limits(1, user_api="blas"):
+        init = _candidates(cells, cover, 1, p.beta, unit)
+        if not init:
+            raise ValueError("motion cannot be estimated: no textured, covered region found")
+        m_init = []
+        for b in init:
+            m = measure(b)
+            m_init.append(m)
+            tried.append(dict(box=b.as_tuple(), size=1, m=m, accepted=False, reason="initial"))
+        m1 = float(np.mean(m_init))
+        thr = p.ratio * m1
+        if progress:
+            progress(f"m_1 = {m1:.3f}, T_m = {thr:.3f}")
+        for S in range(p.s_start, p.s_max + 1):
+            if S > min(ny, nx):
+                break
+            boxes = _candidates(cells, cover, S, p.alpha, unit)
+            for b in boxes:
+                m = measure(b)
+                rec = dict(box=b.as_tuple(), size=S, m=m, accepted=False, reason="")
+                tried.append(rec)
+                if progress:
+                    progress(f"S = {S}: m = {m:.3f}")
+                if m >= thr:
+                    rec["reason"] = "m >= T_m (looks space-invariant)"
+                    continue
+                chosen = [b] + _spread_partners(cells, cover, S, unit, b, p.windows - 1, (H, W))
+                est = estimate_motion(reference, observed, grid, boxes=[c.as_tuple() for c in chosen],
+                                      base=base, lam=p.lam)
+                occ = _occluded_fraction(est)
+                if occ > p.max_occluded:
+                    rec["reason"] = f"{occ:.0%} occluded"
+                    continue
+                rec["accepted"] = True
+                rec["reason"] = "m < T_m"
+                crop = CropChoice(
+                    boxes=[c.as_tuple() for c in chosen], size=S * unit, m1=m1, threshold=thr,
+                    tried=tried,
+                )
+                return crop, est
+        # No window passed T_m.  The paper then declares the blur space-invariant; on images
+        # whose largest window cannot reach T_m (e.g. 1000 px images with a strong roll, where
+        # the far kernels leave the translation support) that throws the rotation away.  So:
+        # if the measure did fall clearly (below invariant_ratio * m_1), the blur is
+        # space-variant and the largest such window tried is used (most data, most
+        # variation); otherwise one kernel.
+        grown = [r for r in tried if r["size"] >= p.s_start and r["m"] < p.invariant_ratio * m1]
+        if grown:
+            rec = min(grown, key=lambda r: (-r["size"], r["m"]))
+            b = Box(*rec["box"])
+            chosen = [b] + _spread_partners(cells, cover, rec["size"], unit, b,
+                                            p.windows - 1, (H, W))
+            est = estimate_motion(reference, observed, grid,
+                                  boxes=[c.as_tuple() for c in chosen], base=base, lam=p.lam)
+            rec["accepted"] = True
+            rec["reason"] = "largest window with m < invariant_ratio * m_1 (none reached T_m)"
+            crop = CropChoice(boxes=[c.as_tuple() for c in chosen], size=rec["size"] * unit,
+                              m1=m1, threshold=thr, tried=tried)
+            return crop, est
+        best = init[int(np.argmax(m_init))]
+        _, kernels = kernel_similarity(
+            reference, observed, best.as_tuple(), grid, base=base, gamma=p.gamma,
+            patch=p.patch, lam=p.lam,
+        )
+        w = np.zeros(grid.shape)
+        b0 = int(np.argmin([abs(rz) + abs(tz) + abs(rx) + abs(ry)
+                            for tz, rx, ry, rz in grid.bases]))
+        w[b0] = np.mean(kernels, axis=0)
+        est = MotionEstimate(weights=w, grid=grid, chi=[], boxes=[best.as_tuple()],
+                             info=dict(space_invariant=True))
+        crop = CropChoice(boxes=[best.as_tuple()], size=unit, m1=m1, threshold=thr, tried=tried,
+                          space_invariant=True)
+        return crop, est
+
+
+def _occluded_fraction(est: MotionEstimate) -> float:
+    n = sum(c.shape[0] * c.shape[1] for c in est.chi)
+    occ = 0
+    for c in est.chi:
+        nz = c != 0
+        occ += int((nz.any(axis=2) if nz.ndim == 3 else nz).sum())
+    return occ / max(n, 1)
+
+
+def _spread_partners(cells, cover, S, unit, first: Box, k: int, shape) -> list[Box]:
+    """``k`` more windows of the same size, far from ``first`` and from each other.
+
+    Rotation about the principal point is only observable from windows far apart, so each
+    next window maximises (good-region score) x (distance to the nearest chosen window).
+    """
+    if k <= 0:
+        return []
+    sc = _window_scores(cells, S)
+    cv = _window_scores(cover.astype(float), S)
+    if sc.size == 0:
+        return []
+    valid = (cv >= 1.0 - 1e-9) & (sc > 0)
+    chosen = [first]
+    out = []
+    diag = float(np.hypot(*shape))
+    ys, xs = np.mgrid[0 : sc.shape[0], 0 : sc.shape[1]]
+    cyy = (ys + S / 2) * unit
+    cxx = (xs + S / 2) * unit
+    smax = sc[valid].max() if valid.any() else 1.0
+    for _ in range(k):
+        dmin = np.full(sc.shape, np.inf)
+        for c in chosen:
+            d = np.hypot(cyy - (c.y0 + c.h / 2), cxx - (c.x0 + c.w / 2))
+            dmin = np.minimum(dmin, d)
+        # windows may not overlap the chosen ones
+        ok = valid & (dmin >= S * unit * 1.0)
+        if not ok.any():
+            break
+        obj = np.where(ok, (sc / smax) ** 0.5 * (dmin / diag), -np.inf)
+        iy, ix = np.unravel_index(int(np.argmax(obj)), obj.shape)
+        b = Box(int(iy * unit), int(ix * unit), S * unit, S * unit)
+        chosen.append(b)
+        out.append(b)
+    return out
