@@ -36,7 +36,7 @@ def paper_grid():
 def test_on_grid_path_recovered(levir_rgb, paper_grid, colour):
     img = levir_rgb if colour else levir_rgb.mean(axis=2)
     w_true = grid_path(paper_grid, rng=3, n_poses=20)
-    g, valid = blur_weights(img, paper_grid, w_true, BOX, dtype=np.float64)
+    g, valid = blur_weights(img, paper_grid, w_true, BOX, dtype=np.float32)
     assert valid.all()
     est = estimate_motion(img, _embed(g, img.shape), paper_grid, boxes=[BOX], lam=0.1)
     fit = BlurOperator(img, paper_grid, BOX).matvec(est.weights).reshape(g.shape)
@@ -55,7 +55,7 @@ def _embed(window, shape):
 
 def test_noise(levir_gray, paper_grid):
     w_true = grid_path(paper_grid, rng=11, n_poses=25)
-    clean, _ = blur_weights(levir_gray, paper_grid, w_true, BOX, dtype=np.float64)
+    clean, _ = blur_weights(levir_gray, paper_grid, w_true, BOX, dtype=np.float32)
     noisy = clean + np.random.default_rng(0).normal(0, 1 / 255, clean.shape)
     est = estimate_motion(levir_gray, _embed(noisy, levir_gray.shape), paper_grid, boxes=[BOX])
     fit = BlurOperator(levir_gray, paper_grid, BOX).matvec(est.weights)[:, :, 0]
@@ -65,7 +65,7 @@ def test_noise(levir_gray, paper_grid):
 def test_occluders_both_polarities(levir_gray, paper_grid):
     """chi recovers bright, dark and low-contrast changes; the weights stay accurate."""
     w_true = grid_path(paper_grid, rng=5, n_poses=15)
-    clean, _ = blur_weights(levir_gray, paper_grid, w_true, BOX, dtype=np.float64)
+    clean, _ = blur_weights(levir_gray, paper_grid, w_true, BOX, dtype=np.float32)
     g = clean.copy()
     truth = np.zeros(g.shape, bool)
     yy, xx = np.mgrid[: g.shape[0], : g.shape[1]]
@@ -91,7 +91,7 @@ def test_occluders_both_polarities(levir_gray, paper_grid):
 def test_off_grid_path_and_finer_grid(levir_gray):
     H, W = levir_gray.shape
     path = random_camera_path(7, center=((W - 1) / 2, (H - 1) / 2), t_max=6.0, rz_max=1.2)
-    g, valid = blur_along_path(levir_gray, path, BOX, dtype=np.float64)
+    g, valid = blur_along_path(levir_gray, path, BOX, dtype=np.float32)
     g = g.reshape(g.shape[:2])
     obs = _embed(g, levir_gray.shape)
     scores = []
@@ -150,7 +150,7 @@ def test_estimate_motion_validation(levir_gray):
 
 def test_uint8_input_is_scaled(levir_gray, paper_grid):
     w_true = grid_path(paper_grid, rng=4, n_poses=10)
-    g, _ = blur_weights(levir_gray, paper_grid, w_true, BOX, dtype=np.float64)
+    g, _ = blur_weights(levir_gray, paper_grid, w_true, BOX, dtype=np.float32)
     ref8 = np.round(levir_gray * 255).astype(np.uint8)
     obs = np.round(_embed(g, levir_gray.shape) * 255).astype(np.uint8)
     est = estimate_motion(ref8, obs, paper_grid, boxes=[BOX])

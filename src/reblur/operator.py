@@ -138,9 +138,12 @@ class BlurOperator:
             src = read_window(self.reference, sbox, self.dtype)
             if self.scale != 1.0:
                 src /= self.scale
+            src = src.astype(np.float32, copy=False)
             for b, H in enumerate(Hs):
+                # warp in float32: OpenCV then keeps single-precision coordinates, while
+                # float64 warps snap them to a 1/32-px table (less accurate)
                 self.stack[b], self.stack_valid[b] = warp_window(
-                    self.reference, H, self.ext, dtype=self.dtype, source=(src, sbox)
+                    self.reference, H, self.ext, dtype=np.float32, source=(src, sbox)
                 )
             del src
         self.valid = self._all_pose_valid()
@@ -196,7 +199,7 @@ class BlurOperator:
             oy, ox = self._oy[iy], self._ox[ix]
             return self.stack[b, oy : oy + self.box.h, ox : ox + self.box.w]
         H = self.grid.homography((int(b), int(iy), int(ix))) @ self.base
-        col = warp_window(self.reference, H, self.box, dtype=self.dtype)[0]
+        col = warp_window(self.reference, H, self.box, dtype=np.float32)[0].astype(self.dtype)
         return col / self.scale if self.scale != 1.0 else col
 
     def gather(self, k: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
