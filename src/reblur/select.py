@@ -314,38 +314,25 @@ def select_windows(
                     tried=tried,
                 )
                 return crop, est
-        # No window passed T_m.  The paper then declares the blur space-invariant; on images
-        # whose largest window cannot reach T_m (e.g. 1000 px images with a strong roll, where
-        # the far kernels leave the translation support) that throws the rotation away.  So:
-        # if the measure did fall clearly (below invariant_ratio * m_1), the blur is
-        # space-variant and the largest such window tried is used (most data, most
-        # variation); otherwise one kernel.
-        grown = [r for r in tried if r["size"] >= p.s_start and r["m"] < p.invariant_ratio * m1]
-        if grown:
-            rec = min(grown, key=lambda r: (-r["size"], r["m"]))
-            b = Box(*rec["box"])
-            chosen = [b] + _spread_partners(cells, cover, rec["size"], unit, b,
-                                            p.windows - 1, (H, W))
-            est = estimate_motion(reference, observed, grid,
-                                  boxes=[c.as_tuple() for c in chosen], base=base, lam=p.lam)
-            rec["accepted"] = True
-            rec["reason"] = "largest window with m < invariant_ratio * m_1 (none reached T_m)"
-            crop = CropChoice(boxes=[c.as_tuple() for c in chosen], size=rec["size"] * unit,
-                              m1=m1, threshold=thr, tried=tried)
-            return crop, est
-        best = init[int(np.argmax(m_init))]
-        _, kernels = kernel_similarity(
-            reference, observed, best.as_tuple(), grid, base=base, gamma=p.gamma,
-            patch=p.patch, lam=p.lam,
-        )
-        w = np.zeros(grid.shape)
-        b0 = int(np.argmin([abs(rz) + abs(tz) + abs(rx) + abs(ry)
-                            for tz, rx, ry, rz in grid.bases]))
-        w[b0] = np.mean(kernels, axis=0)
-        est = MotionEstimate(weights=w, grid=grid, chi=[], boxes=[best.as_tuple()],
-                             info=dict(space_invariant=True))
-        crop = CropChoice(boxes=[best.as_tuple()], size=unit, m1=m1, threshold=thr, tried=tried,
-                          space_invariant=True)
+        # No window passed T_m.  The paper then declares the blur space-invariant and uses
+        # one kernel.  Here the full grid is solved on the largest window tried instead: if
+        # the blur is space-invariant the weights land on the zero-rotation base anyway, and
+        # if the window was simply too small to reach T_m (images of a few hundred pixels,
+        # or 1000 px images whose far kernels leave the translation support) the rotation
+        # is kept.  ``space_invariant`` still records the paper's verdict (m stayed above
+        # invariant_ratio * m_1 at every size).
+        grown = [r for r in tried if r["size"] >= p.s_start] or tried
+        largest = max(r["size"] for r in grown)
+        rec = min((r for r in grown if r["size"] == largest), key=lambda r: r["m"])
+        invariant = all(r["m"] >= p.invariant_ratio * m1 for r in grown)
+        b = Box(*rec["box"])
+        chosen = [b] + _spread_partners(cells, cover, rec["size"], unit, b, p.windows - 1, (H, W))
+        est = estimate_motion(reference, observed, grid, boxes=[c.as_tuple() for c in chosen],
+                              base=base, lam=p.lam)
+        rec["accepted"] = True
+        rec["reason"] = "largest window tried (none reached T_m)"
+        crop = CropChoice(boxes=[c.as_tuple() for c in chosen], size=rec["size"] * unit, m1=m1,
+                          threshold=thr, tried=tried, space_invariant=invariant)
         return crop, est
 
 

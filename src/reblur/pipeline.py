@@ -1,0 +1,454 @@
+"""``detect_changes``: the whole method on a pair of (possibly huge) images.
+
+Data flows one way: validate -> coarse alignment (:mod:`reblur.align`) -> photometric
+pre-match -> window selection and motion estimate (:mod:`reblur.select`,
+:mod:`reblur.estimate`) -> tiled reblur (:mod:`reblur.tiled`) and decision
+(:mod:`reblur.decide`) -> :class:`~reblur.result.ChangeResult`.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from .decide import (
+    DecisionParams,
+    change_statistic,
+    decide_tile,
+    estimate_threshold,
+    fit_photometry,
+    tile_boxes,
+)
+from .estimate import estimate_motion, intensity_scale
+from .grid import PoseGrid
+from .result import ChangeResult, CropChoice
+from .select import SelectParams, select_windows
+from .tiled import SparsePoses, reblur_tile
+from .warp import as_box, read_window
+
+__all__ = ["detect_changes", "ScaledView"]
+
+
+class ScaledView:
+    """Lazy per-band affine view ``(a / scale - offset) / gain`` of an array-like (float32).
+
+    Lets the estimation read observation windows on the reference's photometric scale
+    without a full-size copy of a (possibly on-disk) image.
+    """
+
+    def __init__(self, array, scale: float, gain=None, offset=None):
+        self.array = array
+        self.shape = tuple(array.shape)
+        self.dtype = np.dtype(np.float32)
+        self.scale = float(scale)
+        C = self.shape[2] if len(self.shape) == 3 else 1
+        self.gain = np.ones(C, np.float32) if gain is None else np.asarray(gain, np.float32)
+        self.offset = np.zeros(C, np.float32) if offset is None else np.asarray(offset, np.float32)
+
+    def __getitem__(self, key):
+        a = np.asarray(self.array[key], dtype=np.float32) / self.scale
+        if a.ndim == 3:
+            return (a - self.offset) / self.gain
+        return (a - self.offset[0]) / self.gain[0]
+
+
+def _check_inputs(reference, observed) -> None:
+    for name, a in (("reference", reference), ("observed", observed)):
+        shp = tuple(a.shape)
+        if len(shp) not in (2, 3):
+            raise ValueError(f"{name} must be (H, W) or (H, W, C), got shape {shp}")
+        if min(shp[:2]) < 32:
+            raise ValueError(f"{name} is too small ({shp[0]}x{shp[1]}); at least 32x32 is needed")
+        dt = np.dtype(a.dtype)
+        if dt.kind not in "uif":
+            raise ValueError(f"{name} has unsupported dtype {dt}")
+        if dt.kind == "f" and isinstance(a, np.ndarray) and not np.isfinite(a).all():
+            raise ValueError(f"{name} contains NaN or Inf pixels")
+    cr = reference.shape[2] if len(reference.shape) == 3 else 1
+    co = observed.shape[2] if len(observed.shape) == 3 else 1
+    if cr != co:
+        raise ValueError(
+            f"reference has {cr} band(s) and observed {co}: convert them to the same bands"
+        )
+
+
+def _strided(image, max_side: int) -> tuple[np.ndarray, int]:
+    """Every ``k``-th pixel (float32, (h, w, C)), ``k`` so the long side is <= max_side."""
+    k = max(1, int(np.ceil(max(image.shape[:2]) / max_side)))
+    a = np.asarray(image[::k, ::k], dtype=np.float32)
+    return (a[:, :, None] if a.ndim == 2 else a), k
+
+
+def photometric_prefit(
+    reference, observed, H0: np.ndarray, s_ref: float, s_obs: float, max_side: int = 512
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-band gain and offset with ``observed ~ gain * reference + offset`` (robust).
+
+    Fitted at low resolution on the aligned, low-pass images (blur matters little there),
+    by Huber-weighted least squares so that changes do not bias it.
+    """
+    ref, kr = _strided(reference, max_side)
+    obs, ko = _strided(observed, max_side)
+    ref /= s_ref
+    obs /= s_obs
+    S_ref = np.diag([kr, kr, 1.0])
+    S_obs_inv = np.diag([1.0 / ko, 1.0 / ko, 1.0])
+    Hs = S_obs_inv @ H0 @ S_ref
+    h, w = obs.shape[:2]
+    ones = np.ones(ref.shape[:2], np.float32)
+    cover = cv2.warpPerspective(ones, Hs, (w, h), flags=cv2.INTER_LINEAR) > 0.999
+    cover = ndimage.binary_erosion(cover, iterations=3)
+    C = obs.shape[2]
+    gain = np.ones(C)
+    offset = np.zeros(C)
+    if cover.sum() < 100:
+        return gain, offset
+    for c in range(C):
+        r = cv2.warpPerspective(np.ascontiguousarray(ref[:, :, c]), Hs, (w, h),
+                                flags=cv2.INTER_LINEAR)
+        r = cv2.GaussianBlur(r, (0, 0), 2.0)[cover].astype(float)
+        o = cv2.GaussianBlur(np.ascontiguousarray(obs[:, :, c]), (0, 0), 2.0)[cover].astype(float)
+        A = np.stack([r, np.ones_like(r)], axis=1)
+        wts = np.ones_like(r)
+        sol = np.array([1.0, 0.0])
+        for _ in range(15):
+            sw = np.sqrt(wts)
+            sol = np.linalg.lstsq(A * sw[:, None], o * sw, rcond=None)[0]
+            res = o - A @ sol
+            s = 1.4826 * np.median(np.abs(res - np.median(res))) + 1e-6
+            wts = np.minimum(1.0, 1.5 * s / np.maximum(np.abs(res), 1e-12))
+        if sol[0] > 0.05:  # a sane gain; otherwise keep the identity
+            gain[c], offset[c] = sol
+    return gain, offset
+
+
+@dataclass
+class Decided:
+    """Output of :func:`reblur_and_decide`."""
+
+    change: Any
+    unknown: Any
+    reblurred: Any
+    threshold: float
+    info: dict[str, Any] = field(default_factory=dict)
+    regions: list[dict[str, Any]] = field(default_factory=list)
+
+
+def reblur_and_decide(
+    reference,
+    observed,
+    poses: SparsePoses,
+    *,
+    s_ref: float,
+    s_obs: float,
+    gain: np.ndarray,
+    offset: np.ndarray,
+    tile_size: int = 1024,
+    threshold: float | None = None,
+    params: DecisionParams | None = None,
+    workers: int = 1,
+    keep_reblurred: bool = True,
+    change_out=None,
+    unknown_out=None,
+    max_region: int | None = None,
+    n_sample_tiles: int = 16,
+    progress: Callable[[float], None] | None = None,
+) -> Decided:
+    """Reblur the reference and decide change, streaming over tiles.
+
+    Two passes.  (1) A sample of up to ``n_sample_tiles`` tiles spread over the image fits the
+    global photometric model (:func:`reblur.decide.fit_photometry`) and the threshold of the
+    change statistic (:func:`reblur.decide.estimate_threshold`).  (2) Every tile, padded with
+    a halo of ``params.halo(max_region)`` pixels, is reblurred (each padded tile reads only
+    the reference window its poses touch), decided (:func:`reblur.decide.decide_tile`) and
+    its core written out; a tile whose regions reach the halo's edge is re-run with a twice
+    larger halo.  Nothing full-size is held but the output masks (and the reblurred image if
+    ``keep_reblurred``).
+    """
+    p = params or DecisionParams()
+    H, W = observed.shape[:2]
+    C = observed.shape[2] if len(observed.shape) == 3 else 1
+    two_d = len(observed.shape) == 2
+    gain = np.asarray(gain, np.float32)
+    offset = np.asarray(offset, np.float32)
+    if max_region is None:
+        max_region = max(32, min(256, tile_size // 4))
+
+    def load(box):
+        box = as_box(box)
+        reb, valid = reblur_tile(poses, reference, box)
+        reb = reb / np.float32(s_ref) * gain + offset  # pre-matched to the observation
+        obs = read_window(observed, box, np.float32) / np.float32(s_obs)
+        return obs, reb, ~valid
+
+    # pass 1: photometry and threshold from a spread sample of tiles
+    cores = [c for _, c in tile_boxes((H, W), tile_size, 0)]
+    pick = np.unique(np.linspace(0, len(cores) - 1, min(n_sample_tiles, len(cores))).astype(int))
+    samples = [(cores[i], *load(cores[i])) for i in pick]
+    known = [~u for _, _, _, u in samples]
+    if not any(k.any() for k in known):
+        raise ValueError("the reference covers no pixel of the observation")
+    photometry = fit_photometry(
+        [o for _, o, _, _ in samples], [r for _, _, r, _ in samples], known,
+        boxes=[b for b, _, _, _ in samples], image_shape=(H, W), rng=0,
+    )
+    if threshold is None:
+        stats = []
+        for (b, o, r, _u), k in zip(samples, known, strict=True):
+            S = change_statistic(o, photometry.apply(r, b), k, photometry.sigma,
+                                 smooth=p.smooth, truncate=p.truncate)
+            stats.append(S[k])
+        threshold, tinfo = estimate_threshold(stats)
+    else:
+        tinfo = {"method": "given"}
+    threshold = float(threshold)
+    del samples, known
+
+    # pass 2: every tile with its halo
+    change = np.zeros((H, W), bool) if change_out is None else change_out
+    unknown = np.zeros((H, W), bool) if unknown_out is None else unknown_out
+    reblurred = None
+    if keep_reblurred:
+        reblurred = np.zeros((H, W) if two_d else (H, W, C), np.float32)
+    regions: list[dict[str, Any]] = []
+    incomplete = 0
+    lock = threading.Lock()
+    tiles = list(tile_boxes((H, W), tile_size, p.halo(max_region)))
+    done = [0]
+
+    def run(pair) -> None:
+        nonlocal incomplete
+        padded, core = pair
+        halo = p.halo(max_region)
+        for attempt in range(3):
+            obs, reb, unk = load(padded)
+            mask, info = decide_tile(
+                obs, reb, unk, threshold=threshold, photometry=photometry, box=padded,
+                core=core, params=p, image_shape=(H, W),
+            )
+            if info["complete"] or attempt == 2:
+                break
+            halo *= 2
+            padded = _pad(core, halo, (H, W))
+        ly, lx = core[0] - padded[0], core[1] - padded[1]
+        sl = (slice(ly, ly + core[2]), slice(lx, lx + core[3]))
+        cs = (slice(core[0], core[0] + core[2]), slice(core[1], core[1] + core[3]))
+        with lock:
+            change[cs] = mask
+            unknown[cs] = unk[sl]
+            if reblurred is not None:
+                m = photometry.apply(reb[sl], core)
+                reblurred[cs] = m[:, :, 0] if two_d else m
+            regions.extend(info["regions"])
+            incomplete += 0 if info["complete"] else 1
+            done[0] += 1
+        if progress is not None:
+            progress(done[0] / len(tiles))
+
+    if workers <= 1:
+        for t in tiles:
+            run(t)
+    else:
+        n_cv = cv2.getNumThreads()
+        cv2.setNumThreads(1)
+        try:
+            with ThreadPoolExecutor(workers) as ex:
+                list(ex.map(run, tiles))
+        finally:
+            cv2.setNumThreads(n_cv)
+    regions.sort(key=lambda r: (r["bbox"][0], r["bbox"][1]) if "bbox" in r else (0, 0))
+    info = dict(
+        threshold_info=tinfo,
+        photometry=photometry.to_dict(),
+        params=p.to_dict(),
+        statistic="local RMS of robust per-band z-scores of observed - matched reblurred",
+        n_tiles=len(tiles),
+        incomplete_tiles=incomplete,
+        halo=p.halo(max_region),
+    )
+    return Decided(change, unknown, reblurred, threshold, info, regions)
+
+
+def _pad(core, halo: int, shape) -> tuple[int, int, int, int]:
+    y, x, h, w = core
+    y0, x0 = max(y - halo, 0), max(x - halo, 0)
+    y1, x1 = min(y + h + halo, shape[0]), min(x + w + halo, shape[1])
+    return (y0, x0, y1 - y0, x1 - x0)
+
+
+def detect_changes(
+    reference,
+    observed,
+    *,
+    grid: PoseGrid | None = None,
+    t_max: int = 12,
+    rz_max: float = 3.0,
+    rz_step: float | None = 0.5,
+    lam: float = 0.1,
+    align: bool = True,
+    windows: int = 1,
+    select: SelectParams | None = None,
+    boxes: list | None = None,
+    tile_size: int = 1024,
+    threshold: float | None = None,
+    decision: DecisionParams | None = None,
+    workers: int = 1,
+    keep_reblurred: bool | None = None,
+    change_out=None,
+    unknown_out=None,
+    progress: Callable[[str, float], None] | None = None,
+) -> ChangeResult:
+    """Find what changed between a sharp reference and a blurred, re-viewpointed observation.
+
+    Parameters
+    ----------
+    reference : array-like, (H, W) or (H, W, C)
+        Sharp reference (numpy, zarr, tifffile's zarr store: read window by window).
+    observed : array-like, (H', W') or (H', W', C)
+        Later, motion-blurred observation with the same bands; may differ in size.
+    grid : PoseGrid, optional
+        Pose grid on the observation geometry.  Default: integer ``|tx|, |ty| <= t_max``
+        and ``|rz| <= rz_max`` in steps of ``rz_step`` degrees (the paper's grid with the
+        defaults).
+    t_max, rz_max, rz_step : int, float, float
+        Ranges of the default grid.
+    lam : float
+        Eq. 5's ``lambda`` (intensities in [0, 1]).
+    align : bool
+        Run the coarse alignment (needed when the viewpoint moved beyond the grid).
+    windows : int
+        Windows estimated jointly (1 = the paper's Algorithm 1).
+    select : SelectParams, optional
+        Constants of Algorithm 1.
+    boxes : list of (y0, x0, h, w), optional
+        Skip the selection and estimate on these windows.
+    tile_size : int
+        Tile side for reblur and decision.
+    threshold : float, optional
+        Override the data-driven decision threshold (units of the decision statistic).
+    decision : DecisionParams, optional
+        Decision and clean-up settings.
+    workers : int
+        Threads pulling tiles.
+    keep_reblurred : bool, optional
+        Return the full reblurred reference (default: when the observation has <= 64 MP).
+    change_out, unknown_out : array-like, optional
+        Where to write the full-size masks (e.g. zarr arrays); default numpy arrays.
+    progress : callable, optional
+        ``progress(stage, fraction)`` for progress bars.
+
+    Returns
+    -------
+    ChangeResult
+
+    Raises
+    ------
+    ValueError
+        Invalid inputs, textureless images (motion cannot be estimated), or
+        :class:`reblur.align.AlignmentError` when the images cannot be aligned.
+
+    Examples
+    --------
+    >>> import numpy as np, reblur
+    >>> from reblur.simulate import random_camera_path, blur_along_path
+    >>> rng = np.random.default_rng(1)
+    >>> import cv2
+    >>> ref = cv2.GaussianBlur(rng.random((400, 400)), (0, 0), 2)
+    >>> ref = (ref - ref.min()) / np.ptp(ref)
+    >>> path = random_camera_path(1, center=(199.5, 199.5), t_max=3, rz_max=0.5)
+    >>> obs = blur_along_path(ref, path, dtype=np.float64)[0].reshape(400, 400)
+    >>> obs[150:200, 150:200] = 1.0                    # something new appeared
+    >>> res = reblur.detect_changes(ref, obs, align=False, t_max=5, rz_max=1)
+    >>> bool(res.change[160:190, 160:190].mean() > 0.9), bool(res.change[:100].mean() < 0.01)
+    (True, True)
+    """
+    timings: dict[str, float] = {}
+    t_all = time.perf_counter()
+
+    def report(stage: str, frac: float) -> None:
+        if progress is not None:
+            progress(stage, frac)
+
+    _check_inputs(reference, observed)
+    Ho, Wo = observed.shape[:2]
+    s_ref = intensity_scale(reference.dtype)
+    s_obs = intensity_scale(observed.dtype)
+
+    # 1. coarse alignment
+    t = time.perf_counter()
+    report("align", 0.0)
+    if align:
+        from .align import coarse_align
+
+        alignment = coarse_align(reference, observed, polish=False)
+        H0 = alignment.H
+        align_info = alignment.to_dict()
+    else:
+        H0 = np.eye(3)
+        align_info = dict(method="none")
+    timings["align"] = time.perf_counter() - t
+    report("align", 1.0)
+
+    # 2. photometric pre-match for the estimation
+    t = time.perf_counter()
+    gain, offset = photometric_prefit(reference, observed, H0, s_ref, s_obs)
+    obs_view = ScaledView(observed, s_obs, gain / 1.0, offset)
+    # the reference is read in its own units, scaled by s_ref inside the operator
+    timings["photometry"] = time.perf_counter() - t
+
+    # 3. grid, window selection and the motion estimate
+    t = time.perf_counter()
+    if grid is None:
+        grid = PoseGrid.from_ranges((Ho, Wo), t_max=t_max, rz_max=rz_max, rz_step=rz_step)
+    elif tuple(grid.image_shape) != (Ho, Wo):
+        raise ValueError(f"grid geometry {grid.image_shape} does not match the observation")
+    report("estimate", 0.0)
+    sp = select or SelectParams(lam=lam, windows=windows)
+    if boxes is not None:
+        motion = estimate_motion(reference, obs_view, grid, boxes=boxes, base=H0, lam=lam,
+                                 scale=None)
+        crop = CropChoice(boxes=[tuple(b) for b in motion.boxes], size=int(boxes[0][2]))
+    else:
+        crop, motion = select_windows(
+            reference, obs_view, grid, base=H0, params=sp,
+            progress=(lambda msg: report("estimate", 0.5)) if progress else None,
+        )
+    if not np.any(motion.weights > 0):
+        raise ValueError("motion cannot be estimated: every pose weight came out zero")
+    timings["estimate"] = time.perf_counter() - t
+    report("estimate", 1.0)
+
+    # 4. tiled reblur and decision
+    t = time.perf_counter()
+    poses = SparsePoses(motion.weights, grid, H0)
+    keep = (Ho * Wo <= 64_000_000) if keep_reblurred is None else keep_reblurred
+    dec = reblur_and_decide(
+        reference, observed, poses, s_ref=s_ref, s_obs=s_obs, gain=gain, offset=offset,
+        tile_size=tile_size, threshold=threshold, params=decision, workers=workers,
+        keep_reblurred=keep, change_out=change_out, unknown_out=unknown_out,
+        progress=(lambda f: report("reblur + decide", f)) if progress else None,
+    )
+    timings["reblur_decide"] = time.perf_counter() - t
+    timings["total"] = time.perf_counter() - t_all
+    dec.info["prefit_gain"] = gain.tolist()
+    dec.info["prefit_offset"] = offset.tolist()
+    return ChangeResult(
+        change=dec.change,
+        unknown=dec.unknown,
+        reblurred=dec.reblurred,
+        motion=motion,
+        alignment=H0,
+        crop=crop,
+        threshold=dec.threshold,
+        decision=dict(dec.info, alignment=align_info),
+        timings=timings,
+        regions=dec.regions,
+    )
