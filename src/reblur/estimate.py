@@ -58,6 +58,8 @@ def estimate_motion(
     max_outer: int = 60,
     time_limit: float | None = None,
     fista_iter: int = 500,
+    coarse_to_fine: bool | str = "auto",
+    max_bases: int = 16,
 ) -> MotionEstimate:
     """Estimate pose weights ``w >= 0`` and the change term ``chi`` (eq. 5, or eq. 3).
 
@@ -89,6 +91,15 @@ def estimate_motion(
         floats).
     max_outer, time_limit, fista_iter
         Solver limits.
+    coarse_to_fine : bool or "auto"
+        Solve on a subset of the roll angles first (at most ``max_bases``, evenly spread),
+        then refine, level by level with half the angle stride, only around the angles that
+        carry weight, warm-starting each level; the result lives on the full ``grid``.
+        ``"auto"``: when the grid varies only ``rz`` and has more than ``max_bases`` angles.
+        This keeps fine rotation grids (a step that moves the farthest pixel of a huge
+        image by one pixel) affordable.
+    max_bases : int
+        Angles per coarse-to-fine level.
 
     Returns
     -------
@@ -124,43 +135,141 @@ def estimate_motion(
     s_ref = intensity_scale(reference.dtype) if scale is None else scale
     s_obs = intensity_scale(observed.dtype) if scale is None else scale
     two_d = len(observed.shape) == 2
+    only_rz = len(grid.tz) == len(grid.rx) == len(grid.ry) == 1
+    if coarse_to_fine == "auto":
+        coarse_to_fine = only_rz and grid.n_bases > max_bases and solver == "active-set"
+    if coarse_to_fine and not only_rz:
+        raise ValueError("coarse_to_fine refines the roll axis only: use a grid varying rz alone")
+    levels = []
     with threadpool_limits(1, user_api="blas"):
-        ops, gs = [], []
-        for b in boxes:
-            ops.append(BlurOperator(reference, grid, b, base=base, engine=engine, scale=s_ref))
-            gs.append(read_window(observed, b, np.float64) / s_obs)
-        if not any(op.valid.any() for op in ops):
-            raise ValueError(
-                "no estimation window is covered by the reference for every pose: "
-                "align the images first or use a smaller pose grid"
+        if coarse_to_fine:
+            w, info, ops, gs, grid_used = _rz_coarse_to_fine(
+                reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, occlusion,
+                max_outer, time_limit, max_bases, levels,
             )
-        if solver == "active-set":
-            w, info = active_set(
-                ops, gs, lam=lam, occlusion=occlusion, max_outer=max_outer,
-                time_limit=time_limit,
-            )
-        elif solver == "fista":
-            if len(ops) != 1:
-                raise ValueError("the FISTA cross-check takes a single window")
-            w, _, info = fista(ops[0], gs[0], lam=lam, n_iter=fista_iter)
         else:
-            raise ValueError(f"solver must be 'active-set' or 'fista', got {solver!r}")
-        chis, psnrs = [], []
+            w, info, ops, gs = _solve(
+                reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, occlusion,
+                solver, max_outer, time_limit, fista_iter, None,
+            )
+            grid_used = grid
+        chis, psnrs, psnr_in = [], [], []
         for op, g in zip(ops, gs, strict=True):
-            fit = op.matvec(w)
-            r = g - fit
+            r = g - op.matvec(w)
             m = op.valid
             chi = soft_threshold(r, lam / 2.0) if occlusion else np.zeros_like(r)
             chi[~m] = 0.0
             chis.append(chi[:, :, 0] if two_d else chi)
-            mse = float(np.mean(r[m] ** 2)) if m.any() else np.nan
-            psnrs.append(10 * np.log10(1.0 / mse) if mse > 0 else np.inf)
+            psnrs.append(_psnr(r[m]))
+            inl = m[:, :, None] & (chi == 0)
+            psnr_in.append(_psnr(r[inl]))
+        if grid_used is not grid:
+            w = _embed_rz(w, grid_used, grid)
     info = dict(info)
     info.update(
-        psnr=psnrs, lam=lam, occlusion=occlusion, engine=ops[0].engine,
+        psnr=psnrs, psnr_inliers=psnr_in, lam=lam, occlusion=occlusion, engine=ops[0].engine,
         time_total_s=time.perf_counter() - t0,
-        valid_fraction=[float(op.valid.mean()) for op in ops],
+        valid_fraction=[float(op.valid.mean()) for op in ops], levels=levels,
     )
     return MotionEstimate(
         weights=w, grid=grid, chi=chis, boxes=[b.as_tuple() for b in boxes], info=info
     )
+
+
+def _psnr(r: np.ndarray) -> float:
+    if r.size == 0:
+        return float("nan")
+    mse = float(np.mean(r * r))
+    return 10 * np.log10(1.0 / mse) if mse > 0 else float("inf")
+
+
+def _solve(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, occlusion,
+           solver, max_outer, time_limit, fista_iter, w0, gs=None):
+    ops = [BlurOperator(reference, grid, b, base=base, engine=engine, scale=s_ref) for b in boxes]
+    if gs is None:
+        gs = [read_window(observed, b, np.float64) / s_obs for b in boxes]
+    if not any(op.valid.any() for op in ops):
+        raise ValueError(
+            "no estimation window is covered by the reference for every pose: "
+            "align the images first or use a smaller pose grid"
+        )
+    if solver == "active-set":
+        w, info = active_set(
+            ops, gs, lam=lam, occlusion=occlusion, max_outer=max_outer, time_limit=time_limit,
+            w0=w0,
+        )
+    elif solver == "fista":
+        if len(ops) != 1:
+            raise ValueError("the FISTA cross-check takes a single window")
+        w, _, info = fista(ops[0], gs[0], lam=lam, n_iter=fista_iter)
+    else:
+        raise ValueError(f"solver must be 'active-set' or 'fista', got {solver!r}")
+    return w, info, ops, gs
+
+
+def _embed_rz(w: np.ndarray, sub: PoseGrid, full: PoseGrid) -> np.ndarray:
+    """Weights on a sub-grid (subsets of ``full``'s roll angles and translations) on ``full``."""
+    out = np.zeros(full.shape)
+    b = [full.rz.index(v) for v in sub.rz]
+    iy = [full.ty.index(v) for v in sub.ty]
+    ix = [full.tx.index(v) for v in sub.tx]
+    out[np.ix_(b, iy, ix)] = w
+    return out
+
+
+def _shrink(box, side: int):
+    """The central ``side x side`` part of a window (the window itself if smaller)."""
+    y0, x0, h, w = box.as_tuple()
+    hh, ww = min(h, side), min(w, side)
+    return as_box((y0 + (h - hh) // 2, x0 + (w - ww) // 2, hh, ww))
+
+
+def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam,
+                       occlusion, max_outer, time_limit, max_bases, levels,
+                       coarse_side: int = 256, t_margin: int = 3):
+    """Coarse-to-fine over the roll angles of ``grid`` (see :func:`estimate_motion`).
+
+    Coarse levels solve on the central ``coarse_side`` pixels of each window (the windows
+    stay far apart, so roll stays observable) and, after the first level, only over the
+    translations that carry weight plus ``t_margin`` pixels; the last level uses the full
+    windows.  The result is embedded in the full grid.
+    """
+    n = grid.n_bases
+    stride = int(np.ceil((n - 1) / max(max_bases - 1, 1)))
+    centre = int(np.argmin(np.abs(np.asarray(grid.rz))))
+    idx = sorted(set(range(centre % stride, n, stride)) | {centre})
+    tx, ty = list(grid.tx), list(grid.ty)
+    w0 = None
+    total = dict(objective=[], n_outer=0, time_s=0.0)
+    while True:
+        last = stride == 1
+        sub = PoseGrid(grid.image_shape, tx=tx, ty=ty, rz=[grid.rz[i] for i in idx],
+                       center=grid.center)
+        bx = boxes if last else [_shrink(b, coarse_side) for b in boxes]
+        w, info, ops, gs = _solve(reference, observed, sub, bx, base, engine, s_ref, s_obs,
+                                  lam, occlusion, "active-set", max_outer, time_limit, 0, w0)
+        levels.append(dict(stride=stride, n_angles=len(idx), n_t=len(tx) * len(ty),
+                           n_outer=info["n_outer"], time_s=info["time_s"],
+                           n_active=info["n_active"]))
+        total["objective"] += info["objective"]
+        total["n_outer"] += info["n_outer"]
+        total["time_s"] += info["time_s"]
+        if last:
+            total.update({k: v for k, v in info.items() if k not in total})
+            return w, total, ops, gs, sub
+        w_full = _embed_rz(w, sub, grid)
+        mass = w_full.sum(axis=(1, 2))
+        active = np.flatnonzero(mass > 0.01 * max(mass.sum(), 1e-300))
+        new_stride = max(1, stride // 2)
+        cand = set(int(a) for a in active)
+        for a in active:
+            cand.update(range(max(a - stride, 0), min(a + stride, n - 1) + 1, new_stride))
+        idx, stride = sorted(cand), new_stride
+        # translations: those carrying weight, plus a margin, within the grid
+        nz = np.argwhere(w_full > 0)
+        if nz.size:
+            ylo, yhi = nz[:, 1].min() - t_margin, nz[:, 1].max() + t_margin
+            xlo, xhi = nz[:, 2].min() - t_margin, nz[:, 2].max() + t_margin
+            ty = list(grid.ty[max(ylo, 0) : yhi + 1])
+            tx = list(grid.tx[max(xlo, 0) : xhi + 1])
+        w0 = w_full[np.ix_(idx, [grid.ty.index(v) for v in ty], [grid.tx.index(v) for v in tx])]

@@ -291,10 +291,11 @@ def detect_changes(
     grid: PoseGrid | None = None,
     t_max: int = 12,
     rz_max: float = 3.0,
-    rz_step: float | None = 0.5,
+    rz_step: float | None = None,
     lam: float = 0.1,
     align: bool = True,
-    windows: int = 1,
+    windows: int | None = None,
+    large_side: int = 2500,
     select: SelectParams | None = None,
     boxes: list | None = None,
     tile_size: int = 1024,
@@ -319,13 +320,21 @@ def detect_changes(
         and ``|rz| <= rz_max`` in steps of ``rz_step`` degrees (the paper's grid with the
         defaults).
     t_max, rz_max, rz_step : int, float, float
-        Ranges of the default grid.
+        Ranges of the default grid.  ``rz_step=None`` (default): the paper's 0.5 degrees
+        for images up to ``large_side`` pixels on the long side; above, the step that moves
+        the farthest pixel of the full image by one pixel (solved coarse to fine), because
+        a 0.5 degree step moves a corner pixel by ``radius x 0.0087`` px (41 px on a
+        6680 px image) and cannot represent the motion far from the centre.
     lam : float
         Eq. 5's ``lambda`` (intensities in [0, 1]).
     align : bool
         Run the coarse alignment (needed when the viewpoint moved beyond the grid).
-    windows : int
-        Windows estimated jointly (1 = the paper's Algorithm 1).
+    windows : int, optional
+        Windows estimated jointly (1 = the paper's Algorithm 1).  Default: 1 up to
+        ``large_side``, 4 windows spread around the principal point above (a small roll
+        about a distant centre is only observable from windows far apart).
+    large_side : int
+        Long side (pixels) above which the large-image defaults apply.
     select : SelectParams, optional
         Constants of Algorithm 1.
     boxes : list of (y0, x0, h, w), optional
@@ -406,8 +415,15 @@ def detect_changes(
 
     # 3. grid, window selection and the motion estimate
     t = time.perf_counter()
+    large = max(Ho, Wo) > large_side
+    if windows is None:
+        windows = 4 if large else 1
     if grid is None:
-        grid = PoseGrid.from_ranges((Ho, Wo), t_max=t_max, rz_max=rz_max, rz_step=rz_step)
+        if rz_step is None and large:
+            grid = PoseGrid.from_ranges((Ho, Wo), t_max=t_max, rz_max=rz_max, corner_px=1.0)
+        else:
+            grid = PoseGrid.from_ranges((Ho, Wo), t_max=t_max, rz_max=rz_max,
+                                        rz_step=0.5 if rz_step is None else rz_step)
     elif tuple(grid.image_shape) != (Ho, Wo):
         raise ValueError(f"grid geometry {grid.image_shape} does not match the observation")
     report("estimate", 0.0)

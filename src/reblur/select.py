@@ -54,6 +54,7 @@ class SelectParams:
     invariant_ratio: float = 0.9  #: no window passed T_m: space-invariant only if m >= this * m_1
     max_occluded: float = 2.0 / 3.0  #: reject a window with more occluded pixels than this
     windows: int = 1  #: windows estimated jointly (1 = the paper's Algorithm 1)
+    spread_size: int = 5  #: window side (units) when ``windows >= 2``
     lam: float = 0.1
     overview_side: int = 1024  #: resolution of the region-score map
     extra: dict = field(default_factory=dict)
@@ -266,6 +267,8 @@ def select_windows(
             "reference for every pose of the grid (align first or shrink the grid)"
         )
     tried: list[dict] = []
+    if p.windows >= 2:
+        return _select_spread(reference, observed, grid, base, p, cells, cover, (H, W), progress)
 
     def measure(b: Box) -> float:
         m, _ = kernel_similarity(
@@ -334,6 +337,67 @@ def select_windows(
         crop = CropChoice(boxes=[c.as_tuple() for c in chosen], size=rec["size"] * unit, m1=m1,
                           threshold=thr, tried=tried, space_invariant=invariant)
         return crop, est
+
+
+def _select_spread(reference, observed, grid, base, p: SelectParams, cells, cover, shape,
+                   progress) -> tuple[CropChoice, MotionEstimate]:
+    """``p.windows`` windows of ``p.spread_size`` units, good regions spread far apart.
+
+    Seen from one window, a small roll about a distant principal point is nearly a pure
+    translation, so the roll is observable only from windows far apart.  The first window
+    maximises (score^0.5 x distance from the principal point), each next one (score^0.5 x
+    distance to the nearest chosen window); all are estimated jointly (eq. 5 stacked, one
+    set of weights).  A window more than ``max_occluded`` occluded is replaced by the next
+    best one.
+    """
+    unit = p.unit
+    H, W = shape
+    S = int(min(p.spread_size, cells.shape[0], cells.shape[1]))
+    sc = _window_scores(cells, S)
+    cv = _window_scores(cover.astype(float), S)
+    ok = (cv >= 1.0 - 1e-9) & (sc > 0)
+    if not ok.any():
+        raise ValueError("motion cannot be estimated: no textured, covered window found")
+    ys, xs = np.mgrid[0 : sc.shape[0], 0 : sc.shape[1]]
+    cyy, cxx = (ys + S / 2) * unit, (xs + S / 2) * unit
+    pcx, pcy = grid.center
+    smax = sc[ok].max()
+    excluded = np.zeros(sc.shape, bool)
+    tried: list[dict] = []
+    for _attempt in range(3):
+        chosen: list[Box] = []
+        for _ in range(p.windows):
+            if chosen:
+                d = np.min([np.hypot(cyy - (c.y0 + c.h / 2), cxx - (c.x0 + c.w / 2))
+                            for c in chosen], axis=0)
+                allowed = ok & ~excluded & (d >= S * unit)
+            else:
+                d = np.hypot(cyy - pcy, cxx - pcx) + unit
+                allowed = ok & ~excluded
+            if not allowed.any():
+                break
+            obj = np.where(allowed, np.sqrt(sc / smax) * d, -np.inf)
+            iy, ix = np.unravel_index(int(np.argmax(obj)), obj.shape)
+            chosen.append(Box(int(iy * unit), int(ix * unit), S * unit, S * unit))
+        if progress:
+            progress(f"{len(chosen)} spread windows of {S * unit} px")
+        est = estimate_motion(reference, observed, grid, boxes=[c.as_tuple() for c in chosen],
+                              base=base, lam=p.lam)
+        bad = [i for i, c in enumerate(est.chi) if _occluded_fraction_one(c) > p.max_occluded]
+        for i, c in enumerate(chosen):
+            tried.append(dict(box=c.as_tuple(), size=S, m=float("nan"), accepted=i not in bad,
+                              reason="too occluded" if i in bad else "spread window"))
+        if not bad or len(chosen) - len(bad) < 1:
+            break
+        for i in bad:
+            excluded[chosen[i].y0 // unit, chosen[i].x0 // unit] = True
+    crop = CropChoice(boxes=[c.as_tuple() for c in chosen], size=S * unit, tried=tried)
+    return crop, est
+
+
+def _occluded_fraction_one(chi: np.ndarray) -> float:
+    nz = chi != 0
+    return float((nz.any(axis=2) if nz.ndim == 3 else nz).mean())
 
 
 def _occluded_fraction(est: MotionEstimate) -> float:

@@ -37,6 +37,7 @@ __all__ = [
     "DEFAULT_SHAKE",
     "DEFAULT_VIEWPOINT",
     "CameraPath",
+    "MosaicScene",
     "SimulatedPair",
     "add_noise",
     "blur_along_path",
@@ -976,3 +977,78 @@ def make_pair(
         scene=scene,
         scene_truth=mask,
     )
+
+
+class MosaicScene:
+    """A huge virtual image made of real images, computed window by window on demand.
+
+    The image is a ``rows x cols`` mosaic of cells of ``cell x cell`` pixels; each cell is
+    one of ``images`` (cycled), flipped/transposed at random, and resampled to the cell size
+    by bicubic interpolation.  Every pixel is computed from the same formula whichever
+    window asks for it, so any window equals the same window of the whole mosaic; nothing
+    full-size is ever held.  Supports ``scene[y0:y1, x0:x1]`` (steps allowed), ``shape`` and
+    ``dtype`` like an array, so it can stand in for a gigapixel reference anywhere reblur
+    reads windows.
+
+    Parameters
+    ----------
+    images : sequence of (h, w) ndarray
+        Grayscale source images (float in [0, 1] or uint8/uint16).
+    cell : int
+        Cell side in pixels (e.g. ``2 * 1024`` to upsample 1024 px images x 2).
+    rows, cols : int
+        Mosaic size in cells; ``shape = (rows * cell, cols * cell)``.
+    rng : numpy.random.Generator or int
+        Seed of the per-cell image choice and orientation.
+    """
+
+    def __init__(self, images, cell: int, rows: int, cols: int, rng=0):
+        gen = _rng(rng)
+        self.images = [to_float(np.asarray(im))[0] for im in images]
+        if any(im.ndim != 2 for im in self.images):
+            raise ValueError("MosaicScene takes grayscale images")
+        self.cell = int(cell)
+        self.shape = (int(rows) * self.cell, int(cols) * self.cell)
+        self.dtype = np.dtype(np.float32)
+        self.ndim = 2
+        n = len(self.images)
+        self._pick = [
+            [(int(gen.integers(n)), int(gen.integers(8))) for _ in range(cols)]
+            for _ in range(rows)
+        ]
+
+    def __getitem__(self, key):
+        ys, xs = key
+        y0, y1, sy = ys.indices(self.shape[0])
+        x0, x1, sx = xs.indices(self.shape[1])
+        yy = np.arange(y0, y1, sy)
+        xx = np.arange(x0, x1, sx)
+        out = np.zeros((yy.size, xx.size), np.float32)
+        c = self.cell
+        for ci in np.unique(yy // c):
+            ry = np.flatnonzero(yy // c == ci)
+            for cj in np.unique(xx // c):
+                rx = np.flatnonzero(xx // c == cj)
+                k, o = self._pick[ci][cj]
+                img = self.images[k]
+                ly = (yy[ry] - ci * c).astype(np.float32)
+                lx = (xx[rx] - cj * c).astype(np.float32)
+                if o & 1:
+                    ly = c - 1 - ly
+                if o & 2:
+                    lx = c - 1 - lx
+                if o & 4:  # transpose the cell
+                    ly, lx = lx, ly
+                    gy, gx = np.meshgrid(ly, lx, indexing="xy")
+                else:
+                    gx, gy = np.meshgrid(lx, ly, indexing="xy")
+                h, w = img.shape
+                mx = ((gx + 0.5) * (w / c) - 0.5).astype(np.float32)
+                my = ((gy + 0.5) * (h / c) - 0.5).astype(np.float32)
+                part = cv2.remap(img, mx, my, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+                out[np.ix_(ry, rx)] = np.clip(part, 0.0, 1.0)
+        return out
+
+    def __array__(self, dtype=None, copy=None):
+        a = self[:, :]
+        return a if dtype is None else a.astype(dtype)

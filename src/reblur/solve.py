@@ -117,7 +117,7 @@ def active_set(
     masks: Sequence[np.ndarray] | None = None,
     batch: int = 24,
     max_outer: int = 60,
-    max_irls: int = 30,
+    max_irls: int = 10,
     tol: float = 1e-7,
     w0: np.ndarray | None = None,
     time_limit: float | None = None,
@@ -310,7 +310,7 @@ def _irls(wins, active, wa, G0, b0, lam, delta, max_irls) -> np.ndarray:
                 Aw = A * om[:, None]
                 G -= A.T @ Aw
                 b -= Aw.T @ win.g[rows, cols, chans]
-        if prev - obj <= 1e-10 * max(obj, 1e-300) and np.isfinite(prev):
+        if prev - obj <= 1e-6 * max(obj, 1e-300) and np.isfinite(prev):
             break
         prev = obj
         wa = _nnls_gram(G, b)
