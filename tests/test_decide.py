@@ -1,0 +1,317 @@
+"""Change decision on synthetic pairs with known truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.ndimage as ndi
+
+from reblur.decide import (
+    DecisionParams,
+    Photometry,
+    change_statistic,
+    decide,
+    decide_tile,
+    estimate_threshold,
+    fit_photometry,
+    tile_boxes,
+)
+from reblur.metrics import change_metrics
+
+SHAPE = (384, 384)
+# (top-left, size, change): bright, dark, low contrast (6 noise sigmas), one band only
+SQUARES = [((60, 60), 40, +0.25), ((60, 250), 40, -0.25), ((250, 60), 40, +0.06),
+           ((250, 250), 40, "band0")]
+GAIN = np.array([1.1, 0.9, 1.05], np.float32)
+OFFSET = np.array([0.05, -0.02, 0.0], np.float32)
+
+
+def _texture(shape, bands, rng):
+    h, w = shape
+    tex = np.zeros((h, w, bands))
+    for s in (1.5, 4.0, 12.0):
+        tex += ndi.gaussian_filter(rng.standard_normal((h, w, bands)), (s, s, 0)) * s
+    return np.clip(0.5 + 0.15 * tex / tex.std(), 0, 1).astype(np.float32)
+
+
+def make_pair(bands=3, seed=0, ramp=True, squares=SQUARES):
+    """Reblurred reference, observation (gain/offset, illumination ramp, noise 0.01, pasted
+    squares), truth of the squares, unknown mask (garbage values there)."""
+    rng = np.random.default_rng(seed)
+    h, w = SHAPE
+    reb = _texture(SHAPE, bands, rng)
+    obs = reb.copy()
+    truth = np.zeros(SHAPE, bool)
+    for (y, x), s, d in squares:
+        sl = (slice(y, y + s), slice(x, x + s))
+        if d == "band0":
+            obs[sl + (slice(0, 1),)] += 0.2
+        else:
+            obs[sl] += d
+        truth[sl] = True
+    obs = obs * GAIN[:bands] + OFFSET[:bands]
+    if ramp:  # multiplicative illumination ramp across, additive haze down
+        yy, xx = np.mgrid[0:h, 0:w]
+        obs = obs * (0.85 + 0.3 * xx / w)[..., None] + (0.04 * yy / h)[..., None]
+    obs = obs + 0.01 * rng.standard_normal(obs.shape)
+    unknown = np.zeros(SHAPE, bool)
+    unknown[:, :8] = True
+    unknown[150:190, 300:340] = True
+    obs[unknown] = rng.random((int(unknown.sum()), bands))
+    obs = obs.astype(np.float32)
+    if bands == 1:
+        obs, reb = obs[..., 0], reb[..., 0]
+    return obs, reb, truth, unknown
+
+
+@pytest.fixture(scope="module")
+def colour():
+    return make_pair(bands=3)
+
+
+@pytest.fixture(scope="module")
+def colour_result(colour):
+    obs, reb, truth, unknown = colour
+    return decide(obs, reb, unknown, field_block=96)
+
+
+# --------------------------------------------------------------------------- whole image
+def _check_detection(change, truth, unknown):
+    m = change_metrics(truth, change, ignore=unknown)
+    assert m["jaccard"] >= 0.9, m
+    # no false alarm away from the squares: the ramp and the texture raise nothing
+    near = ndi.binary_dilation(truth, iterations=4)
+    assert not np.any(change & ~near), int(np.count_nonzero(change & ~near))
+    # every square found, including the faint one and the one-band change
+    for (y, x), s, _ in SQUARES:
+        assert change[y : y + s, x : x + s].mean() >= 0.9, (y, x)
+
+
+def test_colour_squares_with_ramp(colour, colour_result):
+    obs, reb, truth, unknown = colour
+    change, info = colour_result
+    _check_detection(change, truth, unknown)
+    assert len(info["regions"]) == len(SQUARES)
+    assert info["threshold_info"]["method"] == "auto"
+
+
+def test_grayscale_squares_with_ramp():
+    obs, reb, truth, unknown = make_pair(bands=1)
+    change, info = decide(obs, reb, unknown, field_block=96)
+    assert change.shape == SHAPE
+    _check_detection(change, truth, unknown)
+
+
+def test_ramp_needs_the_field(colour):
+    # without the smooth field the ramp is left in the residual (the field does the work)
+    obs, reb, truth, unknown = colour
+    change, _ = decide(obs, reb, unknown)
+    assert change_metrics(truth, change, ignore=unknown)["jaccard"] < 0.9
+
+
+def test_unknown_never_change(colour, colour_result):
+    obs, reb, truth, unknown = colour
+    change, info = colour_result
+    assert not np.any(change & unknown)
+    assert info["n_unknown"] == int(unknown.sum())
+    # a square half covered by unknown pixels: only its known half may be flagged
+    unk = unknown.copy()
+    unk[60:100, 60:80] = True
+    change2, _ = decide(obs, reb, unk, field_block=96)
+    assert not np.any(change2 & unk)
+    assert change2[60:100, 80:100].mean() > 0.8
+    # NaN pixels count as unknown
+    obs_nan = obs.copy()
+    obs_nan[300:320, 150:170] = np.nan
+    change3, info3 = decide(obs_nan, reb, unknown, field_block=96)
+    assert not change3[300:320, 150:170].any()
+    assert info3["n_unknown"] == int(unknown.sum()) + 400
+
+
+def test_no_change_no_alarm():
+    obs, reb, truth, unknown = make_pair(bands=3, seed=1, ramp=False, squares=[])
+    change, info = decide(obs, reb, unknown)
+    assert not change.any()
+    assert info["photometry"]["gain"] == pytest.approx(list(GAIN), abs=0.01)
+
+
+def test_threshold_override(colour, colour_result):
+    obs, reb, truth, unknown = colour
+    _, info = colour_result
+    ph = fit_photometry(obs, reb, ~unknown, field_block=96)
+    huge, info_h = decide(obs, reb, unknown, photometry=ph, threshold=1e6)
+    assert not huge.any()
+    assert info_h["threshold"] == 1e6 and info_h["threshold_info"]["method"] == "given"
+    # the estimated threshold, given explicitly, reproduces the default call
+    same, _ = decide(obs, reb, unknown, photometry=ph, threshold=info["threshold"])
+    assert np.array_equal(same, colour_result[0])
+    # a threshold between the faint square's level and the strong ones drops the faint one
+    S = change_statistic(obs, ph.apply(reb), ~unknown, ph.sigma)
+    faint = float(np.median(S[255:285, 65:95]))
+    mid, _ = decide(obs, reb, unknown, photometry=ph, threshold=1.2 * faint)
+    assert not mid[250:290, 60:100].any()
+    assert mid[60:100, 60:100].mean() > 0.9
+
+
+def test_hysteresis_needs_strong_evidence(colour):
+    obs, reb, truth, unknown = colour
+    ph = fit_photometry(obs, reb, ~unknown, field_block=96)
+    S = change_statistic(obs, ph.apply(reb), ~unknown, ph.sigma)
+    faint = float(np.median(S[255:285, 65:95]))
+    t = 0.6 * faint  # the faint square is above the threshold but nowhere at 2 t
+    weak, info = decide(obs, reb, unknown, photometry=ph, threshold=t)
+    assert not weak[250:290, 60:100].any()
+    assert info["counts"]["weak"] >= 1
+    kept, _ = decide(obs, reb, unknown, photometry=ph, threshold=t, strong_factor=1.2)
+    assert kept[250:290, 60:100].mean() > 0.8
+
+
+def test_region_tests_reject_networks():
+    # a road-like cross (branching, thin) and a strip vs one compact square
+    obs, reb, _, unknown = make_pair(bands=3, seed=2, ramp=False, squares=[((300, 300), 36, 0.2)])
+    obs = obs.copy()
+    obs[40:52, 20:360] += 0.2 * GAIN  # horizontal bar of the cross
+    obs[20:240, 150:162] += 0.2 * GAIN  # vertical bar
+    obs[300:310, 20:260] += 0.2 * GAIN  # a 10 x 240 strip
+    with_tests, info = decide(obs, reb, unknown)
+    assert with_tests[300:336, 300:336].mean() > 0.9
+    assert not with_tests[:260, :].any() and not with_tests[290:320, 20:260].any()
+    assert info["counts"]["not_object"] >= 2
+    pixel_only, _ = decide(obs, reb, unknown, region_tests=False)
+    assert pixel_only[40:52, 30:140].mean() > 0.9 and pixel_only[300:310, 30:250].mean() > 0.9
+
+
+# --------------------------------------------------------------------------- tiles
+def _tiled(obs, reb, unknown, ph, threshold, params, tile, halo):
+    out = np.zeros(unknown.shape, bool)
+    infos = []
+    for pbox, cbox in tile_boxes(unknown.shape, tile, halo):
+        y0, x0, h, w = pbox
+        sl = (slice(y0, y0 + h), slice(x0, x0 + w))
+        m, info = decide_tile(obs[sl], reb[sl], unknown[sl], threshold=threshold,
+                              photometry=ph, box=pbox, core=cbox, params=params)
+        cy, cx, ch, cw = cbox
+        out[cy : cy + ch, cx : cx + cw] = m
+        infos.append((cbox, info))
+    return out, infos
+
+
+def test_tiled_equals_whole(colour, colour_result):
+    obs, reb, truth, unknown = colour
+    whole, info = colour_result
+    ph = fit_photometry(obs, reb, ~unknown, field_block=96)
+    p = DecisionParams()
+    halo = p.halo(max_region_extent=60)  # the squares are 40 px (plus their bleed)
+    tiled, infos = _tiled(obs, reb, unknown, ph, info["threshold"], p, 100, halo)
+    assert all(i["complete"] for _, i in infos)
+    assert np.array_equal(tiled, whole)
+    # each region is reported by exactly one tile, at the same place
+    regions = sorted(r["bbox"] for _, i in infos for r in i["regions"])
+    assert regions == sorted(r["bbox"] for r in info["regions"])
+
+
+def test_small_halo_is_flagged(colour, colour_result):
+    obs, reb, truth, unknown = colour
+    whole, info = colour_result
+    ph = fit_photometry(obs, reb, ~unknown, field_block=96)
+    p = DecisionParams()
+    tiled, infos = _tiled(obs, reb, unknown, ph, info["threshold"], p, 100, p.local_radius + 2)
+    assert not all(i["complete"] for _, i in infos)
+    for (cy, cx, ch, cw), i in infos:  # tiles claiming completeness are exact
+        if i["complete"]:
+            assert np.array_equal(tiled[cy : cy + ch, cx : cx + cw],
+                                  whole[cy : cy + ch, cx : cx + cw])
+
+
+def test_decide_tile_checks_boxes(colour):
+    obs, reb, _, unknown = colour
+    ph = fit_photometry(obs, reb, ~unknown)
+    with pytest.raises(ValueError, match="box size"):
+        decide_tile(obs[:50, :50], reb[:50, :50], threshold=2.0, photometry=ph, box=(0, 0, 60, 50))
+    with pytest.raises(ValueError, match="not inside"):
+        decide_tile(obs[:50, :50], reb[:50, :50], threshold=2.0, photometry=ph,
+                    box=(0, 0, 50, 50), core=(40, 40, 20, 20))
+
+
+# --------------------------------------------------------------------------- photometry
+def test_photometry_robust_global_fit():
+    rng = np.random.default_rng(5)
+    reb = _texture((200, 200), 3, rng)
+    obs = reb * GAIN + OFFSET + 0.01 * rng.standard_normal(reb.shape).astype(np.float32)
+    obs[:, :40] += 0.3  # 20 % of the pixels changed
+    ph = fit_photometry(obs, reb)
+    assert ph.gain == pytest.approx(GAIN, abs=0.02)
+    assert ph.offset == pytest.approx(OFFSET, abs=0.02)
+    assert ph.sigma == pytest.approx([0.01] * 3, rel=0.3)
+    d = ph.to_dict()
+    assert d["field_block"] is None and len(d["gain"]) == 3
+
+
+def test_photometry_from_tiles_and_downsampled(colour):
+    obs, reb, _, unknown = colour
+    whole = fit_photometry(obs, reb, ~unknown, field_block=96)
+    boxes = [(0, 0, 192, 192), (0, 192, 192, 192), (192, 0, 192, 192), (192, 192, 192, 192)]
+    sl = [(slice(y, y + h), slice(x, x + w)) for y, x, h, w in boxes]
+    tiles = fit_photometry([obs[s] for s in sl], [reb[s] for s in sl],
+                           [~unknown[s] for s in sl], boxes=boxes, field_block=96)
+    assert tiles.image_shape == SHAPE
+    small = [(a.reshape(192, 2, 192, 2, 3).mean((1, 3))) for a in (obs, reb)]
+    valid_small = ~unknown.reshape(192, 2, 192, 2).any((1, 3))
+    down = fit_photometry(small[0], small[1], valid_small, scale=2, field_block=96)
+    assert down.image_shape == SHAPE
+    ref = whole.apply(reb)
+    for ph in (tiles, down):
+        assert np.abs(ph.apply(reb) - ref)[~unknown].max() < 0.01
+    # applying per tile equals applying to the whole image
+    y, x, h, w = 100, 37, 80, 150
+    part = whole.apply(reb[y : y + h, x : x + w], (y, x, h, w))
+    assert np.array_equal(part, ref[y : y + h, x : x + w])
+    assert isinstance(whole.with_sigma([0.02] * 3), Photometry)
+    # the downsampled fit's residual scale is that of averaged pixels; re-measure at full res
+    y, x, h, w = boxes[3]
+    full = down.residual_sigma(obs[y:, x:], reb[y:, x:], ~unknown[y:, x:], boxes[3])
+    assert np.all(down.sigma < 0.8 * full) and full == pytest.approx(whole.sigma, rel=0.1)
+    with pytest.raises(ValueError, match="boxes"):
+        fit_photometry([obs], [reb])
+
+
+# --------------------------------------------------------------------------- threshold
+def test_estimate_threshold():
+    rng = np.random.default_rng(0)
+    noise = 1.0 + 0.1 * rng.standard_normal(50_000)
+    t, info = estimate_threshold(noise, method="mad")
+    assert t == pytest.approx(info["median"] + 4 * info["mad"])
+    assert t == pytest.approx(1.4, abs=0.02)
+    # overlapping classes: Otsu (lower) is used; well separated: the MAD bound
+    overlap = np.concatenate([rng.gamma(2.0, 0.5, 50_000), 3 + rng.gamma(2.0, 1.0, 20_000)])
+    t_o, info_o = estimate_threshold(overlap)
+    assert t_o == info_o["otsu"] < info_o["mad_bound"]
+    separated = np.concatenate([noise, 20 + rng.standard_normal(2_000)])
+    t_s, info_s = estimate_threshold([separated[:10_000], separated[10_000:]])
+    assert t_s == info_s["mad_bound"] < info_s["otsu"] < 20
+    t_c, info_c = estimate_threshold(np.full(10, 2.0))
+    assert t_c > 2.0 and "note" in info_c
+    with pytest.raises(ValueError, match="finite"):
+        estimate_threshold(np.array([np.nan]))
+    with pytest.raises(ValueError, match="method"):
+        estimate_threshold(noise, method="kmeans")
+
+
+# --------------------------------------------------------------------------- validation
+def test_input_validation(colour):
+    obs, reb, _, unknown = colour
+    with pytest.raises(ValueError, match="shape"):
+        decide(obs, reb[:-1])
+    with pytest.raises(ValueError, match="unknown"):
+        decide(obs, reb, unknown[:-1])
+    with pytest.raises(ValueError, match="no known pixel"):
+        decide(obs, reb, np.ones(SHAPE, bool))
+    with pytest.raises(TypeError, match="unknown decision parameter"):
+        decide(obs, reb, min_aera=3)
+    with pytest.raises(ValueError, match="levels"):
+        DecisionParams(levels=(1.5, 2.0))
+    with pytest.raises(ValueError, match="boundary_fraction"):
+        DecisionParams(boundary_fraction=1.0)
+    p = DecisionParams()
+    assert p.local_radius == 8 + 2 * 3 + 1
+    assert p.halo(100) == p.local_radius + 100
