@@ -1,0 +1,445 @@
+"""The ``reblur`` command line: a thin layer over the library.
+
+Each command resolves paths, opens the inputs with :mod:`reblur.io`, calls one library
+function with its options passed 1:1 as keywords, and writes with :mod:`reblur.report`.
+
+Errors never show a traceback (unless ``-v``): every failure prints one line
+``reblur: error: <what went wrong>`` on stderr and exits non-zero (2 for usage errors,
+1 otherwise).  Nothing is written to the output directory unless the command succeeds.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import sys
+import tempfile
+import time
+import traceback
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import click
+
+from .io import DEFAULT_MAX_PIXELS, Image, InputError, open_image, read_mask, reconcile_bands
+
+__all__ = ["main"]
+
+log = logging.getLogger("reblur")
+
+#: Verbosity of the running command (read by the error handler of :func:`main`).
+_STATE: dict[str, int] = {"verbose": 0}
+
+#: Files ``reblur simulate`` writes.
+SIMULATE_NAMES = ("reference.tif", "observed.tif", "truth.png", "unknown.png", "path.json")
+
+
+# ---------------------------------------------------------------------------- errors
+def _one_line(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _describe(exc: BaseException) -> str:
+    """One line describing an exception raised while running a command."""
+    if isinstance(exc, (InputError, ValueError)):
+        return _one_line(str(exc)) or type(exc).__name__
+    if isinstance(exc, MemoryError):
+        return "out of memory (try a smaller --tile-size, or fewer --workers)"
+    if isinstance(exc, OSError):
+        where = f"{exc.filename}: " if exc.filename else ""
+        return _one_line(f"{where}{exc.strerror or exc}")
+    name = type(exc).__name__
+    if type(exc).__module__.startswith("reblur"):
+        return _one_line(f"{name}: {exc}")
+    return _one_line(f"internal error: {name}: {exc} (run with -v for the traceback)")
+
+
+def _fail(message: str, code: int) -> None:
+    click.echo(f"reblur: error: {_one_line(message)}", err=True)
+    sys.exit(code)
+
+
+class _ReblurGroup(click.Group):
+    """Click group whose errors are one line on stderr, with a traceback only under -v."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
+        if not standalone_mode:
+            return super().main(args, prog_name, complete_var, standalone_mode=False, **extra)
+        try:
+            rv = super().main(
+                args, prog_name or "reblur", complete_var, standalone_mode=False, **extra
+            )
+        except click.exceptions.Abort:
+            _fail("aborted", 1)
+        except click.UsageError as exc:
+            cmd = exc.ctx.command_path if exc.ctx is not None else "reblur"
+            _fail(f"{exc.format_message()} (see '{cmd} --help')", exc.exit_code)
+        except click.ClickException as exc:
+            _fail(exc.format_message(), exc.exit_code)
+        except KeyboardInterrupt:
+            _fail("interrupted", 130)
+        except Exception as exc:  # noqa: BLE001 - the one place every error is reported
+            if _STATE["verbose"]:
+                traceback.print_exc()
+            _fail(_describe(exc), 1)
+        sys.exit(rv if isinstance(rv, int) else 0)
+
+
+# ---------------------------------------------------------------------------- options
+def _set_verbosity(ctx: click.Context, param: click.Parameter, value: int) -> int:
+    _STATE["verbose"] = max(_STATE["verbose"], int(value or 0))
+    level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(_STATE["verbose"], 2)]
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("reblur: %(levelname)s: %(message)s"))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+    logging.captureWarnings(True)
+    # third-party warnings only with -v: without it, stderr carries at most the error line
+    logging.getLogger("py.warnings").setLevel(logging.WARNING if _STATE["verbose"]
+                                              else logging.ERROR)
+    for noisy in ("rasterio", "matplotlib", "PIL", "tifffile", "numcodecs", "zarr"):
+        logging.getLogger(noisy).setLevel(logging.WARNING if _STATE["verbose"] >= 2
+                                          else logging.ERROR)
+    return value
+
+
+def verbose_option(f: Callable) -> Callable:
+    """``-v/--verbose`` (count): more log output and tracebacks on error."""
+    return click.option(
+        "-v", "--verbose", count=True, expose_value=False, is_eager=True,
+        callback=_set_verbosity,
+        help="Log more (-vv: debug); show the traceback on error.",
+    )(f)
+
+
+def quiet_option(f: Callable) -> Callable:
+    return click.option("-q", "--quiet", is_flag=True, help="No progress bars.")(f)
+
+
+def overwrite_option(f: Callable) -> Callable:
+    return click.option(
+        "--overwrite", is_flag=True,
+        help="Replace the results of an earlier run in the output directory.",
+    )(f)
+
+
+def max_pixels_option(default: int) -> Callable:
+    return click.option(
+        "--max-pixels", type=click.IntRange(min=1), default=default, show_default=True,
+        help="Refuse larger images (height x width): a guard against decompression bombs.",
+    )
+
+
+_PATH = click.Path(path_type=Path)
+
+
+class _Progress:
+    """``progress(stage, fraction)`` callback drawing one tqdm bar per stage on stderr.
+
+    Bars are drawn only when stderr is a terminal.
+    """
+
+    def __init__(self) -> None:
+        self.bar = None
+        self.stage: str | None = None
+
+    def __call__(self, stage: str, fraction: float) -> None:
+        from tqdm import tqdm
+
+        if stage != self.stage:
+            self.close()
+            self.stage = stage
+            self.bar = tqdm(total=100, desc=stage, file=sys.stderr, leave=False, disable=None,
+                            unit="%", bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}")
+        n = int(round(100 * min(max(float(fraction), 0.0), 1.0)))
+        if self.bar is not None and n > self.bar.n:
+            self.bar.update(n - self.bar.n)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.close()
+            self.bar = None
+
+
+# ---------------------------------------------------------------------------- paths
+def _same_or_inside(a: Path, b: Path) -> bool:
+    """True when ``a`` is ``b`` or lies inside ``b``."""
+    return a == b or b in a.parents
+
+
+def _check_output_dir(
+    out: Path, inputs: list[Path], names: tuple[str, ...], overwrite: bool
+) -> Path:
+    """Refuse output directories that are unusable, hold results, or would clobber inputs.
+
+    Writes nothing: a missing directory is created (to prove it can be) and removed again.
+    """
+    out_r = out.expanduser().resolve()
+    for p in inputs:
+        p_r = p.expanduser().resolve()
+        if _same_or_inside(out_r, p_r):
+            raise click.ClickException(f"{out}: output directory is (inside) the input {p}")
+        if p_r.parent == out_r and p_r.name in names:
+            raise click.ClickException(f"{out}: writing results there would overwrite the "
+                                       f"input {p}; choose another --out")
+    if out_r.exists():
+        if not out_r.is_dir():
+            raise click.ClickException(f"{out}: exists and is not a directory")
+        found = [n for n in names if (out_r / n).exists()]
+        if found and not overwrite:
+            raise click.ClickException(
+                f"{out}: already holds results ({', '.join(found[:3])}"
+                f"{', ...' if len(found) > 3 else ''}); use --overwrite to replace them"
+            )
+        try:
+            fd, tmp = tempfile.mkstemp(dir=out_r, prefix=".reblur-probe-")
+            os.close(fd)
+            os.unlink(tmp)
+        except OSError as exc:
+            raise click.ClickException(
+                f"{out}: output directory is not writable ({exc.strerror or exc})"
+            ) from exc
+        return out_r
+    anc = out_r
+    while not anc.exists():
+        anc = anc.parent
+    if not anc.is_dir():
+        raise click.ClickException(f"{out}: cannot create the output directory ({anc} is a file)")
+    try:
+        out_r.mkdir(parents=True)
+    except OSError as exc:
+        raise click.ClickException(
+            f"{out}: cannot create the output directory ({exc.strerror or exc})"
+        ) from exc
+    # remove what the probe created, deepest first
+    d = out_r
+    while d != anc:
+        d.rmdir()
+        d = d.parent
+    return out_r
+
+
+def _open_pair(reference: Path, observed: Path, max_pixels: int) -> tuple[Image, Image]:
+    ref = open_image(reference, max_pixels=max_pixels)
+    obs = open_image(observed, max_pixels=max_pixels)
+    for note_img in (ref, obs):
+        for note in note_img.notes:
+            log.info("%s: %s", note_img.name, note)
+    return reconcile_bands(ref, obs)
+
+
+def _finish_outputs(out: Path, files: dict[str, str]) -> None:
+    """Remove result files of an earlier run that this run did not rewrite."""
+    from .report import remove_outputs
+
+    for p in remove_outputs(out, keep=files.values()):
+        log.info("removed stale %s", p)
+
+
+# ---------------------------------------------------------------------------- commands
+@click.group(cls=_ReblurGroup, context_settings=dict(help_option_names=["-h", "--help"]))
+@click.version_option(package_name="reblur", prog_name="reblur")
+def main() -> None:
+    """Change detection between a sharp reference image and a later, motion-blurred,
+    re-viewpointed observation, for images up to gigapixels.
+
+    Run 'reblur demo' for a first look, 'reblur COMMAND --help' for each command.
+    """
+
+
+@main.command(short_help="Detect changes between a reference and a blurred observation.")
+@click.argument("reference", type=_PATH)
+@click.argument("observed", type=_PATH)
+@click.option("-o", "--out", type=_PATH, required=True,
+              help="Output directory (created; must not hold results unless --overwrite).")
+@click.option("--t-max", type=click.IntRange(min=0), default=12, show_default=True,
+              help="Pose grid: largest in-plane translation |tx|, |ty| (pixels).")
+@click.option("--rz-max", type=click.FloatRange(min=0), default=3.0, show_default=True,
+              help="Pose grid: largest in-plane rotation |rz| (degrees).")
+@click.option("--rz-step", type=click.FloatRange(min=0, min_open=True), default=0.5,
+              show_default=True, help="Pose grid: rotation step (degrees).")
+@click.option("--lam", type=click.FloatRange(min=0), default=0.1, show_default=True,
+              help="l1 weight lambda of the joint blur/change estimate (intensities in [0, 1]).")
+@click.option("--tile-size", type=click.IntRange(min=64), default=1024, show_default=True,
+              help="Tile side (pixels) for reblurring and deciding; bounds the memory.")
+@click.option("--threshold", type=float, default=None,
+              help="Decision threshold; default: chosen from the data.")
+@click.option("--truth", type=_PATH, default=None,
+              help="True change mask (non-zero = change): scores go into report.json.")
+@max_pixels_option(DEFAULT_MAX_PIXELS)
+@click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Threads for the tiled stages.")
+@overwrite_option
+@quiet_option
+@verbose_option
+def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float,
+           rz_step: float, lam: float, tile_size: int, threshold: float | None,
+           truth: Path | None, max_pixels: int, workers: int, overwrite: bool,
+           quiet: bool) -> None:
+    """Find what changed between REFERENCE (sharp) and OBSERVED (later, blurred).
+
+    Inputs: PNG, JPEG, TIFF/BigTIFF/GeoTIFF or zarr; uint8, uint16 or float; gray, RGB
+    (an RGB/gray pair is compared in gray; alpha is ignored) or multi-band.  Large TIFF
+    and zarr inputs are read window by window.
+
+    Writes into --out: changes.png (255 = change, in OBSERVED's frame), unknown.png,
+    reblurred.tif, overlay.png, motion.png, report.json, report.html, and for large or
+    georeferenced inputs changes.tif (and changes.geojson).  Prints one summary line.
+    """
+    from .report import OUTPUT_NAMES, summary_line, write_report
+
+    t0 = time.perf_counter()
+    inputs = [reference, observed] + ([truth] if truth is not None else [])
+    out_dir = _check_output_dir(out, inputs, OUTPUT_NAMES, overwrite)
+    ref, obs = _open_pair(reference, observed, max_pixels)
+    truth_mask = (read_mask(truth, obs.shape[:2], max_pixels=max_pixels, what="truth mask")
+                  if truth is not None else None)
+    t_open = time.perf_counter() - t0
+    log.info("reference %s %s, observed %s %s", ref.shape, ref.dtype, obs.shape, obs.dtype)
+
+    import reblur
+
+    progress = None if quiet else _Progress()
+    options = dict(t_max=t_max, rz_max=rz_max, rz_step=rz_step, lam=lam, tile_size=tile_size,
+                   threshold=threshold, workers=workers)
+    try:
+        result = reblur.detect_changes(ref.array, obs.array, progress=progress, **options)
+    finally:
+        if progress is not None:
+            progress.close()
+    files, summary = write_report(
+        result, out_dir, reference=ref, observed=obs, truth=truth_mask,
+        options=dict(options, max_pixels=max_pixels, command="detect",
+                     truth=str(truth) if truth is not None else None),
+        timings=dict(open=t_open),
+    )
+    _finish_outputs(out_dir, files)
+    click.echo(summary_line(summary, out))
+
+
+@main.command(short_help="Run detection on the embedded demo pair.")
+@click.option("-o", "--out", type=_PATH, default=Path("reblur-demo"), show_default=True,
+              help="Output directory.")
+@overwrite_option
+@quiet_option
+@verbose_option
+def demo(out: Path, overwrite: bool, quiet: bool) -> None:
+    """Detect changes in the demo pair shipped with reblur and write the report.
+
+    The pair is a real photograph, re-viewpointed, shaken and changed; its true change
+    mask is known, so report.json also holds the scores.
+    """
+    from .data import demo_pair
+    from .report import OUTPUT_NAMES, summary_line, write_report
+
+    out_dir = _check_output_dir(out, [], OUTPUT_NAMES, overwrite)
+    reference, observed, truth = demo_pair()
+    ref = Image.from_array(reference, "demo reference")
+    obs = Image.from_array(observed, "demo observed")
+    import reblur
+
+    progress = None if quiet else _Progress()
+    try:
+        result = reblur.detect_changes(ref.array, obs.array, progress=progress)
+    finally:
+        if progress is not None:
+            progress.close()
+    files, summary = write_report(result, out_dir, reference=ref, observed=obs,
+                                  truth=truth, options=dict(command="demo"))
+    _finish_outputs(out_dir, files)
+    click.echo(summary_line(summary, out))
+    click.echo(f"open {out / 'report.html'} for the full report")
+
+
+@main.command(short_help="Make a synthetic blurred pair with known changes.")
+@click.argument("image", type=_PATH)
+@click.option("-o", "--out", type=_PATH, required=True, help="Output directory.")
+@click.option("--after", type=_PATH, default=None,
+              help="A real later image of the same scene (aligned with IMAGE) to blur.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
+@click.option("--t-max", type=click.FloatRange(min=0), default=6.0, show_default=True,
+              help="Camera shake: largest translation (pixels).")
+@click.option("--rz-max", type=click.FloatRange(min=0), default=1.0, show_default=True,
+              help="Camera shake: largest in-plane rotation (degrees).")
+@click.option("--shift-frac", type=click.FloatRange(min=0), default=0.02, show_default=True,
+              help="Viewpoint change: largest shift, as a fraction of the image size.")
+@click.option("--rot-deg", type=click.FloatRange(min=0), default=2.0, show_default=True,
+              help="Viewpoint change: largest rotation (degrees).")
+@click.option("--changes", "n_changes", type=click.IntRange(min=0), default=4,
+              show_default=True, help="Number of pasted objects.")
+@click.option("--moving/--no-moving", default=True, show_default=True,
+              help="Add an object moving during the exposure.")
+@click.option("--noise", type=click.FloatRange(min=0), default=1.0 / 255.0,
+              show_default="1/255", help="Gaussian noise sigma (intensities in [0, 1]).")
+@max_pixels_option(100_000_000)
+@overwrite_option
+@verbose_option
+def simulate(image: Path, out: Path, after: Path | None, seed: int, t_max: float,
+             rz_max: float, shift_frac: float, rot_deg: float, n_changes: int, moving: bool,
+             noise: float, max_pixels: int, overwrite: bool) -> None:
+    """Simulate a test pair from IMAGE: a reference and a shaken, re-viewpointed observation
+    of the changed scene, with the true changes.
+
+    Writes reference.tif and observed.tif (float32 in [0, 1], so nothing is quantised
+    away), truth.png and unknown.png (255/0, observation frame) and path.json (camera
+    path, viewpoint homography, options).  Then try
+    'reblur detect OUT/reference.tif OUT/observed.tif --truth OUT/truth.png --out RESULTS'.
+    """
+    import numpy as np
+
+    from .io import write_json, write_png, write_tiff
+    from .simulate import make_pair
+
+    inputs = [image] + ([after] if after is not None else [])
+    out_dir = _check_output_dir(out, inputs, SIMULATE_NAMES, overwrite)
+    before = open_image(image, max_pixels=max_pixels).read()
+    later = open_image(after, max_pixels=max_pixels).read() if after is not None else None
+    if later is not None and later.shape != before.shape:
+        raise click.ClickException(f"{after}: shape {later.shape} differs from {image}'s "
+                                   f"{before.shape}")
+    pair = make_pair(
+        before, later, rng=np.random.default_rng(seed),
+        shake=dict(t_max=t_max, rz_max=rz_max) if (t_max or rz_max) else None,
+        viewpoint=(dict(max_shift_frac=shift_frac, max_rot_deg=rot_deg)
+                   if (shift_frac or rot_deg) else None),
+        n_changes=n_changes, moving=moving, noise_sigma=noise,
+    )
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_tiff(out_dir / "reference.tif", np.asarray(pair.reference, np.float32))
+    write_tiff(out_dir / "observed.tif", np.asarray(pair.observed, np.float32))
+    write_png(out_dir / "truth.png", np.asarray(pair.truth, bool))
+    write_png(out_dir / "unknown.png", np.asarray(pair.unknown, bool))
+    meta = dict(pair.meta(), image=str(image), after=str(after) if after else None,
+                options=dict(seed=seed, t_max=t_max, rz_max=rz_max, shift_frac=shift_frac,
+                             rot_deg=rot_deg, changes=n_changes, moving=moving, noise=noise))
+    write_json(out_dir / "path.json", meta)
+    frac = float(np.mean(pair.truth))
+    click.echo(f"simulated {pair.observed.shape[1]}x{pair.observed.shape[0]} pair, "
+               f"{100 * frac:.2f} % changed -> {out}")
+
+
+@main.command(short_help="Score a change mask against the truth (JSON on stdout).")
+@click.argument("predicted", type=_PATH)
+@click.argument("truth", type=_PATH)
+@click.option("--unknown", type=_PATH, default=None,
+              help="Mask of pixels to ignore (non-zero = ignore), e.g. unknown.png.")
+@max_pixels_option(DEFAULT_MAX_PIXELS)
+@verbose_option
+def evaluate(predicted: Path, truth: Path, unknown: Path | None, max_pixels: int) -> None:
+    """Compare the PREDICTED change mask with the TRUTH mask (non-zero = change).
+
+    Prints JSON: pcc, jaccard, yule, precision, recall, f1 and the pixel counts
+    (undefined scores are null).
+    """
+    from .io import to_jsonable
+    from .metrics import change_metrics
+
+    pred = read_mask(predicted, max_pixels=max_pixels, what="predicted mask")
+    true = read_mask(truth, pred.shape, max_pixels=max_pixels, what="truth mask")
+    ign = (read_mask(unknown, pred.shape, max_pixels=max_pixels, what="unknown mask")
+           if unknown is not None else None)
+    scores: dict[str, Any] = change_metrics(true, pred, ignore=ign)
+    click.echo(json.dumps(to_jsonable(scores), indent=2, allow_nan=False))

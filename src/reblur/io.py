@@ -1,0 +1,1063 @@
+"""Reading and writing images, masks and reports, small or gigapixel.
+
+Reading
+-------
+:func:`open_image` returns an :class:`Image`: a handle holding the pixel ``array``
+(``(H, W)`` or ``(H, W, C)``, channel last), its file ``path``, ``format`` and, for a
+GeoTIFF, its georeferencing ``geo``.  Small images are read into a numpy array; large TIFF
+(striped or tiled, classic or BigTIFF) and zarr images stay on disk and ``array`` is a lazy
+array-like (a ``zarr.Array`` or a :class:`LazyBands` view of one) that reads only the
+windows sliced from it: ``image.array[y0:y1, x0:x1]`` returns a numpy array.
+
+Supported: PNG, JPEG, TIFF/BigTIFF/GeoTIFF, zarr arrays (a directory, or a group holding an
+array ``"0"`` or a single array); other formats imagecodecs can decode (BMP, WebP, ...) are
+read into memory.  Pixel types uint8, uint16 (never reduced to 8 bits), other integers and
+float32/float64; gray, gray+alpha, RGB, RGBA (alpha is dropped) and multi-band images.
+
+Every problem with an input raises :class:`InputError` (a ``ValueError``) whose message is
+one line naming the file and the problem: missing file, unreadable, truncated or not an
+image, smaller than :data:`MIN_SIDE` pixels on a side, more than ``max_pixels`` pixels
+(a decompression-bomb guard checked from the header, before any pixel is decoded), NaN or
+Inf pixels (refused: a float image is scanned window by window, never loaded whole).
+
+Writing
+-------
+Every writer is atomic: it writes a temporary file in the destination directory and renames
+it into place (:func:`atomic_path`), so a reader never sees a half-written file and an
+interrupted run leaves no partial output.  :func:`write_tiff` and :func:`write_geotiff`
+accept a numpy array or an iterator of tiles, so a gigapixel mask is written without ever
+existing whole in memory in its output type.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import struct
+import tempfile
+import warnings
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = [
+    "InputError",
+    "Image",
+    "LazyBands",
+    "DEFAULT_MAX_PIXELS",
+    "MIN_SIDE",
+    "open_image",
+    "read_mask",
+    "reconcile_bands",
+    "check_finite",
+    "iter_windows",
+    "atomic_path",
+    "write_png",
+    "write_tiff",
+    "write_geotiff",
+    "write_json",
+    "to_jsonable",
+]
+
+#: Default limit on ``height * width`` (4 gigapixels).  It guards against decompression bombs
+#: and typos; raise it with ``max_pixels=`` (``--max-pixels``) for larger images.
+DEFAULT_MAX_PIXELS = 4_000_000_000
+
+#: Minimum image side in pixels: smaller images cannot carry a blur estimate.
+MIN_SIDE = 32
+
+#: Images whose pixel data exceeds this many bytes stay on disk (TIFF and zarr only).
+LAZY_BYTES = 512 * 2**20
+
+#: PNG/JPEG/other codecs decode the whole image into memory: refuse more pixels than this.
+IN_MEMORY_MAX_PIXELS = 2**30
+
+#: Rec. 709 luminance weights (as ``skimage.color.rgb2gray``).
+LUMINANCE = (0.2125, 0.7154, 0.0721)
+
+_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+class InputError(ValueError):
+    """An input file cannot be used; the message is one line naming the file and problem."""
+
+
+# ---------------------------------------------------------------------------- lazy arrays
+class LazyBands:
+    """Lazy channel-last view of an on-disk array, with band selection or luminance.
+
+    Slicing returns numpy arrays and reads only the window asked for.
+
+    Parameters
+    ----------
+    source : array-like
+        ``(H, W)``, ``(H, W, C)`` or, with ``channel_first``, ``(C, H, W)``.
+    channel_first : bool
+        The source stores bands first (planar TIFF); the view is channel last.
+    bands : sequence of int, optional
+        Bands of the source to keep (e.g. ``(0, 1, 2)`` drops an alpha band).
+    luminance : bool
+        Convert the (selected) three bands to one gray band with :data:`LUMINANCE`,
+        keeping the dtype (integers are rounded).
+    """
+
+    def __init__(
+        self,
+        source,
+        *,
+        channel_first: bool = False,
+        bands: Sequence[int] | None = None,
+        luminance: bool = False,
+    ):
+        self.source = source
+        self.channel_first = bool(channel_first)
+        self.bands = None if bands is None else tuple(int(b) for b in bands)
+        self.luminance = bool(luminance)
+        shape = tuple(int(s) for s in source.shape)
+        if len(shape) == 2:
+            h, w, c = shape[0], shape[1], 1
+            self._src_bands = 0
+        elif channel_first:
+            c, h, w = shape
+            self._src_bands = c
+        else:
+            h, w, c = shape
+            self._src_bands = c
+        n = len(self.bands) if self.bands is not None else c
+        if self.luminance:
+            if n != 3:
+                raise ValueError("luminance needs exactly three bands")
+            n = 1
+        self._shape = (h, w) if n == 1 else (h, w, n)
+        self.dtype = np.dtype(source.dtype)
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return self._shape
+
+    @property
+    def ndim(self) -> int:
+        return len(self._shape)
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self._shape))
+
+    @property
+    def nbytes(self) -> int:
+        return self.size * self.dtype.itemsize
+
+    @property
+    def chunks(self) -> tuple[int, ...] | None:
+        ch = getattr(self.source, "chunks", None)
+        if ch is None:
+            return None
+        ch = tuple(int(c) for c in ch)
+        return ch[1:3] if self.channel_first else ch[:2]
+
+    def __len__(self) -> int:
+        return self._shape[0]
+
+    def __repr__(self) -> str:
+        return f"LazyBands(shape={self._shape}, dtype={self.dtype}, source={type(self.source)})"
+
+    def __getitem__(self, key) -> np.ndarray:
+        if not isinstance(key, tuple):
+            key = (key,)
+        if any(k is Ellipsis for k in key):
+            i = key.index(Ellipsis)
+            fill = self.ndim - (len(key) - 1)
+            key = key[:i] + (slice(None),) * fill + key[i + 1 :]
+        if len(key) > self.ndim:
+            raise IndexError(f"too many indices for a {self.ndim}-D image")
+        key = key + (slice(None),) * (self.ndim - len(key))
+        ky, kx = key[0], key[1]
+        spatial = []
+        for k, n in ((ky, self._shape[0]), (kx, self._shape[1])):
+            if isinstance(k, slice):
+                spatial.append(k)
+            elif isinstance(k, (int, np.integer)):
+                i = int(k) + n if int(k) < 0 else int(k)
+                if not 0 <= i < n:
+                    raise IndexError(f"index {int(k)} out of range for size {n}")
+                spatial.append(slice(i, i + 1))
+            else:
+                raise IndexError("LazyBands takes integer or slice indices on rows and columns")
+        sy, sx = spatial
+        if self._src_bands == 0:
+            a = np.asarray(self.source[sy, sx])[..., None]
+        elif self.channel_first:
+            sel = slice(None) if self.bands is None else list(self.bands)
+            a = np.moveaxis(np.asarray(self.source[sel, sy, sx]), 0, -1)
+        else:
+            a = np.asarray(self.source[sy, sx])
+            if self.bands is not None:
+                a = a[..., list(self.bands)]
+        if self.luminance:
+            a = _luminance(a)[..., None]
+        a = a[..., 0] if len(self._shape) == 2 else a[..., key[2]]
+        if not isinstance(kx, slice):
+            a = a[:, 0]
+        if not isinstance(ky, slice):
+            a = a[0]
+        return a
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        a = self[...]
+        return a if dtype is None else a.astype(dtype, copy=False)
+
+
+def _luminance(a: np.ndarray) -> np.ndarray:
+    """``(..., 3)`` -> ``(...)`` luminance in the input dtype (integers rounded)."""
+    g = np.tensordot(a.astype(np.float32, copy=False), np.asarray(LUMINANCE, np.float32),
+                     axes=([-1], [0]))
+    if np.issubdtype(a.dtype, np.integer):
+        info = np.iinfo(a.dtype)
+        return np.clip(np.rint(g), info.min, info.max).astype(a.dtype)
+    return g.astype(a.dtype, copy=False)
+
+
+# ---------------------------------------------------------------------------- the handle
+@dataclass
+class Image:
+    """An opened image.
+
+    Attributes
+    ----------
+    array : ndarray or array-like
+        Pixels, ``(H, W)`` or ``(H, W, C)``, channel last.  A numpy array for images read
+        into memory, otherwise a lazy array-like (``zarr.Array`` or :class:`LazyBands`).
+    path : Path or None
+        The file it came from (``None`` for :meth:`from_array`).
+    format : str
+        ``"png"``, ``"jpeg"``, ``"tiff"``, ``"zarr"``, ``"array"`` or the codec name.
+    geo : dict or None
+        For georeferenced TIFFs: ``crs`` (``rasterio.crs.CRS``), ``transform``
+        (``affine.Affine``) and ``nodata``; ``None`` otherwise.
+    notes : list of str
+        What was done on reading (alpha dropped, converted to gray, ...).
+    """
+
+    array: Any
+    path: Path | None = None
+    format: str = "array"
+    geo: dict[str, Any] | None = None
+    notes: list[str] = field(default_factory=list)
+    _closer: Callable[[], None] | None = field(default=None, repr=False, compare=False)
+
+    @classmethod
+    def from_array(cls, array, name: str | None = None) -> Image:
+        """Wrap an in-memory (or lazy) array after the same validation as :func:`open_image`."""
+        arr = array if hasattr(array, "shape") and hasattr(array, "dtype") else np.asarray(array)
+        label = name or "<array>"
+        _check_shape(label, tuple(arr.shape), None)
+        _check_dtype(label, np.dtype(arr.dtype))
+        img = cls(arr, Path(name) if name else None, "array")
+        check_finite(img)
+        return img
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return tuple(int(s) for s in self.array.shape)
+
+    @property
+    def dtype(self) -> np.dtype:
+        return np.dtype(self.array.dtype)
+
+    @property
+    def bands(self) -> int:
+        return 1 if len(self.shape) == 2 else self.shape[2]
+
+    @property
+    def height(self) -> int:
+        return self.shape[0]
+
+    @property
+    def width(self) -> int:
+        return self.shape[1]
+
+    @property
+    def n_pixels(self) -> int:
+        return self.shape[0] * self.shape[1]
+
+    @property
+    def lazy(self) -> bool:
+        """True when the pixels stay on disk."""
+        return not isinstance(self.array, np.ndarray)
+
+    @property
+    def name(self) -> str:
+        return str(self.path) if self.path is not None else "<array>"
+
+    def info(self) -> dict[str, Any]:
+        """JSON-ready description: path, format, shape, dtype, bands, lazy, geo, notes."""
+        d: dict[str, Any] = dict(
+            path=str(self.path) if self.path is not None else None,
+            format=self.format,
+            shape=list(self.shape),
+            dtype=str(self.dtype),
+            bands=self.bands,
+            megapixels=round(self.n_pixels / 1e6, 3),
+            lazy=self.lazy,
+        )
+        if self.geo:
+            d["geo"] = dict(
+                crs=self.geo["crs"].to_string() if self.geo.get("crs") else None,
+                transform=list(self.geo["transform"])[:6],
+            )
+        if self.notes:
+            d["notes"] = list(self.notes)
+        return d
+
+    def read(self) -> np.ndarray:
+        """The whole image as a numpy array (loads a lazy image into memory)."""
+        return np.asarray(self.array[...]) if self.lazy else self.array
+
+    def close(self) -> None:
+        """Release the file handle of a lazy image (the array cannot be read afterwards)."""
+        if self._closer is not None:
+            self._closer()
+            self._closer = None
+
+    def __enter__(self) -> Image:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+# ---------------------------------------------------------------------------- validation
+def _fail(path, problem: str) -> InputError:
+    return InputError(f"{path}: {problem}")
+
+
+def _check_shape(path, shape: tuple[int, ...], max_pixels: int) -> None:
+    if len(shape) not in (2, 3):
+        raise _fail(path, f"expected a 2-D image (H, W) or (H, W, bands), got shape {shape}")
+    h, w = shape[:2]
+    if h == 0 or w == 0 or (len(shape) == 3 and shape[2] == 0):
+        raise _fail(path, f"image is empty (shape {shape})")
+    if h < MIN_SIDE or w < MIN_SIDE:
+        raise _fail(path, f"image is {w}x{h} pixels; at least {MIN_SIDE}x{MIN_SIDE} is needed")
+    if max_pixels is not None and h * w > max_pixels:
+        raise _fail(
+            path,
+            f"image has {h * w:,} pixels ({w}x{h}), more than the limit of {int(max_pixels):,}; "
+            "raise --max-pixels (max_pixels=) if this is intended",
+        )
+
+
+def _check_dtype(path, dtype: np.dtype) -> None:
+    if dtype.kind not in "uif" and dtype != np.bool_:
+        raise _fail(path, f"unsupported pixel type {dtype}")
+
+
+def iter_windows(
+    shape: tuple[int, ...], tile: int | tuple[int, int] = 1024
+) -> Iterator[tuple[slice, slice]]:
+    """Row-major ``(rows, cols)`` slices covering an image of ``shape`` with tiles of ``tile``."""
+    th, tw = (tile, tile) if np.isscalar(tile) else tile
+    h, w = shape[:2]
+    for y in range(0, h, th):
+        for x in range(0, w, tw):
+            yield slice(y, min(y + th, h)), slice(x, min(x + tw, w))
+
+
+def _row_bands(array, target_bytes: int = 64 * 2**20) -> Iterator[slice]:
+    """Row slices of about ``target_bytes`` each, aligned to the array's chunk rows."""
+    shape = tuple(array.shape)
+    h = shape[0]
+    row_bytes = max(1, int(np.prod(shape[1:])) * np.dtype(array.dtype).itemsize)
+    step = max(1, target_bytes // row_bytes)
+    chunks = getattr(array, "chunks", None)
+    if chunks:
+        ch = int(chunks[0])
+        step = max(ch, (step // ch) * ch)
+    for y in range(0, h, step):
+        yield slice(y, min(y + step, h))
+
+
+def check_finite(image: Image | Any, name: str | None = None) -> None:
+    """Raise :class:`InputError` if a float image holds NaN or Inf pixels.
+
+    Lazy images are scanned in bands of rows (about 64 MB each), never loaded whole.
+    """
+    arr = image.array if isinstance(image, Image) else image
+    label = name or (image.name if isinstance(image, Image) else "<array>")
+    if np.dtype(arr.dtype).kind != "f":
+        return
+    for rows in _row_bands(arr):
+        block = np.asarray(arr[rows])
+        if not np.isfinite(block).all():
+            bad = ~np.isfinite(block)
+            while bad.ndim > 2:
+                bad = bad.any(axis=-1)
+            y, x = np.argwhere(bad)[0]
+            n_nan = int(np.isnan(block).sum())
+            kind = "NaN" if n_nan else "Inf"
+            raise _fail(
+                label,
+                f"image has {kind} pixels (first at row {rows.start + int(y)}, column {int(x)}); "
+                "fill or mask them before change detection",
+            )
+
+
+# ---------------------------------------------------------------------------- headers
+def _png_header(path: Path, data: bytes) -> tuple[int, int]:
+    if len(data) < 33 or data[12:16] != b"IHDR":
+        raise _fail(path, "not a valid PNG file (no IHDR header)")
+    w, h = struct.unpack(">II", data[16:24])
+    return h, w
+
+
+def _jpeg_header(path: Path, data: bytes) -> tuple[int, int]:
+    """Frame size from the first SOF marker; check the image is complete (EOI after SOS)."""
+    i, n = 2, len(data)
+    size = None
+    while i + 4 <= n:
+        if data[i] != 0xFF:
+            raise _fail(path, "not a valid JPEG file (corrupt marker structure)")
+        marker = data[i + 1]
+        if marker == 0xFF:  # fill byte
+            i += 1
+            continue
+        if marker in (0x01,) or 0xD0 <= marker <= 0xD7:
+            i += 2
+            continue
+        (seg_len,) = struct.unpack(">H", data[i + 2 : i + 4])
+        if marker in (0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE,
+                      0xCF):
+            if i + 9 > n:
+                break
+            h, w = struct.unpack(">HH", data[i + 5 : i + 9])
+            size = (h, w)
+        if marker == 0xDA:  # start of scan: entropy-coded data follows
+            break
+        i += 2 + seg_len
+    if size is None:
+        raise _fail(path, "not a valid JPEG file (no frame header) or truncated")
+    sos, eoi = data.rfind(b"\xff\xda"), data.rfind(b"\xff\xd9")
+    if sos < 0 or eoi < sos:
+        raise _fail(path, "JPEG file is truncated (no end-of-image marker after the last scan)")
+    return size
+
+
+# ---------------------------------------------------------------------------- readers
+def _read_codec(path: Path, fmt: str, max_pixels: int) -> Image:
+    import imagecodecs
+
+    data = path.read_bytes()
+    if fmt == "png":
+        h, w = _png_header(path, data)
+    elif fmt == "jpeg":
+        h, w = _jpeg_header(path, data)
+    else:
+        h = w = None
+    if h is not None:
+        _check_shape(path, (h, w), max_pixels)
+        if h * w > IN_MEMORY_MAX_PIXELS:
+            raise _fail(
+                path,
+                f"{fmt.upper()} image of {h * w:,} pixels is too large to decode in memory "
+                f"(limit {IN_MEMORY_MAX_PIXELS:,}); convert it to a tiled TIFF",
+            )
+    if fmt == "png" and b"IEND" not in data[-16:]:
+        raise _fail(path, "PNG file is truncated (no IEND chunk at the end)")
+    try:
+        if fmt == "png":
+            arr = imagecodecs.png_decode(data)
+        elif fmt == "jpeg":
+            arr = imagecodecs.jpeg8_decode(data)
+        else:
+            arr = imagecodecs.imread(data)
+    except Exception as exc:  # noqa: BLE001 - every codec failure means the same thing here
+        if fmt == "other":
+            raise _fail(path, "not an image file (unrecognised format)") from exc
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise _fail(path, f"cannot decode {fmt.upper()} image ({msg})") from exc
+    arr = np.asarray(arr)
+    if arr.ndim == 3 and arr.shape[2] == 1:
+        arr = arr[:, :, 0]
+    _check_shape(path, arr.shape, max_pixels)
+    img = Image(arr, path, fmt)
+    return _drop_alpha(img, alpha=arr.ndim == 3 and arr.shape[2] in (2, 4))
+
+
+def _drop_alpha(img: Image, alpha: bool) -> Image:
+    if not alpha:
+        return img
+    keep = img.bands - 1
+    if isinstance(img.array, np.ndarray):
+        arr = img.array[:, :, :keep]
+        arr = arr[:, :, 0] if keep == 1 else arr
+        arr = np.ascontiguousarray(arr)
+    else:
+        arr = LazyBands(img.array, bands=range(keep))
+    return replace(img, array=arr, notes=img.notes + ["alpha band dropped"])
+
+
+def _read_geo(path: Path) -> dict[str, Any] | None:
+    import rasterio
+    from rasterio.errors import NotGeoreferencedWarning
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with rasterio.Env(CPL_LOG="/dev/null"), rasterio.open(path) as src:
+                if src.crs is None and src.transform.is_identity:
+                    return None
+                return dict(crs=src.crs, transform=src.transform, nodata=src.nodata)
+    except Exception:  # noqa: BLE001 - no usable georeferencing is not an error
+        return None
+
+
+def _read_tiff(path: Path, max_pixels: int, lazy: bool | None) -> Image:
+    import tifffile
+
+    try:
+        tif = tifffile.TiffFile(path)
+    except Exception as exc:  # noqa: BLE001
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise _fail(path, f"not a readable TIFF file ({msg})") from exc
+    try:
+        if not tif.series:
+            raise _fail(path, "TIFF file holds no image")
+        series = tif.series[0]
+        axes = series.axes
+        shape = tuple(int(s) for s in series.shape)
+        page = series.pages[0] if series.pages else tif.pages[0]
+        if page is None:
+            raise _fail(path, "TIFF file holds no image")
+        # canonical layouts: YX, YXS (chunky), SYX / CYX / IYX / QYX (planar or page stack)
+        squeezed = [(a, n) for a, n in zip(axes, shape, strict=True) if n > 1 or a in "YX"]
+        ax = "".join(a for a, _ in squeezed)
+        if ax == "YX":
+            channel_first, bands = False, 1
+        elif len(ax) == 3 and ax[:2] == "YX":
+            channel_first, bands = False, squeezed[2][1]
+        elif len(ax) == 3 and ax[1:] == "YX":
+            channel_first, bands = True, squeezed[0][1]
+        else:
+            raise _fail(path, f"unsupported TIFF layout (axes {axes}, shape {shape})")
+        hw = (shape[axes.index("Y")], shape[axes.index("X")])
+        _check_shape(path, hw + ((bands,) if bands > 1 else ()), max_pixels)
+        dtype = np.dtype(series.dtype)
+        _check_dtype(path, dtype)
+        if int(page.photometric) == 3:  # palette
+            raise _fail(path, "palette (indexed colour) TIFF images are not supported")
+        # truncated file: every segment of the image must lie inside the file
+        size = os.path.getsize(path)
+        for p in series.pages:
+            offs = np.asarray(getattr(p, "dataoffsets", ()) or (), dtype=np.int64)
+            cnts = np.asarray(getattr(p, "databytecounts", ()) or (), dtype=np.int64)
+            if offs.size and (offs + cnts).max() > size:
+                raise _fail(path, "TIFF file is truncated (image data runs past the end of file)")
+        extrasamples = tuple(getattr(page, "extrasamples", ()) or ())
+        alpha = bands in (2, 4) and bool(extrasamples) and extrasamples[-1] in (1, 2)
+        nbytes = hw[0] * hw[1] * bands * dtype.itemsize
+        if lazy is None:
+            lazy = nbytes > LAZY_BYTES
+        if not lazy:
+            try:
+                arr = series.asarray()
+            except Exception as exc:  # noqa: BLE001
+                msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                raise _fail(path, f"cannot decode TIFF image data ({msg})") from exc
+            arr = arr.reshape([n for _, n in squeezed])
+            if channel_first:
+                arr = np.ascontiguousarray(np.moveaxis(arr, 0, -1))
+            tif.close()
+            img = Image(arr, path, "tiff")
+        else:
+            import zarr
+
+            store = series.aszarr(level=0)
+            z = zarr.open(store, mode="r")
+            if len(z.shape) != len(ax):
+                z = _Squeezed(z, axes, shape)
+            arr = LazyBands(z, channel_first=True) if channel_first else z
+            img = Image(arr, path, "tiff", _closer=tif.close)
+    except InputError:
+        tif.close()
+        raise
+    except Exception as exc:  # noqa: BLE001
+        tif.close()
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise _fail(path, f"cannot read TIFF file ({msg})") from exc
+    img.geo = _read_geo(path)
+    return _drop_alpha(img, alpha)
+
+
+class _Squeezed:
+    """Drop length-1 non-spatial axes of a lazy array (e.g. a ``(1, H, W)`` page stack)."""
+
+    def __init__(self, source, axes: str, shape: tuple[int, ...]):
+        self.source = source
+        self._keep = [i for i, (a, n) in enumerate(zip(axes, shape, strict=True))
+                      if n > 1 or a in "YX"]
+        self.shape = tuple(shape[i] for i in self._keep)
+        self.dtype = source.dtype
+        self.ndim = len(self.shape)
+        self.chunks = tuple(source.chunks[i] for i in self._keep)
+
+    def __getitem__(self, key):
+        if not isinstance(key, tuple):
+            key = (key,)
+        key = key + (slice(None),) * (self.ndim - len(key))
+        full: list[Any] = [0] * len(self.source.shape)
+        for i, k in zip(self._keep, key, strict=True):
+            full[i] = k
+        return np.asarray(self.source[tuple(full)])
+
+
+def _read_zarr(path: Path, max_pixels: int, lazy: bool | None) -> Image:
+    import zarr
+
+    try:
+        node = zarr.open(str(path), mode="r")
+    except Exception as exc:  # noqa: BLE001
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise _fail(path, f"not a readable zarr store ({msg})") from exc
+    if not hasattr(node, "shape"):
+        names = sorted(k for k, v in node.members() if hasattr(v, "shape"))
+        if "0" in names:
+            node = node["0"]
+        elif len(names) == 1:
+            node = node[names[0]]
+        else:
+            raise _fail(path, f"zarr group holds {len(names)} arrays; expected one (or '0')")
+    shape = tuple(int(s) for s in node.shape)
+    if len(shape) == 3 and shape[2] == 1:
+        node = LazyBands(node, bands=(0,))
+        shape = shape[:2]
+    _check_shape(path, shape, max_pixels)
+    _check_dtype(path, np.dtype(node.dtype))
+    nbytes = int(np.prod(shape)) * np.dtype(node.dtype).itemsize
+    if lazy is None:
+        lazy = nbytes > LAZY_BYTES
+    arr = np.asarray(node[...]) if not lazy else node
+    return Image(arr, path, "zarr")
+
+
+def _sniff(path: Path) -> str:
+    if path.is_dir():
+        return "zarr"
+    with open(path, "rb") as fh:
+        head = fh.read(16)
+    if head.startswith(_PNG_MAGIC):
+        return "png"
+    if head.startswith(b"\xff\xd8"):
+        return "jpeg"
+    if head[:4] in (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+"):
+        return "tiff"
+    return "other"
+
+
+def open_image(
+    path: str | os.PathLike,
+    *,
+    max_pixels: int | None = DEFAULT_MAX_PIXELS,
+    lazy: bool | None = None,
+    check_values: bool = True,
+) -> Image:
+    """Open an image file or zarr store for change detection.
+
+    Parameters
+    ----------
+    path : str or path-like
+        PNG, JPEG, TIFF/BigTIFF/GeoTIFF (striped or tiled), a zarr array directory, or
+        any other format imagecodecs decodes.  The format is recognised from the content.
+    max_pixels : int or None
+        Refuse images with more than this many pixels (``height * width``); checked from
+        the header before decoding.  Default :data:`DEFAULT_MAX_PIXELS`; ``None`` = no limit.
+    lazy : bool, optional
+        Keep the pixels on disk (TIFF and zarr only).  Default: when they take more than
+        :data:`LAZY_BYTES`.  PNG and JPEG are always decoded into memory.
+    check_values : bool
+        Scan float images for NaN/Inf (streamed for lazy images).
+
+    Returns
+    -------
+    Image
+        ``array`` is ``(H, W)`` or ``(H, W, C)``, channel last, alpha dropped, in the
+        file's own dtype (16-bit data stays 16-bit).
+
+    Raises
+    ------
+    InputError
+        One-line message naming the file and the problem: missing, unreadable, truncated,
+        not an image, too small (< :data:`MIN_SIDE` px on a side), more than ``max_pixels``
+        pixels, unsupported layout or pixel type, NaN/Inf pixels.
+    """
+    p = Path(path)
+    if not p.exists():
+        raise _fail(p, "no such file")
+    if p.is_dir() and not (
+        (p / "zarr.json").exists() or (p / ".zarray").exists() or (p / ".zgroup").exists()
+    ):
+        raise _fail(p, "is a directory, not an image (or a zarr store)")
+    if not p.is_dir() and p.stat().st_size == 0:
+        raise _fail(p, "file is empty")
+    if not os.access(p, os.R_OK):
+        raise _fail(p, "file is not readable (permission denied)")
+    limit = max_pixels if max_pixels is not None else None
+    try:
+        fmt = _sniff(p)
+        if fmt == "tiff":
+            img = _read_tiff(p, limit, lazy)
+        elif fmt == "zarr":
+            img = _read_zarr(p, limit, lazy)
+        elif fmt in ("png", "jpeg"):
+            img = _read_codec(p, fmt, limit)
+        else:
+            if p.stat().st_size > 256 * 2**20:
+                raise _fail(p, "unrecognised image format")
+            img = _read_codec(p, "other", limit)
+    except InputError:
+        raise
+    except MemoryError as exc:
+        raise _fail(p, "not enough memory to read the image") from exc
+    except OSError as exc:
+        raise _fail(p, f"cannot read file ({exc.strerror or exc})") from exc
+    _check_dtype(p, img.dtype)
+    if img.dtype == np.bool_:
+        img.array = img.array.astype(np.uint8) if not img.lazy else img.array
+    if check_values:
+        check_finite(img)
+    return img
+
+
+def read_mask(
+    path: str | os.PathLike,
+    shape: tuple[int, int] | None = None,
+    *,
+    max_pixels: int | None = DEFAULT_MAX_PIXELS,
+    what: str = "mask",
+) -> np.ndarray:
+    """Read a binary mask: True where any band is non-zero.
+
+    Parameters
+    ----------
+    path : str or path-like
+        Any image :func:`open_image` reads (0/255 PNG, 0/1 TIFF, ...).
+    shape : (int, int), optional
+        Required ``(H, W)``; an :class:`InputError` is raised when it differs.
+    what : str
+        Word for the mask in error messages (``"truth mask"``, ...).
+    """
+    img = open_image(path, max_pixels=max_pixels)
+    if shape is not None and tuple(img.shape[:2]) != tuple(shape[:2]):
+        raise _fail(
+            img.path,
+            f"{what} is {img.width}x{img.height} pixels, the image it describes is "
+            f"{shape[1]}x{shape[0]}",
+        )
+    out = np.zeros(img.shape[:2], dtype=bool)
+    for rows in _row_bands(img.array):
+        block = np.asarray(img.array[rows]) != 0
+        out[rows] = block.any(axis=-1) if block.ndim == 3 else block
+    img.close()
+    return out
+
+
+def reconcile_bands(reference: Image, observed: Image) -> tuple[Image, Image]:
+    """Bring the reference and the observation to the same band count.
+
+    Same count: unchanged.  One RGB (3 bands) and one gray: the RGB image is converted to
+    gray luminance (Rec. 709 weights :data:`LUMINANCE`, dtype kept).  Alpha bands were
+    already dropped by :func:`open_image`.
+
+    Raises
+    ------
+    InputError
+        Any other combination (e.g. 4-band multispectral against RGB), naming both files.
+    """
+    a, b = reference.bands, observed.bands
+    if a == b:
+        return reference, observed
+    if {a, b} == {1, 3}:
+        if a == 3:
+            return _to_gray(reference), observed
+        return reference, _to_gray(observed)
+    raise InputError(
+        f"{reference.name} has {a} band{'s' * (a != 1)} and {observed.name} has {b}: "
+        "band counts cannot be reconciled (only RGB vs gray is converted; alpha is dropped)"
+    )
+
+
+def _to_gray(img: Image) -> Image:
+    if isinstance(img.array, np.ndarray):
+        arr = _luminance(img.array)
+    else:
+        arr = LazyBands(img.array, luminance=True)
+    return replace(img, array=arr, notes=img.notes + ["converted RGB to gray luminance"])
+
+
+# ---------------------------------------------------------------------------- writers
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path next to ``path``; on success rename it onto ``path``.
+
+    The temporary name keeps the suffix (writers that infer the format from it still work)
+    and lives in the same directory, so the final ``os.replace`` is atomic.  On error the
+    temporary file is removed and ``path`` is left untouched.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> with atomic_path(d / "a.txt") as tmp:
+    ...     _ = tmp.write_text("done")
+    >>> (d / "a.txt").read_text()
+    'done'
+    """
+    path = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}",
+                               dir=path.parent)
+    os.close(fd)
+    tmp = Path(tmp)
+    try:
+        yield tmp
+        os.chmod(tmp, 0o666 & ~_umask())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+        raise
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+def write_png(path: str | os.PathLike, array: np.ndarray, *, compression: int = 6) -> Path:
+    """Write a uint8/uint16 (or bool, as 0/255) gray, RGB or RGBA image as PNG, atomically.
+
+    The encoding is deterministic: the same array always gives the same bytes.
+    """
+    import cv2
+
+    a = np.asarray(array)
+    if a.dtype == np.bool_:
+        a = a.astype(np.uint8) * 255
+    if a.dtype not in (np.uint8, np.uint16):
+        raise ValueError(f"PNG holds uint8 or uint16 pixels, got {a.dtype}")
+    if a.ndim == 3 and a.shape[2] == 1:
+        a = a[:, :, 0]
+    if a.ndim == 3:
+        if a.shape[2] == 3:
+            a = a[:, :, ::-1]
+        elif a.shape[2] == 4:
+            a = a[:, :, [2, 1, 0, 3]]
+        else:
+            raise ValueError(f"PNG holds 1, 3 or 4 bands, got {a.shape[2]}")
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(a),
+                           [cv2.IMWRITE_PNG_COMPRESSION, int(compression)])
+    if not ok:
+        raise OSError(f"{path}: PNG encoding failed")
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(buf.tobytes())
+    return path
+
+
+def _tiles_of(array, tile: tuple[int, int], convert: Callable | None) -> Iterator[np.ndarray]:
+    """Full-size (edge-padded with zeros) tiles of an array-like, row-major."""
+    th, tw = tile
+    for ys, xs in iter_windows(array.shape, tile):
+        block = np.asarray(array[ys, xs])
+        if convert is not None:
+            block = convert(block)
+        if block.shape[:2] != (th, tw):
+            pad = np.zeros((th, tw) + block.shape[2:], dtype=block.dtype)
+            pad[: block.shape[0], : block.shape[1]] = block
+            block = pad
+        yield block
+
+
+def write_tiff(
+    path: str | os.PathLike,
+    data,
+    *,
+    shape: tuple[int, ...] | None = None,
+    dtype=None,
+    tiled: bool = True,
+    tile: int = 512,
+    compression: str | None = "deflate",
+    bigtiff: bool | None = None,
+    georef: dict[str, Any] | None = None,
+    convert: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> Path:
+    """Write an image as a (tiled) TIFF, atomically, without holding it whole in memory.
+
+    Parameters
+    ----------
+    path : str or path-like
+        Destination.
+    data : ndarray, array-like, or iterable of tiles
+        An array ``(H, W)`` / ``(H, W, C)`` (numpy or lazy: read tile by tile), or an
+        iterator yielding ``tile x tile`` blocks in row-major order (edge tiles padded to
+        full size); then ``shape`` and ``dtype`` are required and ``tiled`` must be True.
+    shape, dtype
+        Image shape and pixel type when ``data`` is an iterator.
+    tiled : bool
+        Tiled layout (default) or strips.
+    tile : int
+        Tile side (multiple of 16).
+    compression : str or None
+        ``"deflate"`` (default, readable everywhere), ``"zstd"`` (faster, GDAL >= 2.3,
+        tifffile) or ``None``.
+    bigtiff : bool, optional
+        Default: BigTIFF when the uncompressed data exceeds 3.5 GB.
+    georef : dict, optional
+        ``crs`` and ``transform`` (as :attr:`Image.geo`): write a GeoTIFF via
+        :func:`write_geotiff`.
+    convert : callable, optional
+        Applied to each block read from an array ``data`` (e.g. ``bool -> 0/255``).
+    """
+    path = Path(path)
+    if georef is not None:
+        return write_geotiff(path, data, georef, shape=shape, dtype=dtype, tile=tile,
+                             compression=compression or "none", convert=convert)
+    import tifffile
+
+    is_array = hasattr(data, "shape") and hasattr(data, "dtype")
+    if is_array:
+        shape = tuple(int(s) for s in data.shape)
+        if convert is None:
+            dtype = np.dtype(data.dtype)
+        else:
+            dtype = np.dtype(convert(np.asarray(data[:1, :1])).dtype)
+    elif shape is None or dtype is None:
+        raise ValueError("write_tiff needs shape= and dtype= when data is a tile iterator")
+    dtype = np.dtype(dtype)
+    if dtype == np.bool_:
+        raise ValueError("write_tiff: convert bool masks to uint8 first (convert=)")
+    shape = tuple(int(s) for s in shape)
+    nbytes = int(np.prod(shape)) * dtype.itemsize
+    if bigtiff is None:
+        bigtiff = nbytes > 3.5e9
+    bands = 1 if len(shape) == 2 else shape[2]
+    photometric = "rgb" if bands == 3 and dtype == np.uint8 else "minisblack"
+    kw: dict[str, Any] = dict(
+        shape=shape, dtype=dtype, bigtiff=bigtiff, photometric=photometric, metadata=None,
+        compression=compression,
+    )
+    if bands > 1:
+        kw["planarconfig"] = "contig"
+    if compression and dtype.kind in "iu":
+        kw["predictor"] = True
+    if tiled:
+        kw["tile"] = (tile, tile)
+        if is_array:
+            payload = (_tiles_of(data, (tile, tile), convert) if convert is not None
+                       or not isinstance(data, np.ndarray) else np.asarray(data))
+        else:
+            payload = data
+    else:
+        if not is_array:
+            raise ValueError("write_tiff: a tile iterator needs tiled=True")
+        arr = np.asarray(data[...])
+        payload = convert(arr) if convert is not None else arr
+        kw["rowsperstrip"] = max(1, (2**20) // max(1, shape[1] * bands * dtype.itemsize))
+    if isinstance(payload, np.ndarray):
+        kw.pop("shape")
+        kw.pop("dtype")
+    with atomic_path(path) as tmp:
+        tifffile.imwrite(tmp, payload, **kw)
+    return path
+
+
+def write_geotiff(
+    path: str | os.PathLike,
+    data,
+    georef: dict[str, Any],
+    *,
+    shape: tuple[int, ...] | None = None,
+    dtype=None,
+    tile: int = 512,
+    compression: str = "deflate",
+    nodata: float | None = None,
+    convert: Callable[[np.ndarray], np.ndarray] | None = None,
+) -> Path:
+    """Write a GeoTIFF with the given georeferencing (``crs``, ``transform``) via rasterio.
+
+    ``data`` is an array (numpy or lazy) or an iterator of ``tile x tile`` blocks in
+    row-major order (then ``shape`` and ``dtype`` are required).  The file is tiled,
+    compressed, BigTIFF when needed, and written atomically.
+    """
+    import rasterio
+    from rasterio.windows import Window
+
+    path = Path(path)
+    is_array = hasattr(data, "shape") and hasattr(data, "dtype")
+    if is_array:
+        shape = tuple(int(s) for s in data.shape)
+        dtype = (np.dtype(data.dtype) if convert is None
+                 else np.dtype(convert(np.asarray(data[:1, :1])).dtype))
+        tiles: Iterable[np.ndarray] = _tiles_of(data, (tile, tile), convert)
+    else:
+        if shape is None or dtype is None:
+            raise ValueError("write_geotiff needs shape= and dtype= when data is a tile iterator")
+        tiles = data
+    dtype = np.dtype(dtype)
+    h, w = shape[:2]
+    count = 1 if len(shape) == 2 else shape[2]
+    profile = dict(
+        driver="GTiff", height=h, width=w, count=count, dtype=dtype.name,
+        crs=georef.get("crs"), transform=georef.get("transform"), tiled=True,
+        blockxsize=tile, blockysize=tile, compress=compression, BIGTIFF="IF_SAFER",
+    )
+    if nodata is not None:
+        profile["nodata"] = nodata
+    with atomic_path(path) as tmp:
+        with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True), rasterio.open(tmp, "w", **profile) as dst:
+            windows = iter_windows(shape, tile)
+            for (ys, xs), block in zip(windows, tiles, strict=False):
+                block = np.asarray(block)[: ys.stop - ys.start, : xs.stop - xs.start]
+                win = Window(xs.start, ys.start, xs.stop - xs.start, ys.stop - ys.start)
+                if block.ndim == 2:
+                    dst.write(block, 1, window=win)
+                else:
+                    dst.write(np.moveaxis(block, -1, 0), window=win)
+    return path
+
+
+def to_jsonable(obj: Any) -> Any:
+    """Convert numpy scalars/arrays, paths, tuples and non-finite floats (-> None) for JSON."""
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return to_jsonable(obj.tolist())
+    if isinstance(obj, (np.bool_, bool)):
+        return bool(obj)
+    if isinstance(obj, (np.integer, int)):
+        return int(obj)
+    if isinstance(obj, (np.floating, float)):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    if isinstance(obj, os.PathLike):
+        return str(obj)
+    if obj is None or isinstance(obj, str):
+        return obj
+    if hasattr(obj, "to_dict"):
+        return to_jsonable(obj.to_dict())
+    return str(obj)
+
+
+def write_json(path: str | os.PathLike, obj: Any, *, indent: int = 2) -> Path:
+    """Write ``obj`` as JSON (numpy values converted, NaN -> null), atomically."""
+    path = Path(path)
+    text = json.dumps(to_jsonable(obj), indent=indent, allow_nan=False) + "\n"
+    with atomic_path(path) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return path

@@ -1,0 +1,756 @@
+"""Write the results of :func:`reblur.detect_changes` into an output directory.
+
+:func:`write_report` writes, each file atomically (:func:`reblur.io.atomic_path`):
+
+``changes.png``
+    The change mask, uint8 255 (change) / 0, in the observation's frame and size; unknown
+    pixels are 0.  Byte-identical for identical masks.  Skipped above
+    :data:`PNG_MAX_PIXELS` (``changes.tif`` holds the mask then).
+``changes.tif``
+    The same mask as a tiled, compressed TIFF, written tile by tile, when the image has more
+    than :data:`BIG_MASK_PIXELS` pixels or the observation is georeferenced (then a GeoTIFF
+    with the observation's CRS and transform).
+``unknown.png``
+    Observation pixels the aligned reference does not cover, 255 / 0.
+``reblurred.tif``
+    The reblurred reference in the observation's frame and dtype (georeferenced like the
+    observation); skipped, with a note in ``report.json``, when the result holds none.
+``overlay.png``
+    The observation, downscaled to at most :data:`OVERLAY_MAX_SIDE` pixels on its long
+    side, with changes filled in translucent red and outlined in yellow, unknown shaded.
+``motion.png``
+    The pose weights (a tx-ty image per rotation carrying weight) and the blur kernels they
+    make at a 3x3 grid of image positions.
+``report.json``, ``report.html``
+    Inputs, alignment, chosen windows, non-zero poses, threshold, changed area, regions,
+    timings, peak memory, options, version and (given a truth mask) scores; the HTML page
+    embeds the two pictures and links the other files.
+``changes.geojson``
+    With a georeferenced observation: change regions as polygons in its CRS.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import importlib.metadata
+import os
+import resource
+import sys
+import time
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .io import Image, iter_windows, to_jsonable, write_json, write_png, write_tiff
+from .result import ChangeResult, MotionEstimate
+
+__all__ = [
+    "OUTPUT_NAMES",
+    "BIG_MASK_PIXELS",
+    "OVERLAY_MAX_SIDE",
+    "write_report",
+    "existing_outputs",
+    "remove_outputs",
+    "downscale",
+    "overlay_image",
+    "blur_kernels",
+    "motion_figure",
+    "change_polygons",
+    "summarize",
+    "summary_line",
+]
+
+#: Every file name :func:`write_report` may write.
+OUTPUT_NAMES = (
+    "changes.png",
+    "changes.tif",
+    "unknown.png",
+    "unknown.tif",
+    "reblurred.tif",
+    "overlay.png",
+    "motion.png",
+    "report.json",
+    "report.html",
+    "changes.geojson",
+)
+
+#: Above this many pixels the change mask is also written as a tiled TIFF.
+BIG_MASK_PIXELS = 50_000_000
+
+#: Above this many pixels no PNG mask is written (OpenCV's codec limit), only TIFF.
+PNG_MAX_PIXELS = 2**30
+
+#: Long side of ``overlay.png``.
+OVERLAY_MAX_SIDE = 2048
+
+#: At most this many regions are listed in ``report.json`` (largest first).
+MAX_LISTED_REGIONS = 1000
+
+
+# ---------------------------------------------------------------------------- helpers
+class _MaskView:
+    """Lazy uint8 255/0 view of ``change & ~unknown`` (read tile by tile by the writers)."""
+
+    def __init__(self, change, unknown=None):
+        self.change, self.unknown = change, unknown
+        self.shape = tuple(int(s) for s in change.shape[:2])
+        self.dtype = np.dtype(np.uint8)
+
+    def __getitem__(self, key) -> np.ndarray:
+        m = np.asarray(self.change[key], dtype=bool)
+        if self.unknown is not None:
+            m = m & ~np.asarray(self.unknown[key], dtype=bool)
+        return m.astype(np.uint8) * np.uint8(255)
+
+
+def _mask_u8(change, unknown=None) -> np.ndarray:
+    return _MaskView(change, unknown)[...]
+
+
+def _row_step(shape: tuple[int, ...], itemsize: int, multiple: int,
+              target: int = 64 * 2**20) -> int:
+    row = max(1, int(np.prod(shape[1:])) * itemsize)
+    k = max(1, target // (row * multiple))
+    return k * multiple
+
+
+def _block_reduce(a: np.ndarray, s: int, how: str) -> np.ndarray:
+    r, w = a.shape[:2]
+    R, Wp = -(-r // s) * s, -(-w // s) * s
+    if (R, Wp) != (r, w):
+        pad = np.zeros((R, Wp) + a.shape[2:], a.dtype)
+        pad[:r, :w] = a
+        a = pad
+    b = a.reshape((R // s, s, Wp // s, s) + a.shape[2:])
+    if how == "max":
+        return b.max(axis=(1, 3))
+    total = b.sum(axis=(1, 3), dtype=np.float64)
+    rows = np.minimum(s, r - s * np.arange(R // s))
+    cols = np.minimum(s, w - s * np.arange(Wp // s))
+    cnt = np.outer(rows, cols).astype(np.float64)
+    if total.ndim == 3:
+        cnt = cnt[:, :, None]
+    return (total / cnt).astype(np.float32)
+
+
+def downscale(array, max_side: int = OVERLAY_MAX_SIDE, how: str = "mean") -> np.ndarray:
+    """Shrink an image (numpy or lazy) by an integer factor so its long side <= ``max_side``.
+
+    Reads bands of rows (about 64 MB at a time), so it works on images larger than memory.
+
+    Parameters
+    ----------
+    array : array-like, (H, W) or (H, W, C)
+    max_side : int
+    how : {"mean", "max"}
+        Block mean (float32) or block maximum (keeps the dtype; for masks, so a one-pixel
+        change stays visible).
+    """
+    shape = tuple(int(v) for v in array.shape)
+    s = max(1, -(-max(shape[:2]) // max_side))
+    if s == 1:
+        a = np.asarray(array[...])
+        return a.astype(np.float32) if how == "mean" else a
+    step = _row_step(shape, np.dtype(array.dtype).itemsize, s)
+    parts = []
+    for y in range(0, shape[0], step):
+        block = np.asarray(array[y : min(y + step, shape[0])])
+        parts.append(_block_reduce(block, s, how))
+    return np.concatenate(parts, axis=0)
+
+
+def _display_rgb(small: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """Float RGB in [0, 1] for display: uint8 as is, others stretched to the 1-99 % range."""
+    a = np.asarray(small, dtype=np.float32)
+    if a.ndim == 2:
+        a = a[:, :, None]
+    if a.shape[2] == 2:
+        a = a[:, :, :1]
+    elif a.shape[2] > 3:
+        a = a[:, :, :3]
+    if np.dtype(dtype) == np.uint8:
+        a = a / 255.0
+    else:
+        lo, hi = np.percentile(a, [1.0, 99.0])
+        a = (a - lo) / (hi - lo) if hi > lo else np.zeros_like(a)
+    a = np.clip(a, 0.0, 1.0)
+    if a.shape[2] == 1:
+        a = np.repeat(a, 3, axis=2)
+    return a
+
+
+def overlay_image(
+    observed, change, unknown=None, *, max_side: int = OVERLAY_MAX_SIDE
+) -> np.ndarray:
+    """The observation with changes (red fill, yellow outline) and unknown (dark) drawn in.
+
+    Parameters
+    ----------
+    observed : array-like, (H, W) or (H, W, C)
+        Observation (numpy or lazy), any dtype.
+    change, unknown : (H, W) bool array-like
+        Masks in the observation frame.
+    max_side : int
+        Long side of the result (the image is shrunk by an integer factor).
+
+    Returns
+    -------
+    (h, w, 3) uint8 RGB
+    """
+    import cv2
+
+    base = _display_rgb(downscale(observed, max_side, "mean"), np.dtype(observed.dtype))
+    chg = downscale(_BoolView(change), max_side, "max").astype(bool)
+    out = base.copy()
+    if unknown is not None:
+        unk = downscale(_BoolView(unknown), max_side, "mean") > 0.5
+        out[unk] = 0.3 * out[unk] + 0.7 * np.array([0.15, 0.15, 0.25], np.float32)
+    red = np.array([1.0, 0.0, 0.0], np.float32)
+    out[chg] = 0.55 * out[chg] + 0.45 * red
+    u8 = np.clip(np.rint(out * 255.0), 0, 255).astype(np.uint8)
+    contours, _ = cv2.findContours(chg.astype(np.uint8), cv2.RETR_EXTERNAL,
+                                   cv2.CHAIN_APPROX_NONE)
+    thickness = 2 if max(u8.shape[:2]) > 1000 else 1
+    u8 = np.ascontiguousarray(u8)
+    cv2.drawContours(u8, contours, -1, (255, 230, 0), thickness)
+    return u8
+
+
+class _BoolView:
+    """uint8 0/1 view of a bool array-like (``downscale`` reads it in bands)."""
+
+    def __init__(self, mask):
+        self.mask = mask
+        self.shape = tuple(int(s) for s in mask.shape[:2])
+        self.dtype = np.dtype(np.uint8)
+
+    def __getitem__(self, key) -> np.ndarray:
+        return np.asarray(self.mask[key], dtype=bool).astype(np.uint8)
+
+
+# ---------------------------------------------------------------------------- motion
+def kernel_positions(image_shape: tuple[int, int], fractions=(0.1, 0.5, 0.9)) -> np.ndarray:
+    """A 3x3 grid of ``(x, y)`` positions at ``fractions`` of the width and height."""
+    h, w = image_shape
+    return np.array([(fx * (w - 1), fy * (h - 1)) for fy in fractions for fx in fractions])
+
+
+def blur_kernels(
+    motion: MotionEstimate, points: np.ndarray, *, radius: int | None = None
+) -> tuple[np.ndarray, int]:
+    """Blur kernels (point-spread functions) of the estimated motion at image positions.
+
+    For each pose ``k`` with weight ``w_k``, the position ``p`` moves to
+    ``grid.homography(k) p``; its displacement relative to ``p`` receives ``w_k``
+    (bilinear splat).
+
+    Parameters
+    ----------
+    motion : MotionEstimate
+    points : (n, 2) array
+        ``(x, y)`` positions in full observation pixels.
+    radius : int, optional
+        Half-size of the kernels; default covers the largest displacement.
+
+    Returns
+    -------
+    kernels : (n, 2 r + 1, 2 r + 1) float ndarray
+        ``kernels[i][r + dy, r + dx]`` is the weight displaced by ``(dx, dy)``.
+    r : int
+    """
+    from .grid import map_points
+
+    grid = motion.grid
+    pts = np.asarray(points, dtype=float).reshape(-1, 2)
+    nz = grid.nonzero(motion.weights)
+    disp = np.zeros((len(nz), len(pts), 2))
+    wts = np.array([w for *_, w in nz], dtype=float)
+    for k, (b, iy, ix, _) in enumerate(nz):
+        disp[k] = map_points(grid.homography((b, iy, ix)), pts) - pts
+    if radius is None:
+        radius = int(np.ceil(np.abs(disp).max())) + 1 if len(nz) else 3
+        radius = max(radius, 3)
+    r = int(radius)
+    n = 2 * r + 1
+    kernels = np.zeros((len(pts), n, n))
+    for i in range(len(pts)):
+        x = disp[:, i, 0] + r
+        y = disp[:, i, 1] + r
+        x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+        fx, fy = x - x0, y - y0
+        for dy, wy in ((0, 1 - fy), (1, fy)):
+            for dx, wx in ((0, 1 - fx), (1, fx)):
+                yy, xx = y0 + dy, x0 + dx
+                ok = (yy >= 0) & (yy < n) & (xx >= 0) & (xx < n)
+                np.add.at(kernels[i], (yy[ok], xx[ok]), (wts * wy * wx)[ok])
+    return kernels, r
+
+
+def _base_label(base: tuple[float, float, float, float]) -> str:
+    tz, rx, ry, rz = base
+    parts = [f"rz={rz:g}°"]
+    if tz:
+        parts.append(f"tz={tz:g}")
+    if rx:
+        parts.append(f"rx={rx:g}°")
+    if ry:
+        parts.append(f"ry={ry:g}°")
+    return " ".join(parts)
+
+
+def motion_figure(motion: MotionEstimate, path: str | os.PathLike, *,
+                  max_panels: int = 9) -> Path:
+    """Plot pose weights and blur kernels into a PNG (atomically).
+
+    Left: for each base pose (rotation) carrying weight, heaviest ``max_panels`` of them,
+    the weights as an image over ``(tx, ty)``.  Right: :func:`blur_kernels` at a 3x3 grid
+    of image positions (10, 50, 90 % of width and height).
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from .io import atomic_path
+
+    grid = motion.grid
+    w = grid.check_weights(motion.weights)
+    mass = w.sum(axis=(1, 2))
+    total = float(mass.sum())
+    order = [int(b) for b in np.argsort(-mass, kind="stable") if mass[b] > 0][:max_panels]
+    order.sort(key=lambda b: grid.bases[b][::-1])
+    fig = Figure(figsize=(13, 6.2), dpi=100, layout="constrained")
+    FigureCanvasAgg(fig)
+    left, right = fig.subfigures(1, 2, width_ratios=[1.1, 1.0])
+    n = max(1, len(order))
+    cols = int(np.ceil(np.sqrt(n)))
+    rows = int(np.ceil(n / cols))
+    axes = np.atleast_1d(left.subplots(rows, cols, squeeze=False)).ravel()
+    tx, ty = np.asarray(grid.tx), np.asarray(grid.ty)
+    dx = (tx[1] - tx[0]) / 2 if len(tx) > 1 else 0.5
+    dy = (ty[1] - ty[0]) / 2 if len(ty) > 1 else 0.5
+    extent = (tx[0] - dx, tx[-1] + dx, ty[-1] + dy, ty[0] - dy)
+    vmax = float(w.max()) if w.size and w.max() > 0 else 1.0
+    for ax, b in zip(axes, order, strict=False):
+        im = ax.imshow(w[b], extent=extent, cmap="magma", vmin=0, vmax=vmax,
+                       interpolation="nearest")
+        ax.set_title(f"{_base_label(grid.bases[b])}  ({100 * mass[b] / total:.0f} %)",
+                     fontsize=8)
+        ax.tick_params(labelsize=7)
+    for ax in axes[len(order):]:
+        ax.axis("off")
+    if not order:
+        axes[0].text(0.5, 0.5, "no pose carries weight", ha="center", va="center")
+    else:
+        axes[0].set_xlabel("tx (px)", fontsize=8)
+        axes[0].set_ylabel("ty (px)", fontsize=8)
+        left.colorbar(im, ax=list(axes[: len(order)]), shrink=0.8, label="pose weight")
+    left.suptitle(f"pose weights ({sum(1 for _ in grid.nonzero(w))} of {grid.size} poses)",
+                  fontsize=10)
+    pts = kernel_positions(grid.image_shape)
+    kernels, r = blur_kernels(motion, pts)
+    kax = right.subplots(3, 3)
+    for ax, k, (x, y) in zip(kax.ravel(), kernels, pts, strict=True):
+        ax.imshow(k, extent=(-r - 0.5, r + 0.5, r + 0.5, -r - 0.5), cmap="gray_r",
+                  interpolation="nearest")
+        ax.set_title(f"x={x:.0f}, y={y:.0f}", fontsize=7)
+        ax.tick_params(labelsize=6)
+    right.suptitle("blur kernels at image positions (px displacement)", fontsize=10)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", metadata={"Software": None})
+    return path
+
+
+# ---------------------------------------------------------------------------- regions
+def find_regions(change: np.ndarray) -> list[dict[str, Any]]:
+    """Connected (8-neighbour) change regions: label, area, bbox (y0, x0, y1, x1), centroid."""
+    import cv2
+
+    n, _, stats, cent = cv2.connectedComponentsWithStats(
+        np.asarray(change, dtype=np.uint8), connectivity=8
+    )
+    out = []
+    for i in range(1, n):
+        x, y, w, h, area = (int(v) for v in stats[i])
+        out.append(dict(label=i, area=area, bbox=[y, x, y + h, x + w],
+                        centroid=[float(cent[i][1]), float(cent[i][0])]))
+    return out
+
+
+def change_polygons(change: np.ndarray, geo: dict[str, Any] | None = None) -> dict[str, Any]:
+    """Change regions as a GeoJSON FeatureCollection.
+
+    Polygons (with holes) of 8-connected change pixels, traced by
+    :func:`rasterio.features.shapes`, in the observation's CRS when ``geo`` (``crs``,
+    ``transform``) is given, else in pixel coordinates.  The CRS is named in a ``crs``
+    member (GeoJSON 2008 style; RFC 7946 readers assume WGS 84 without it).
+    """
+    from affine import Affine
+    from rasterio import features
+    from shapely.geometry import mapping, shape
+
+    transform = (geo or {}).get("transform") or Affine.identity()
+    px_area = abs(transform.a * transform.e - transform.b * transform.d) or 1.0
+    m = np.asarray(change, dtype=np.uint8)
+    feats = []
+    for i, (geom, _) in enumerate(
+        features.shapes(m, mask=m.astype(bool), connectivity=8, transform=transform)
+    ):
+        poly = shape(geom)
+        feats.append(dict(
+            type="Feature",
+            properties=dict(id=i, area=float(poly.area), area_px=int(round(poly.area / px_area))),
+            geometry=mapping(poly),
+        ))
+    fc: dict[str, Any] = dict(type="FeatureCollection", features=feats)
+    crs = (geo or {}).get("crs")
+    if crs is not None:
+        epsg = crs.to_epsg()
+        name = f"urn:ogc:def:crs:EPSG::{epsg}" if epsg else crs.to_wkt()
+        fc["crs"] = dict(type="name", properties=dict(name=name))
+    return fc
+
+
+# ---------------------------------------------------------------------------- summary
+def _version() -> str:
+    try:
+        return importlib.metadata.version("reblur")
+    except importlib.metadata.PackageNotFoundError:  # pragma: no cover - source checkout
+        from . import __version__
+
+        return __version__
+
+
+def _memory() -> dict[str, float]:
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    peak_mb = peak / 2**20 if sys.platform == "darwin" else peak / 1024
+    out = dict(peak_rss_mb=round(peak_mb, 1))
+    try:
+        import psutil
+
+        out["rss_mb"] = round(psutil.Process().memory_info().rss / 2**20, 1)
+    except Exception:  # noqa: BLE001 - optional
+        pass
+    return out
+
+
+def _count(mask) -> int:
+    """Non-zero pixels of a mask (numpy or lazy), counted window by window."""
+    return sum(int(np.count_nonzero(np.asarray(mask[ys, xs])))
+               for ys, xs in iter_windows(mask.shape, 4096))
+
+
+def summarize(
+    result: ChangeResult,
+    *,
+    reference: Image | None = None,
+    observed: Image | None = None,
+    truth: np.ndarray | None = None,
+    options: dict[str, Any] | None = None,
+    timings: dict[str, float] | None = None,
+) -> dict[str, Any]:
+    """The content of ``report.json`` (without the ``files`` and ``notes`` entries)."""
+    H, W = result.change.shape[:2]
+    n = H * W
+    known_change = _MaskView(result.change, result.unknown)  # what changes.png shows
+    changed = _count(known_change)
+    unknown = _count(result.unknown)
+    regions = list(result.regions) if result.regions else (
+        find_regions(known_change[...]) if changed and n <= 2**26 else []
+    )
+    regions = sorted(regions, key=lambda r: (-int(r.get("area", 0)), list(r.get("bbox", []))))
+    known = n - unknown
+    d: dict[str, Any] = dict(
+        reblur_version=_version(),
+        inputs=dict(
+            reference=reference.info() if reference is not None else None,
+            observed=observed.info() if observed is not None else None,
+        ),
+        alignment=dict(H=np.asarray(result.alignment).tolist(),
+                       details=result.decision.get("alignment")),
+        crop=dict(
+            boxes=[list(b) for b in result.crop.boxes], size=result.crop.size,
+            m1=result.crop.m1, threshold=result.crop.threshold,
+            space_invariant=result.crop.space_invariant, tried=result.crop.tried,
+        ),
+        motion=dict(
+            grid=result.motion.grid.to_dict(), n_poses=result.motion.grid.size,
+            nonzero_poses=result.motion.nonzero_poses(),
+            boxes=[list(b) for b in result.motion.boxes], info=result.motion.info,
+        ),
+        threshold=result.threshold,
+        decision={k: v for k, v in result.decision.items() if k != "alignment"},
+        changes=dict(
+            height=H, width=W, pixels=n, changed_px=changed,
+            changed_fraction=changed / n if n else float("nan"),
+            unknown_px=unknown, unknown_fraction=unknown / n if n else float("nan"),
+            changed_fraction_of_known=changed / known if known else float("nan"),
+            n_regions=len(regions),
+            regions=regions[:MAX_LISTED_REGIONS],
+        ),
+        metrics=None,
+        timings_s={**dict(result.timings), **dict(timings or {})},
+        memory=_memory(),
+        options=options or {},
+    )
+    if truth is not None:
+        from .metrics import change_metrics
+
+        pred = np.asarray(result.change, dtype=bool) & ~np.asarray(result.unknown, dtype=bool)
+        d["metrics"] = change_metrics(truth, pred, ignore=result.unknown)
+    return to_jsonable(d)
+
+
+def summary_line(summary: dict[str, Any], out_dir: str | os.PathLike | None = None) -> str:
+    """One line: ``changes: 1.23 % of 4.2 MP in 7 regions -> DIR/overlay.png``."""
+    c = summary["changes"]
+    frac = c["changed_fraction"] or 0.0
+    line = (f"changes: {100 * frac:.2f} % of {c['pixels'] / 1e6:.1f} MP in {c['n_regions']} "
+            f"region{'s' * (c['n_regions'] != 1)}")
+    m = summary.get("metrics")
+    if m:
+        line += f" (JC {_fmt(m.get('jaccard'))}, YC {_fmt(m.get('yule'))})"
+    if out_dir is not None:
+        line += f" -> {Path(out_dir) / 'overlay.png'}"
+    return line
+
+
+def _fmt(v) -> str:
+    return "n/a" if v is None else f"{v:.3f}"
+
+
+# ---------------------------------------------------------------------------- html
+def _data_uri(path: Path) -> str:
+    return "data:image/png;base64," + base64.b64encode(path.read_bytes()).decode("ascii")
+
+
+def _rows(pairs: Iterable[tuple[str, Any]]) -> str:
+    return "\n".join(
+        f"<tr><th>{html.escape(str(k))}</th><td>{html.escape(str(v))}</td></tr>"
+        for k, v in pairs
+    )
+
+
+def write_html(path: str | os.PathLike, summary: dict[str, Any], files: dict[str, str]) -> Path:
+    """A single self-contained HTML page: key numbers, embedded pictures, links to files.
+
+    ``files`` maps output names to file names relative to the page's directory; only those
+    are linked, and ``overlay.png``/``motion.png`` are embedded as data URIs.
+    """
+    from .io import atomic_path
+
+    path = Path(path)
+    out_dir = path.parent
+    c = summary["changes"]
+    inp = summary["inputs"]
+    obs, ref = inp.get("observed") or {}, inp.get("reference") or {}
+    rows = [
+        ("reference", f"{ref.get('path')} ({_shape_str(ref)})"),
+        ("observed", f"{obs.get('path')} ({_shape_str(obs)})"),
+        ("changed area", f"{c['changed_px']:,} px ({100 * (c['changed_fraction'] or 0):.3f} %)"),
+        ("change regions", c["n_regions"]),
+        ("unknown area", f"{c['unknown_px']:,} px ({100 * (c['unknown_fraction'] or 0):.3f} %)"),
+        ("threshold", summary.get("threshold")),
+        ("poses with weight", f"{len(summary['motion']['nonzero_poses'])} of "
+                              f"{summary['motion']['n_poses']}"),
+        ("estimation windows", summary["crop"]["boxes"]),
+        ("total time", f"{summary['timings_s'].get('total', float('nan')):.1f} s"
+         if summary["timings_s"].get("total") is not None else "n/a"),
+        ("peak memory", f"{summary['memory'].get('peak_rss_mb')} MB"),
+        ("reblur version", summary.get("reblur_version")),
+    ]
+    m = summary.get("metrics")
+    if m:
+        rows += [(f"truth: {k}", _fmt(m.get(k))) for k in
+                 ("pcc", "jaccard", "yule", "precision", "recall", "f1") if k in m]
+    figs = []
+    for name, caption in (("overlay.png", "Changes (red, outlined) and unknown (dark)"),
+                          ("motion.png", "Estimated camera motion")):
+        if name in files and (out_dir / files[name]).exists():
+            figs.append(
+                f'<figure><img alt="{name}" src="{_data_uri(out_dir / files[name])}">'
+                f"<figcaption>{html.escape(caption)}</figcaption></figure>"
+            )
+    links = "\n".join(
+        f'<li><a href="{html.escape(rel)}">{html.escape(name)}</a></li>'
+        for name, rel in files.items() if name != "report.html" and (out_dir / rel).exists()
+    )
+    notes = "".join(f"<li>{html.escape(n)}</li>" for n in summary.get("notes", []))
+    page = f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8">
+<title>reblur change report</title>
+<style>
+body {{ font-family: sans-serif; margin: 2em; max-width: 1400px; }}
+table {{ border-collapse: collapse; }} th, td {{ padding: 2px 10px; text-align: left;
+ border-bottom: 1px solid #ddd; }} img {{ max-width: 100%; }}
+</style></head><body>
+<h1>reblur change report</h1>
+<table>
+{_rows(rows)}
+</table>
+{"<h2>Notes</h2><ul>" + notes + "</ul>" if notes else ""}
+{"".join(figs)}
+<h2>Files</h2><ul>
+{links}
+</ul>
+</body></html>
+"""
+    with atomic_path(path) as tmp:
+        tmp.write_text(page, encoding="utf-8")
+    return path
+
+
+def _shape_str(info: dict) -> str:
+    shp = info.get("shape") or []
+    if len(shp) < 2:
+        return "?"
+    bands = shp[2] if len(shp) > 2 else 1
+    return f"{shp[1]}x{shp[0]}, {bands} band{'s' * (bands != 1)}, {info.get('dtype')}"
+
+
+# ---------------------------------------------------------------------------- main entry
+def existing_outputs(out_dir: str | os.PathLike) -> list[Path]:
+    """Result files of a previous run present in ``out_dir``."""
+    d = Path(out_dir)
+    return [d / n for n in OUTPUT_NAMES if (d / n).exists()]
+
+
+def remove_outputs(out_dir: str | os.PathLike, keep: Iterable[str] = ()) -> list[Path]:
+    """Delete result files in ``out_dir`` except ``keep`` (stale files of an older run)."""
+    keep = set(keep)
+    removed = []
+    for p in existing_outputs(out_dir):
+        if p.name not in keep:
+            p.unlink()
+            removed.append(p)
+    return removed
+
+
+def _to_dtype(dtype: np.dtype):
+    """Block converter: float reblurred in [0, 1] units -> the observation's dtype."""
+    dtype = np.dtype(dtype)
+    if dtype.kind in "ui":
+        info = np.iinfo(dtype)
+        scale = float(info.max)
+
+        def conv(b: np.ndarray) -> np.ndarray:
+            b = np.asarray(b, dtype=np.float32)
+            if b.ndim == 3 and b.shape[2] == 1:
+                b = b[:, :, 0]
+            return np.clip(np.rint(b * scale), info.min, info.max).astype(dtype)
+    else:
+        def conv(b: np.ndarray) -> np.ndarray:
+            b = np.asarray(b)
+            if b.ndim == 3 and b.shape[2] == 1:
+                b = b[:, :, 0]
+            return b.astype(dtype, copy=False)
+    return conv
+
+
+def write_report(
+    result: ChangeResult,
+    out_dir: str | os.PathLike,
+    *,
+    reference: Image | None = None,
+    observed: Image | None = None,
+    truth: np.ndarray | None = None,
+    options: dict[str, Any] | None = None,
+    timings: dict[str, float] | None = None,
+    notes: Iterable[str] = (),
+) -> tuple[dict[str, str], dict[str, Any]]:
+    """Write every result file of one detection into ``out_dir`` (created if missing).
+
+    Parameters
+    ----------
+    result : ChangeResult
+        What :func:`reblur.detect_changes` returned.
+    out_dir : path
+        Output directory.  Existing result files are replaced (atomically); refusing to
+        overwrite is the caller's decision (the CLI's ``--overwrite``).
+    reference, observed : Image, optional
+        The inputs (paths, sizes, dtypes for the report; the observation is drawn in
+        ``overlay.png``, its dtype and georeferencing are used for ``reblurred.tif``,
+        ``changes.tif`` and ``changes.geojson``).
+    truth : (H, W) bool ndarray, optional
+        True change mask: scores go into ``report.json`` (unknown pixels ignored).
+    options : dict, optional
+        Options of the run, recorded verbatim.
+    timings : dict, optional
+        Extra stage timings (seconds), merged with ``result.timings``.
+    notes : iterable of str
+        Extra remarks recorded in the report.
+
+    Returns
+    -------
+    files : dict
+        Output name -> file name (relative to ``out_dir``) of every file written.
+    summary : dict
+        The content of ``report.json``.
+    """
+    t0 = time.perf_counter()
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    notes = list(notes)
+    change, unknown = result.change, result.unknown
+    H, W = change.shape[:2]
+    if observed is not None and tuple(observed.shape[:2]) != (H, W):
+        raise ValueError(
+            f"result is {W}x{H} but the observation is {observed.width}x{observed.height}"
+        )
+    if truth is not None and tuple(np.shape(truth)[:2]) != (H, W):
+        raise ValueError(f"truth mask is {np.shape(truth)[1]}x{np.shape(truth)[0]}, the "
+                         f"observation {W}x{H}")
+    geo = observed.geo if observed is not None else None
+    files: dict[str, str] = {}
+
+    # masks
+    if H * W <= PNG_MAX_PIXELS:
+        write_png(out / "changes.png", _mask_u8(change, unknown))
+        files["changes.png"] = "changes.png"
+        write_png(out / "unknown.png", _mask_u8(unknown))
+        files["unknown.png"] = "unknown.png"
+    else:
+        notes.append(f"image of {H * W:,} pixels: masks written as TIFF only (PNG limit)")
+        write_tiff(out / "unknown.tif", _MaskView(unknown), georef=geo)
+        files["unknown.tif"] = "unknown.tif"
+    if H * W > BIG_MASK_PIXELS or geo is not None or H * W > PNG_MAX_PIXELS:
+        write_tiff(out / "changes.tif", _MaskView(change, unknown), georef=geo)
+        files["changes.tif"] = "changes.tif"
+    if geo is not None:
+        write_json(out / "changes.geojson", change_polygons(
+            np.asarray(change) & ~np.asarray(unknown), geo))
+        files["changes.geojson"] = "changes.geojson"
+
+    # reblurred reference
+    if result.reblurred is not None:
+        dtype = observed.dtype if observed is not None else np.dtype(np.float32)
+        rb = result.reblurred
+        conv = _to_dtype(dtype)
+        write_tiff(out / "reblurred.tif", rb, convert=conv, georef=geo)
+        files["reblurred.tif"] = "reblurred.tif"
+    else:
+        notes.append("reblurred.tif not written: the result holds no reblurred image "
+                     "(too large to keep in memory)")
+
+    # pictures
+    obs_arr = observed.array if observed is not None else None
+    if obs_arr is None:
+        obs_arr = result.reblurred if result.reblurred is not None else _MaskView(change)
+    write_png(out / "overlay.png", overlay_image(obs_arr, change, unknown))
+    files["overlay.png"] = "overlay.png"
+    motion_figure(result.motion, out / "motion.png")
+    files["motion.png"] = "motion.png"
+
+    timings = dict(timings or {})
+    timings["report"] = time.perf_counter() - t0
+    summary = summarize(result, reference=reference, observed=observed, truth=truth,
+                        options=options, timings=timings)
+    files["report.json"] = "report.json"
+    files["report.html"] = "report.html"
+    summary["notes"] = notes
+    summary["files"] = dict(files)
+    write_json(out / "report.json", summary)
+    write_html(out / "report.html", summary, files)
+    return files, summary

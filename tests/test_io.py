@@ -1,0 +1,364 @@
+"""reblur.io: reading every supported layout, refusing bad inputs, atomic writers."""
+
+from __future__ import annotations
+
+import json
+import os
+import struct
+import zlib
+
+import imagecodecs
+import numpy as np
+import pytest
+import tifffile
+
+from reblur.io import (
+    LUMINANCE,
+    Image,
+    InputError,
+    LazyBands,
+    atomic_path,
+    check_finite,
+    open_image,
+    read_mask,
+    reconcile_bands,
+    write_geotiff,
+    write_json,
+    write_png,
+    write_tiff,
+)
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(0)
+
+
+def _rgb16(rng, h=300, w=400):
+    return (rng.random((h, w, 3)) * 65535).astype(np.uint16)
+
+
+# ---------------------------------------------------------------------------- reading
+def test_png_uint8_gray_rgb_rgba(tmp_path, rng):
+    rgba = (rng.random((64, 80, 4)) * 255).astype(np.uint8)
+    for arr, name in ((rgba[..., 0], "g.png"), (rgba[..., :3], "c.png"), (rgba, "a.png")):
+        (tmp_path / name).write_bytes(imagecodecs.png_encode(np.ascontiguousarray(arr)))
+    g = open_image(tmp_path / "g.png")
+    assert g.shape == (64, 80) and g.bands == 1 and g.dtype == np.uint8
+    np.testing.assert_array_equal(g.array, rgba[..., 0])
+    c = open_image(tmp_path / "c.png")
+    np.testing.assert_array_equal(c.array, rgba[..., :3])  # RGB order, not OpenCV's BGR
+    a = open_image(tmp_path / "a.png")
+    assert a.shape == (64, 80, 3) and "alpha band dropped" in a.notes
+    np.testing.assert_array_equal(a.array, rgba[..., :3])
+    assert not a.lazy and a.format == "png"
+
+
+def test_png16_is_not_clipped(tmp_path, rng):
+    a = _rgb16(rng, 40, 50)
+    write_png(tmp_path / "x.png", a)
+    img = open_image(tmp_path / "x.png")
+    assert img.dtype == np.uint16 and img.array.max() > 255
+    np.testing.assert_array_equal(img.array, a)
+
+
+def test_jpeg(tmp_path, rng):
+    yy, xx = np.mgrid[:48, :64]
+    a = np.stack([yy * 5, xx * 4, 255 - xx * 3], axis=-1).astype(np.uint8)  # smooth
+    (tmp_path / "x.jpg").write_bytes(imagecodecs.jpeg8_encode(a, level=95))
+    img = open_image(tmp_path / "x.jpg")
+    assert img.format == "jpeg" and img.shape == (48, 64, 3) and img.dtype == np.uint8
+    assert np.abs(img.array.astype(int) - a).mean() < 3
+
+
+@pytest.mark.parametrize("layout", ["tiled", "striped", "planar", "bigtiff"])
+@pytest.mark.parametrize("lazy", [False, True])
+def test_tiff_layouts_eager_and_lazy(tmp_path, rng, layout, lazy):
+    a = _rgb16(rng)
+    p = tmp_path / "x.tif"
+    if layout == "tiled":
+        tifffile.imwrite(p, a, tile=(64, 64), compression="zstd")
+    elif layout == "striped":
+        tifffile.imwrite(p, a, rowsperstrip=16, compression="deflate")
+    elif layout == "planar":
+        tifffile.imwrite(p, np.moveaxis(a, -1, 0), photometric="rgb", planarconfig="separate",
+                         rowsperstrip=32)
+    else:
+        tifffile.imwrite(p, a, bigtiff=True, tile=(128, 128))
+    img = open_image(p, lazy=lazy)
+    assert img.shape == (300, 400, 3) and img.dtype == np.uint16 and img.lazy is lazy
+    assert isinstance(img.array, np.ndarray) is (not lazy)
+    np.testing.assert_array_equal(np.asarray(img.array[...]), a)
+    np.testing.assert_array_equal(img.array[17:99, 250:333], a[17:99, 250:333])
+    np.testing.assert_array_equal(img.array[5, 7], a[5, 7])
+    np.testing.assert_array_equal(img.array[::50, ::100], a[::50, ::100])
+    img.close()
+
+
+def test_tiff_float32_gray_and_alpha(tmp_path, rng):
+    f = rng.random((100, 90)).astype(np.float32)
+    tifffile.imwrite(tmp_path / "f.tif", f)
+    img = open_image(tmp_path / "f.tif")
+    assert img.dtype == np.float32 and img.shape == (100, 90)
+    np.testing.assert_array_equal(img.array, f)
+    rgba = (rng.random((64, 64, 4)) * 255).astype(np.uint8)
+    tifffile.imwrite(tmp_path / "a.tif", rgba, photometric="rgb", extrasamples=["unassalpha"])
+    for lazy in (False, True):
+        img = open_image(tmp_path / "a.tif", lazy=lazy)
+        assert img.shape == (64, 64, 3)
+        np.testing.assert_array_equal(np.asarray(img.array[...]), rgba[..., :3])
+
+
+def test_multiband_tiff_kept(tmp_path, rng):
+    a = (rng.random((64, 70, 5)) * 1000).astype(np.uint16)
+    tifffile.imwrite(tmp_path / "m.tif", a, photometric="minisblack", planarconfig="contig")
+    img = open_image(tmp_path / "m.tif")
+    assert img.bands == 5
+    np.testing.assert_array_equal(img.array, a)
+
+
+def test_zarr_store_is_lazy(tmp_path, rng):
+    zarr = pytest.importorskip("zarr")
+    a = (rng.random((200, 150, 3)) * 255).astype(np.uint8)
+    z = zarr.create_array(str(tmp_path / "x.zarr"), shape=a.shape, chunks=(64, 64, 3),
+                          dtype=a.dtype)
+    z[...] = a
+    img = open_image(tmp_path / "x.zarr", lazy=True)
+    assert img.lazy and img.format == "zarr" and img.shape == a.shape
+    np.testing.assert_array_equal(img.array[10:70, 20:30], a[10:70, 20:30])
+    eager = open_image(tmp_path / "x.zarr")
+    assert not eager.lazy
+    np.testing.assert_array_equal(eager.array, a)
+
+
+def test_geotiff_roundtrip_keeps_georeferencing(tmp_path, rng):
+    rasterio = pytest.importorskip("rasterio")
+    from rasterio.transform import from_origin
+
+    a = (rng.random((96, 128)) * 255).astype(np.uint8)
+    geo = dict(crs=rasterio.crs.CRS.from_epsg(32633),
+               transform=from_origin(500000.0, 4000000.0, 0.5, 0.5))
+    write_geotiff(tmp_path / "g.tif", a, geo, tile=64)
+    img = open_image(tmp_path / "g.tif")
+    np.testing.assert_array_equal(img.array, a)
+    assert img.geo["crs"].to_epsg() == 32633
+    assert tuple(img.geo["transform"])[:6] == (0.5, 0.0, 500000.0, 0.0, -0.5, 4000000.0)
+    info = img.info()
+    assert info["geo"]["crs"] == "EPSG:32633"
+    plain = tmp_path / "p.tif"
+    tifffile.imwrite(plain, a)
+    assert open_image(plain).geo is None
+
+
+# ---------------------------------------------------------------------------- refusing
+def _png_header_only(w: int, h: int) -> bytes:
+    ihdr = struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0)
+    chunk = struct.pack(">I", 13) + b"IHDR" + ihdr + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr))
+    return b"\x89PNG\r\n\x1a\n" + chunk
+
+
+def test_missing_empty_and_not_an_image(tmp_path):
+    with pytest.raises(InputError, match=r"nope\.png: no such file"):
+        open_image(tmp_path / "nope.png")
+    (tmp_path / "empty.png").write_bytes(b"")
+    with pytest.raises(InputError, match="empty"):
+        open_image(tmp_path / "empty.png")
+    (tmp_path / "t.png").write_text("hello, I am text\n" * 10)
+    with pytest.raises(InputError, match="not an image"):
+        open_image(tmp_path / "t.png")
+    (tmp_path / "d").mkdir()
+    with pytest.raises(InputError, match="directory"):
+        open_image(tmp_path / "d")
+
+
+def test_truncated_files(tmp_path, rng):
+    a = (rng.random((64, 64, 3)) * 255).astype(np.uint8)
+    png = imagecodecs.png_encode(a)
+    jpg = imagecodecs.jpeg8_encode(a)
+    (tmp_path / "t.png").write_bytes(png[: len(png) // 2])
+    (tmp_path / "t.jpg").write_bytes(jpg[: len(jpg) // 2])
+    tifffile.imwrite(tmp_path / "full.tif", a, compression="deflate", rowsperstrip=8)
+    data = (tmp_path / "full.tif").read_bytes()
+    (tmp_path / "t.tif").write_bytes(data[: len(data) // 2])
+    for name in ("t.png", "t.jpg", "t.tif"):
+        with pytest.raises(InputError, match=r"truncated|cannot|not a"):
+            open_image(tmp_path / name)
+
+
+def test_too_small_and_empty(tmp_path):
+    write_png(tmp_path / "one.png", np.zeros((1, 1), np.uint8))
+    with pytest.raises(InputError, match=r"1x1 pixels; at least 32x32"):
+        open_image(tmp_path / "one.png")
+    write_png(tmp_path / "thin.png", np.zeros((500, 8), np.uint8))
+    with pytest.raises(InputError, match="at least"):
+        open_image(tmp_path / "thin.png")
+    with pytest.warns(UserWarning):
+        tifffile.imwrite(tmp_path / "zero.tif", np.zeros((0, 0), np.uint8))
+    with pytest.raises(InputError, match="zero.tif: image is empty"):
+        open_image(tmp_path / "zero.tif")
+
+
+def test_max_pixels_checked_from_header(tmp_path):
+    # a header claiming 100000 x 100000 pixels: refused before any decoding
+    (tmp_path / "bomb.png").write_bytes(_png_header_only(100_000, 100_000))
+    with pytest.raises(InputError, match=r"10,000,000,000 pixels .* limit of 4,000,000,000"):
+        open_image(tmp_path / "bomb.png")
+    write_png(tmp_path / "ok.png", np.zeros((64, 64), np.uint8))
+    with pytest.raises(InputError, match="--max-pixels"):
+        open_image(tmp_path / "ok.png", max_pixels=1000)
+    assert open_image(tmp_path / "ok.png", max_pixels=4096).shape == (64, 64)
+
+
+@pytest.mark.parametrize("lazy", [False, True])
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_nonfinite_refused_streaming(tmp_path, rng, lazy, bad):
+    f = rng.random((400, 100)).astype(np.float32)
+    f[333, 44] = bad
+    tifffile.imwrite(tmp_path / "f.tif", f, tile=(64, 64))
+    kind = "NaN" if np.isnan(bad) else "Inf"
+    with pytest.raises(InputError, match=rf"{kind} pixels \(first at row 333, column 44\)"):
+        open_image(tmp_path / "f.tif", lazy=lazy)
+    # the lazy check reads bands of rows, never the whole image at once
+    reads = []
+
+    class Spy:
+        shape, dtype, chunks = f.shape, f.dtype, (64, 64)
+
+        def __getitem__(self, key):
+            reads.append(key)
+            return f[key]
+
+    import reblur.io as rio
+
+    old = rio._row_bands
+    rio._row_bands = lambda a, target_bytes=64 * 2**20: old(a, target_bytes=64 * 100 * 4)
+    try:
+        with pytest.raises(InputError):
+            check_finite(Spy(), "spy")
+    finally:
+        rio._row_bands = old
+    assert len(reads) == 333 // 64 + 1 and all(r.stop - r.start <= 64 for r in reads)
+
+
+# ---------------------------------------------------------------------------- bands
+def test_reconcile_bands(tmp_path, rng):
+    rgb = (rng.random((64, 64, 3)) * 255).astype(np.uint8)
+    gray = rgb[..., 1].copy()
+    write_png(tmp_path / "rgb.png", rgb)
+    write_png(tmp_path / "gray.png", gray)
+    tifffile.imwrite(tmp_path / "rgb.tif", rgb, tile=(32, 32))
+    r, o = reconcile_bands(open_image(tmp_path / "rgb.png"), open_image(tmp_path / "gray.png"))
+    assert r.shape == (64, 64) and o.shape == (64, 64) and r.dtype == np.uint8
+    expect = np.rint(rgb.astype(np.float32) @ np.asarray(LUMINANCE, np.float32)).astype(np.uint8)
+    np.testing.assert_array_equal(r.array, expect)
+    assert "converted RGB to gray luminance" in r.notes
+    o2, r2 = reconcile_bands(open_image(tmp_path / "gray.png"),
+                             open_image(tmp_path / "rgb.tif", lazy=True))
+    assert isinstance(r2.array, LazyBands) and r2.shape == (64, 64)
+    np.testing.assert_array_equal(r2.array[10:20, 3:40], expect[10:20, 3:40])
+    same = open_image(tmp_path / "rgb.png")
+    assert reconcile_bands(same, same) == (same, same)
+    five = Image.from_array(np.zeros((64, 64, 5), np.uint16), "five.tif")
+    with pytest.raises(InputError, match=r"five.tif has 5 bands and .*rgb.png has 3"):
+        reconcile_bands(five, same)
+
+
+def test_lazybands_indexing(rng):
+    a = (rng.random((50, 60, 4)) * 255).astype(np.uint8)
+    v = LazyBands(a, bands=(0, 1, 2))
+    assert v.shape == (50, 60, 3) and v.ndim == 3
+    np.testing.assert_array_equal(v[...], a[..., :3])
+    np.testing.assert_array_equal(v[-1, -2], a[-1, -2, :3])
+    np.testing.assert_array_equal(v[3:9, 10], a[3:9, 10, :3])
+    np.testing.assert_array_equal(v[3:9, 10:12, 1], a[3:9, 10:12, 1])
+    np.testing.assert_array_equal(np.asarray(v), a[..., :3])
+    cf = LazyBands(np.moveaxis(a, -1, 0), channel_first=True)
+    np.testing.assert_array_equal(cf[5:7, 8:30], a[5:7, 8:30])
+    with pytest.raises(IndexError):
+        v[100, 0]
+
+
+def test_read_mask(tmp_path):
+    m = np.zeros((40, 50), np.uint8)
+    m[5:9, 7:20] = 255
+    write_png(tmp_path / "m.png", m)
+    got = read_mask(tmp_path / "m.png", (40, 50))
+    assert got.dtype == bool and got.sum() == 4 * 13
+    with pytest.raises(InputError, match=r"truth mask is 50x40 pixels, the image .* 60x40"):
+        read_mask(tmp_path / "m.png", (40, 60), what="truth mask")
+
+
+# ---------------------------------------------------------------------------- writing
+def test_atomic_path_success_and_failure(tmp_path):
+    target = tmp_path / "out.txt"
+    target.write_text("old")
+    with pytest.raises(RuntimeError), atomic_path(target) as tmp:
+        tmp.write_text("half")
+        raise RuntimeError("boom")
+    assert target.read_text() == "old"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.txt"]  # no temp left
+    with atomic_path(target) as tmp:
+        assert tmp.parent == tmp_path and tmp.suffix == ".txt" and tmp != target
+        tmp.write_text("new")
+    assert target.read_text() == "new"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out.txt"]
+    assert oct(target.stat().st_mode & 0o777) != oct(0o600)  # not mkstemp's private mode
+
+
+def test_write_png_is_deterministic(tmp_path, rng):
+    m = rng.random((100, 120)) > 0.7
+    write_png(tmp_path / "a.png", m)
+    write_png(tmp_path / "b.png", m.copy())
+    assert (tmp_path / "a.png").read_bytes() == (tmp_path / "b.png").read_bytes()
+    back = open_image(tmp_path / "a.png").array
+    np.testing.assert_array_equal(back, m.astype(np.uint8) * 255)
+    with pytest.raises(ValueError, match="uint8 or uint16"):
+        write_png(tmp_path / "c.png", m.astype(np.float32))
+
+
+def test_write_tiff_from_tile_iterator(tmp_path, rng):
+    h, w, t = 300, 250, 64
+    full = (rng.random((h, w)) > 0.5).astype(np.uint8) * 255
+
+    def tiles():
+        for y in range(0, h, t):
+            for x in range(0, w, t):
+                blk = np.zeros((t, t), np.uint8)
+                part = full[y : y + t, x : x + t]
+                blk[: part.shape[0], : part.shape[1]] = part
+                yield blk
+
+    p = write_tiff(tmp_path / "m.tif", tiles(), shape=(h, w), dtype=np.uint8, tile=t,
+                   compression="zstd")
+    with tifffile.TiffFile(p) as tif:
+        page = tif.pages[0]
+        assert page.is_tiled and page.tilelength == t and not tif.is_bigtiff
+        assert page.compression == 50000  # zstd
+        np.testing.assert_array_equal(tif.asarray(), full)
+    write_tiff(tmp_path / "b.tif", full, bigtiff=True, tile=64)
+    with tifffile.TiffFile(tmp_path / "b.tif") as tif:
+        assert tif.is_bigtiff
+        np.testing.assert_array_equal(tif.asarray(), full)
+    with pytest.raises(ValueError, match="shape= and dtype="):
+        write_tiff(tmp_path / "x.tif", tiles())
+
+
+def test_write_tiff_lazy_source_with_convert(tmp_path, rng):
+    a = rng.random((130, 140, 3)).astype(np.float32)
+    src = LazyBands(a)  # not a numpy array: read tile by tile
+    write_tiff(tmp_path / "c.tif", src, tile=32,
+               convert=lambda b: np.rint(b * 255).astype(np.uint8))
+    back = tifffile.imread(tmp_path / "c.tif")
+    np.testing.assert_array_equal(back, np.rint(a * 255).astype(np.uint8))
+    write_tiff(tmp_path / "s.tif", a, tiled=False)
+    with tifffile.TiffFile(tmp_path / "s.tif") as tif:
+        assert not tif.pages[0].is_tiled
+        np.testing.assert_array_equal(tif.asarray(), a)
+
+
+def test_write_json(tmp_path):
+    write_json(tmp_path / "j.json", dict(a=np.float32(1.5), b=float("nan"), c=np.arange(3),
+                                         d=(1, 2), e=tmp_path, f=np.bool_(True)))
+    d = json.loads((tmp_path / "j.json").read_text())
+    assert d == dict(a=1.5, b=None, c=[0, 1, 2], d=[1, 2], e=str(tmp_path), f=True)
+    assert not [p for p in os.listdir(tmp_path) if p != "j.json"]
