@@ -97,6 +97,7 @@ __all__ = [
     "DecisionParams",
     "change_statistic",
     "estimate_threshold",
+    "fit_edge_error",
     "decide_tile",
     "decide",
     "tile_boxes",
@@ -258,6 +259,7 @@ class Photometry:
     field_block: int | None = None
     field_gain: np.ndarray | None = None
     field_offset: np.ndarray | None = None
+    edge_k: np.ndarray | None = None
     info: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -334,6 +336,7 @@ class Photometry:
             "sigma": [float(v) for v in self.sigma],
             "image_shape": None if self.image_shape is None else list(self.image_shape),
             "field_block": self.field_block,
+            "edge_k": None if self.edge_k is None else [float(v) for v in self.edge_k],
         }
         if self.has_field:
             d["field_gain"] = np.asarray(self.field_gain).tolist()
@@ -644,7 +647,7 @@ class DecisionParams:
     @property
     def local_radius(self) -> int:
         """Reach of the pixel-local steps: statistic window + opening (2 r) + 1."""
-        return self.smooth_radius + 2 * int(self.open_radius) + 1
+        return self.smooth_radius + 2 * int(self.open_radius) + 2  # + 1 for the gradient
 
     def halo(self, max_region_extent: int = 256) -> int:
         """Tile halo for exact tiled results with regions reaching ``max_region_extent`` px."""
@@ -676,8 +679,17 @@ def change_statistic(
     *,
     smooth: float = 2.0,
     truncate: float = 4.0,
+    edge_k=None,
 ) -> np.ndarray:
     """Local RMS of the robust per-band z-scores of ``observed - matched``.
+
+    With ``edge_k`` (per band, pixels), the residual scale grows with the local gradient of
+    the reblurred reference: ``sigma_c(x)^2 = sigma_c^2 + (edge_k_c |grad m_c(x)|)^2``.  The
+    reblur model is exact only up to a fraction of a pixel (whole-pixel translations on the
+    pose grid, interpolation, a residual mis-registration), and such an error ``d`` leaves
+    a residual ``d |grad m|``: large on strong edges, nil on flat ground.  Normalising by it
+    stops edges from being flagged while keeping flat-area sensitivity
+    (:func:`fit_edge_error` measures ``edge_k`` from the data).
 
     Parameters
     ----------
@@ -709,9 +721,16 @@ def change_statistic(
         raise ValueError(f"known has shape {known.shape}, expected {o.shape[:2]}")
     s = np.broadcast_to(np.asarray(sigma, dtype=np.float64).reshape(-1), (o.shape[2],))
     e = np.zeros(o.shape[:2], np.float64)
+    ks = None if edge_k is None else np.broadcast_to(
+        np.asarray(edge_k, dtype=np.float64).reshape(-1), (o.shape[2],))
     for c in range(o.shape[2]):
-        z = (o[:, :, c].astype(np.float64) - m[:, :, c]) / s[c]
-        e += np.where(known, z * z, 0.0)
+        r = o[:, :, c].astype(np.float64) - m[:, :, c]
+        if ks is not None and ks[c] > 0:
+            g2 = _grad2(m[:, :, c])
+            z2 = r * r / (s[c] * s[c] + ks[c] * ks[c] * g2)
+        else:
+            z2 = (r / s[c]) ** 2
+        e += np.where(known, z2, 0.0)
     e /= o.shape[2]
     if smooth > 0:
         kw = dict(sigma=smooth, mode="constant", cval=0.0, truncate=truncate)
@@ -721,6 +740,62 @@ def change_statistic(
     S = np.sqrt(np.maximum(e, 0.0)).astype(np.float32)
     S[~known] = 0.0
     return S
+
+
+def _grad2(a: np.ndarray) -> np.ndarray:
+    """Squared gradient magnitude (per pixel, central 3x3 Sobel scaled to unit spacing)."""
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    gx = cv2.Sobel(a, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT) / 8.0
+    gy = cv2.Sobel(a, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REFLECT) / 8.0
+    return (gx * gx + gy * gy).astype(np.float64)
+
+
+def fit_edge_error(observed, matched, known, sigma, *, quantile: float = 0.9,
+                   k_max: float = 0.5) -> np.ndarray:
+    """Model error in pixels: the ``edge_k`` of :func:`change_statistic`, per band.
+
+    On the pixels whose reblurred gradient is in the top ``1 - quantile``, the residual is
+    modelled as ``N(0, sigma^2 + (k |grad m|)^2)``; ``k`` is fitted robustly (median of
+    ``r^2 - sigma^2`` over median of ``|grad m|^2``, times the Gaussian MAD factor) so that
+    changes, a minority there too, do not inflate it.  Capped at ``k_max`` pixels: a larger
+    model error would hide real changes on edges.
+
+    Parameters
+    ----------
+    observed, matched : ndarray or sequence of ndarray
+        Observation and photometrically matched reblurred reference (tiles allowed).
+    known : bool ndarray or sequence of them
+    sigma : (C,) array_like
+        Flat-area residual scale per band (:attr:`Photometry.sigma`).
+    """
+    if isinstance(observed, np.ndarray):
+        observed, matched, known = [observed], [matched], [known]
+    s = np.asarray(sigma, dtype=np.float64).reshape(-1)
+    C = s.size
+    r2s: list[list[np.ndarray]] = [[] for _ in range(C)]
+    g2s: list[list[np.ndarray]] = [[] for _ in range(C)]
+    for o, m, k in zip(observed, matched, known, strict=True):
+        o, m = _channels(_float(o)), _channels(_float(m))
+        k = np.asarray(k, bool)
+        for c in range(C):
+            g2 = _grad2(m[:, :, c])[k]
+            r = (o[:, :, c].astype(np.float64) - m[:, :, c])[k]
+            r2s[c].append(r * r)
+            g2s[c].append(g2)
+    out = np.zeros(C)
+    for c in range(C):
+        g2 = np.concatenate(g2s[c]) if g2s[c] else np.zeros(0)
+        r2 = np.concatenate(r2s[c]) if r2s[c] else np.zeros(0)
+        if g2.size < 100:
+            continue
+        hi = g2 >= np.quantile(g2, quantile)
+        med_g2 = float(np.median(g2[hi]))
+        if med_g2 <= 0:
+            continue
+        # median of r^2 of a Gaussian is 0.455 sigma^2
+        var = float(np.median(r2[hi])) / 0.455 - s[c] ** 2
+        out[c] = min(np.sqrt(max(var, 0.0) / med_g2), k_max)
+    return out
 
 
 def estimate_threshold(
@@ -1013,7 +1088,8 @@ def decide_tile(
         raise ValueError(f"core {(cy0, cx0, ch, cw)} is not inside box {(by0, bx0, bh, bw)}")
     shape = image_shape if image_shape is not None else photometry.image_shape
     matched = photometry.apply(r, (by0, bx0, bh, bw))
-    S = change_statistic(o, matched, known, photometry.sigma, smooth=p.smooth, truncate=p.truncate)
+    S = change_statistic(o, matched, known, photometry.sigma, smooth=p.smooth, truncate=p.truncate,
+                         edge_k=photometry.edge_k)
     mask, cand, counts = _decide_core(S, known, float(threshold), p)
     ly, lx = cy0 - by0, cx0 - bx0
     # completeness: regions reaching the core must stay clear of non-border tile edges
@@ -1061,6 +1137,7 @@ def decide(
     params: DecisionParams | None = None,
     field_block: int | None = None,
     threshold_method: str = "auto",
+    edge_error: bool = True,
     rng=None,
     **overrides,
 ) -> tuple[np.ndarray, dict[str, Any]]:
@@ -1119,8 +1196,12 @@ def decide(
         raise ValueError("no known pixel: every pixel is unknown or non-finite")
     if photometry is None:
         photometry = fit_photometry(o, r, known, field_block=field_block, rng=rng)
+        if edge_error:
+            ek = fit_edge_error(o, photometry.apply(r), known, photometry.sigma)
+            photometry = dataclasses.replace(photometry, edge_k=ek)
     matched = photometry.apply(r)
-    S = change_statistic(o, matched, known, photometry.sigma, smooth=p.smooth, truncate=p.truncate)
+    S = change_statistic(o, matched, known, photometry.sigma, smooth=p.smooth, truncate=p.truncate,
+                         edge_k=photometry.edge_k)
     if threshold is None:
         threshold, tinfo = estimate_threshold(S[known], method=threshold_method)
     else:

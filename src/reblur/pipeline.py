@@ -8,6 +8,7 @@ pre-match -> window selection and motion estimate (:mod:`reblur.select`,
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from collections.abc import Callable
@@ -24,6 +25,7 @@ from .decide import (
     change_statistic,
     decide_tile,
     estimate_threshold,
+    fit_edge_error,
     fit_photometry,
     tile_boxes,
 )
@@ -160,6 +162,7 @@ def reblur_and_decide(
     unknown_out=None,
     max_region: int | None = None,
     n_sample_tiles: int = 16,
+    edge_error: bool = True,
     progress: Callable[[float], None] | None = None,
 ) -> Decided:
     """Reblur the reference and decide change, streaming over tiles.
@@ -200,17 +203,21 @@ def reblur_and_decide(
         [o for _, o, _, _ in samples], [r for _, _, r, _ in samples], known,
         boxes=[b for b, _, _, _ in samples], image_shape=(H, W), rng=0,
     )
+    matched = [photometry.apply(r, b) for b, _, r, _ in samples]
+    if edge_error:
+        ek = fit_edge_error([o for _, o, _, _ in samples], matched, known, photometry.sigma)
+        photometry = dataclasses.replace(photometry, edge_k=ek)
     if threshold is None:
         stats = []
-        for (b, o, r, _u), k in zip(samples, known, strict=True):
-            S = change_statistic(o, photometry.apply(r, b), k, photometry.sigma,
-                                 smooth=p.smooth, truncate=p.truncate)
+        for (_b, o, _r, _u), k, mt in zip(samples, known, matched, strict=True):
+            S = change_statistic(o, mt, k, photometry.sigma, smooth=p.smooth,
+                                 truncate=p.truncate, edge_k=photometry.edge_k)
             stats.append(S[k])
         threshold, tinfo = estimate_threshold(stats)
     else:
         tinfo = {"method": "given"}
     threshold = float(threshold)
-    del samples, known
+    del samples, known, matched
 
     # pass 2: every tile with its halo
     change = np.zeros((H, W), bool) if change_out is None else change_out
@@ -330,9 +337,12 @@ def detect_changes(
     align : bool
         Run the coarse alignment (needed when the viewpoint moved beyond the grid).
     windows : int, optional
-        Windows estimated jointly (1 = the paper's Algorithm 1).  Default: 1 up to
-        ``large_side``, 4 windows spread around the principal point above (a small roll
-        about a distant centre is only observable from windows far apart).
+        Windows estimated jointly (1 = the paper's Algorithm 1, single growing crop).
+        Default: 2 up to ``large_side``, 4 above, spread around the principal point: a
+        small roll about a distant centre is only observable from windows far apart
+        (``benchmarks/large_motion.py``: on 41.6 MP, unseen windows reach 23-38 dB from one
+        central window with the paper's grid, 49-63 dB from two corners and 58-68 dB from
+        four with the sized grid).
     large_side : int
         Long side (pixels) above which the large-image defaults apply.
     select : SelectParams, optional
@@ -417,9 +427,9 @@ def detect_changes(
     t = time.perf_counter()
     large = max(Ho, Wo) > large_side
     if windows is None:
-        windows = 4 if large else 1
+        windows = 4 if large else 2
     if grid is None:
-        if rz_step is None and large:
+        if rz_step is None:
             grid = PoseGrid.from_ranges((Ho, Wo), t_max=t_max, rz_max=rz_max, corner_px=1.0)
         else:
             grid = PoseGrid.from_ranges((Ho, Wo), t_max=t_max, rz_max=rz_max,

@@ -352,33 +352,50 @@ def _select_spread(reference, observed, grid, base, p: SelectParams, cells, cove
     """
     unit = p.unit
     H, W = shape
-    S = int(min(p.spread_size, cells.shape[0], cells.shape[1]))
-    sc = _window_scores(cells, S)
-    cv = _window_scores(cover.astype(float), S)
-    ok = (cv >= 1.0 - 1e-9) & (sc > 0)
-    if not ok.any():
-        raise ValueError("motion cannot be estimated: no textured, covered window found")
-    ys, xs = np.mgrid[0 : sc.shape[0], 0 : sc.shape[1]]
-    cyy, cxx = (ys + S / 2) * unit, (xs + S / 2) * unit
     pcx, pcy = grid.center
-    smax = sc[ok].max()
-    excluded = np.zeros(sc.shape, bool)
     tried: list[dict] = []
-    for _attempt in range(3):
+
+    def place(S: int, excluded: np.ndarray | None) -> list[Box]:
+        """Greedy placement of up to ``p.windows`` non-overlapping S x S windows."""
+        sc = _window_scores(cells, S)
+        cv = _window_scores(cover.astype(float), S)
+        ok = (cv >= 1.0 - 1e-9) & (sc > 0)
+        if excluded is not None and excluded.shape == ok.shape:
+            ok &= ~excluded
+        if not ok.any():
+            return []
+        ys, xs = np.mgrid[0 : sc.shape[0], 0 : sc.shape[1]]
+        cyy, cxx = (ys + S / 2) * unit, (xs + S / 2) * unit
+        smax = sc[ok].max()
         chosen: list[Box] = []
         for _ in range(p.windows):
             if chosen:
                 d = np.min([np.hypot(cyy - (c.y0 + c.h / 2), cxx - (c.x0 + c.w / 2))
                             for c in chosen], axis=0)
-                allowed = ok & ~excluded & (d >= S * unit)
+                allowed = ok & (d >= S * unit)
             else:
                 d = np.hypot(cyy - pcy, cxx - pcx) + unit
-                allowed = ok & ~excluded
+                allowed = ok
             if not allowed.any():
                 break
             obj = np.where(allowed, np.sqrt(sc / smax) * d, -np.inf)
             iy, ix = np.unravel_index(int(np.argmax(obj)), obj.shape)
             chosen.append(Box(int(iy * unit), int(ix * unit), S * unit, S * unit))
+        return chosen
+
+    # the largest side up to spread_size at which all the windows fit
+    best: tuple[int, list[Box]] = (0, [])
+    for S in range(int(min(p.spread_size, cells.shape[0], cells.shape[1])), 0, -1):
+        chosen = place(S, None)
+        if len(chosen) > len(best[1]):
+            best = (S, chosen)
+        if len(chosen) >= p.windows:
+            break
+    S, chosen = best
+    if not chosen:
+        raise ValueError("motion cannot be estimated: no textured, covered window found")
+    excluded = None
+    for _attempt in range(3):
         if progress:
             progress(f"{len(chosen)} spread windows of {S * unit} px")
         est = estimate_motion(reference, observed, grid, boxes=[c.as_tuple() for c in chosen],
@@ -389,8 +406,11 @@ def _select_spread(reference, observed, grid, base, p: SelectParams, cells, cove
                               reason="too occluded" if i in bad else "spread window"))
         if not bad or len(chosen) - len(bad) < 1:
             break
+        shape_sc = _window_scores(cells, S).shape
+        excluded = np.zeros(shape_sc, bool) if excluded is None else excluded
         for i in bad:
             excluded[chosen[i].y0 // unit, chosen[i].x0 // unit] = True
+        chosen = place(S, excluded) or chosen
     crop = CropChoice(boxes=[c.as_tuple() for c in chosen], size=S * unit, tried=tried)
     return crop, est
 
