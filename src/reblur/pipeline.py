@@ -8,7 +8,6 @@ pre-match -> window selection and motion estimate (:mod:`reblur.select`,
 
 from __future__ import annotations
 
-import dataclasses
 import threading
 import time
 from collections.abc import Callable
@@ -25,7 +24,6 @@ from .decide import (
     change_statistic,
     decide_tile,
     estimate_threshold,
-    fit_edge_error,
     fit_photometry,
     tile_boxes,
 )
@@ -201,12 +199,9 @@ def reblur_and_decide(
         raise ValueError("the reference covers no pixel of the observation")
     photometry = fit_photometry(
         [o for _, o, _, _ in samples], [r for _, _, r, _ in samples], known,
-        boxes=[b for b, _, _, _ in samples], image_shape=(H, W), rng=0,
+        boxes=[b for b, _, _, _ in samples], image_shape=(H, W), rng=0, edge_error=edge_error,
     )
     matched = [photometry.apply(r, b) for b, _, r, _ in samples]
-    if edge_error:
-        ek = fit_edge_error([o for _, o, _, _ in samples], matched, known, photometry.sigma)
-        photometry = dataclasses.replace(photometry, edge_k=ek)
     if threshold is None:
         stats = []
         for (_b, o, _r, _u), k, mt in zip(samples, known, matched, strict=True):
@@ -407,7 +402,7 @@ def detect_changes(
     if align:
         from .align import coarse_align
 
-        alignment = coarse_align(reference, observed, polish=False)
+        alignment = coarse_align(reference, observed)
         H0 = alignment.H
         align_info = alignment.to_dict()
     else:

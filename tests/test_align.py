@@ -1,0 +1,316 @@
+"""Tests for reblur.align: coarse alignment of a blurred observation from another viewpoint.
+
+Observations are made from real 1024x1024 LEVIR / WHU-CD images: the reference is warped by a
+known viewpoint homography (translation up to 5 % of the width, roll up to 5 degrees, a little
+perspective, about the image centre) and blurred by camera shake (the mean of 30 warps along
+a smooth random path of up to +-8 px and +-1 degree about the centre).  The blurred image is
+centred on the mean pose of the path, so the truth is the mean pose's homography composed
+with the viewpoint warp.
+"""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import zarr
+from conftest import LEVIR, WHU
+
+from reblur import align as align_mod
+from reblur.align import Alignment, AlignmentError, coarse_align, overview, overview_matrix
+from reblur.grid import map_points, pose_homography, translation
+from reblur.warp import Box, warp_window
+
+SIZE = 1024
+CENTER = ((SIZE - 1) / 2.0, (SIZE - 1) / 2.0)
+
+
+def _read(path) -> np.ndarray:
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    assert img is not None, f"real test imagery missing: {path}"
+    return (cv2.cvtColor(img, cv2.COLOR_BGR2RGB) / 255.0).astype(np.float32)
+
+
+def _smooth_walk(rng: np.random.Generator, n: int) -> np.ndarray:
+    """A smooth random walk of ``n`` samples scaled to [-1, 1]."""
+    v = np.cumsum(rng.normal(size=n + 6))
+    v = np.convolve(v, np.ones(7) / 7.0, mode="valid")[:n]
+    v -= (v.max() + v.min()) / 2.0
+    return v / np.abs(v).max()
+
+
+def _viewpoint(rng: np.random.Generator, t_frac=0.05, rot=5.0, persp=1e-5) -> np.ndarray:
+    tx, ty = rng.uniform(-t_frac, t_frac, 2) * SIZE
+    Hv = pose_homography(tx, ty, rz=rng.uniform(-rot, rot), center=CENTER)
+    P = np.eye(3)
+    P[2, :2] = rng.uniform(-persp, persp, 2)
+    Hv = Hv @ translation(*CENTER) @ P @ translation(-CENTER[0], -CENTER[1])
+    return Hv / Hv[2, 2]
+
+
+def _observe(source, Hv, rng, *, n=30, shake=8.0, roll=1.0):
+    """Blur ``source`` warped by ``Hv`` along a random shake path; return (obs, H_true)."""
+    px, py, pr = shake * _smooth_walk(rng, n), shake * _smooth_walk(rng, n), roll * _smooth_walk(
+        rng, n
+    )
+    acc = np.zeros(source.shape[:2] + (source.shape[2],), np.float32)
+    for a, b, r in zip(px, py, pr, strict=True):
+        out, _ = warp_window(source, pose_homography(a, b, rz=r, center=CENTER) @ Hv,
+                             Box(0, 0, SIZE, SIZE))
+        acc += out
+    H_true = pose_homography(px.mean(), py.mean(), rz=pr.mean(), center=CENTER) @ Hv
+    return acc / n, H_true / H_true[2, 2]
+
+
+def _corners(shape) -> np.ndarray:
+    h, w = shape[:2]
+    return np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], float)
+
+
+def _ref_corner_error(H, H_true, ref_shape) -> float:
+    """Largest distance between where ``H`` and ``H_true`` send the reference corners."""
+    c = _corners(ref_shape)
+    return float(np.hypot(*(map_points(H, c) - map_points(H_true, c)).T).max())
+
+
+def _obs_corner_error(H, H_true, obs_shape) -> float:
+    """Largest misalignment, in observation pixels, at the observation's corners."""
+    c = _corners(obs_shape)
+    return float(np.hypot(*(map_points(H @ np.linalg.inv(H_true), c) - c).T).max())
+
+
+IMAGES = {
+    "levir_test_7": LEVIR / "A" / "test_7.png",
+    "levir_test_102": LEVIR / "A" / "test_102.png",
+    "whu_000121": WHU / "prev" / "000121.png",
+}
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    """name -> (reference, blurred observation, true homography), made once."""
+    out = {}
+    for i, (name, path) in enumerate(IMAGES.items()):
+        rng = np.random.default_rng(100 + i)
+        ref = _read(path)
+        obs, H_true = _observe(ref, _viewpoint(rng), rng)
+        out[name] = (ref, obs, H_true)
+    return out
+
+
+@pytest.fixture(scope="module")
+def scene(scenes):
+    return scenes["levir_test_7"]
+
+
+@pytest.fixture(scope="module")
+def aligned(scene) -> Alignment:
+    ref, obs, _ = scene
+    return coarse_align(ref, obs)
+
+
+# ---------------------------------------------------------------------------- overview
+class _Recorder:
+    """Array-like that records the row ranges read."""
+
+    def __init__(self, a):
+        self.a, self.reads = a, []
+        self.shape, self.dtype = a.shape, a.dtype
+
+    def __getitem__(self, key):
+        self.reads.append(key[0])
+        return self.a[key]
+
+
+def test_overview_block_mean_in_strips(monkeypatch):
+    rng = np.random.default_rng(0)
+    a = rng.integers(0, 65536, size=(37, 53, 3), dtype=np.uint16)
+    rec = _Recorder(a)
+    monkeypatch.setattr(align_mod, "_STRIP_BYTES", 6 * 48 * 3 * 4 * 2)  # two block rows
+    small, scale = overview(rec, max_side=10)
+    k = 6  # ceil(53 / 10)
+    assert scale == pytest.approx(1 / k)
+    assert small.shape == (37 // k, 53 // k) and small.dtype == np.float32
+    want = (a[:36, :48].astype(np.float64).mean(axis=2) / 65535.0)
+    want = want.reshape(6, k, 8, k).mean(axis=(1, 3))
+    np.testing.assert_allclose(small, want, atol=1e-6)
+    # read strip by strip, never the whole image
+    assert len(rec.reads) == 3
+    assert all(s.stop - s.start <= 2 * k for s in rec.reads)
+
+
+def test_overview_float_gray_and_nan():
+    a = np.full((40, 40), 0.25, np.float32)
+    a[0, 0] = np.nan
+    small, scale = overview(a, max_side=20)
+    assert scale == 0.5 and small.shape == (20, 20)
+    assert np.isfinite(small).all()
+    assert small[0, 0] == pytest.approx(0.75 * 0.25)
+    assert small[5, 5] == pytest.approx(0.25)
+    full, s1 = overview(a[..., None].repeat(3, axis=2), max_side=64)
+    assert s1 == 1.0 and full.shape == (40, 40)
+
+
+def test_overview_matrix_pixel_centres():
+    A = overview_matrix(0.25)
+    # overview pixel 0 averages full pixels 0..3: its centre is 1.5
+    np.testing.assert_allclose(map_points(A, [[0, 0], [2, 1]]), [[1.5, 1.5], [9.5, 5.5]])
+    np.testing.assert_allclose(overview_matrix(1.0), np.eye(3))
+
+
+# ---------------------------------------------------------------------------- accuracy
+@pytest.mark.parametrize("name", list(IMAGES))
+def test_recovers_viewpoint_under_camera_shake(scenes, name):
+    ref, obs, H_true = scenes[name]
+    a = coarse_align(ref, obs)
+    ref_err = _ref_corner_error(a.H, H_true, ref.shape)
+    obs_err = _obs_corner_error(a.H, H_true, obs.shape)
+    # the fine pose grid absorbs +-12 px; the blur-aware polish lands within a pixel
+    assert ref_err <= 2.0, (ref_err, a)
+    assert obs_err <= 2.0, (obs_err, a)
+    assert a.H.shape == (3, 3) and a.H.dtype == np.float64 and a.H[2, 2] == 1.0
+    assert a.method.endswith("kernel") and a.scale == 1.0
+    assert a.n_regions >= 16 and a.overlap > 0.8
+    assert a.ecc is not None and a.ecc > 0.8
+    d = json.loads(json.dumps(a.to_dict()))
+    np.testing.assert_allclose(d["H"], a.H)
+    assert d["method"] == a.method and d["n_regions"] == a.n_regions
+
+
+def test_low_resolution_working_scale(scene):
+    """max_side=256 works on a 1/4 overview: the pixel-centre conversion must be exact."""
+    ref, obs, H_true = scene
+    a = coarse_align(ref, obs, max_side=256)
+    assert a.scale == 0.25
+    assert _ref_corner_error(a.H, H_true, ref.shape) <= 2.0
+
+
+def test_without_polish_is_only_coarse(scene):
+    """A correlation/feature optimum sits near a mode of the blur, not at its mean."""
+    ref, obs, H_true = scene
+    a = coarse_align(ref, obs, polish=False)
+    assert "kernel" not in a.method and a.n_regions == 0
+    assert a.residual_px is not None and np.isfinite(a.residual_px)
+    assert _obs_corner_error(a.H, H_true, obs.shape) <= 25.0
+
+
+def test_phase_correlation_path(scene):
+    ref, obs, H_true = scene
+    a = coarse_align(ref, obs, method="ecc")
+    assert a.method == "phase+ecc+kernel"
+    assert a.n_matches == 0 and a.residual_px is None
+    assert _obs_corner_error(a.H, H_true, obs.shape) <= 2.0
+
+
+def test_identity_and_sharp_warp():
+    ref = _read(IMAGES["whu_000121"])
+    a = coarse_align(ref, ref)
+    assert _ref_corner_error(a.H, np.eye(3), ref.shape) <= 0.1, a.H
+    rng = np.random.default_rng(3)
+    Hv = _viewpoint(rng)
+    obs, _ = warp_window(ref, Hv, Box(0, 0, SIZE, SIZE))
+    # the working level is 1/4 for the default 16 px of shake: a fraction of its pixel
+    b = coarse_align(ref, obs)
+    assert _obs_corner_error(b.H, Hv, obs.shape) <= 1.5
+    # no shake expected: the polish runs at full resolution
+    c = coarse_align(ref, obs, shake_px=4)
+    assert _obs_corner_error(c.H, Hv, obs.shape) <= 0.1
+
+
+def test_observation_crop_of_other_size(scene):
+    """A 900x800 observation cut at (x0, y0) = (70, 50): H includes the crop offset."""
+    ref, obs, H_true = scene
+    x0, y0 = 70, 50
+    crop = obs[y0 : y0 + 900, x0 : x0 + 800]
+    a = coarse_align(ref, crop)
+    H_crop = translation(-x0, -y0) @ H_true
+    assert _obs_corner_error(a.H, H_crop, crop.shape) <= 2.0
+    # and a reference smaller than the observation: H starts at the reference crop's offset
+    ref_crop = ref[y0 : y0 + 900, x0 : x0 + 800]
+    b = coarse_align(ref_crop, obs)
+    assert _ref_corner_error(b.H, H_true @ translation(x0, y0), ref_crop.shape) <= 2.0
+
+
+def test_uint16_and_zarr_inputs(scene, aligned, tmp_path):
+    ref, obs, H_true = scene
+    ref16 = np.round(ref * 65535).astype(np.uint16)
+    obs16 = np.round(np.clip(obs, 0, 1) * 65535).astype(np.uint16)
+    a16 = coarse_align(ref16, obs16)
+    assert _obs_corner_error(a16.H, aligned.H, obs.shape) <= 0.5
+    zarrs = []
+    for name, arr in (("ref", ref16), ("obs", obs16)):
+        z = zarr.open_array(
+            store=str(tmp_path / f"{name}.zarr"), mode="w", shape=arr.shape,
+            chunks=(256, 256, 3), dtype=arr.dtype,
+        )
+        z[:] = arr
+        zarrs.append(zarr.open_array(store=str(tmp_path / f"{name}.zarr"), mode="r"))
+    az = coarse_align(*zarrs)
+    np.testing.assert_allclose(az.H, a16.H, rtol=0, atol=1e-9)
+    assert az.method == a16.method
+
+
+def test_partial_scene_change(scene):
+    """A 300x300 patch of the later LEVIR image (a real change) does not derail it."""
+    ref = _read(IMAGES["levir_test_7"])
+    later = _read(LEVIR / "B" / "test_7.png")
+    comp = ref.copy()
+    comp[400:700, 150:450] = later[400:700, 150:450]
+    rng = np.random.default_rng(7)
+    obs, H_true = _observe(comp, _viewpoint(rng), rng)
+    a = coarse_align(ref, obs)
+    assert _obs_corner_error(a.H, H_true, obs.shape) <= 2.5, a
+
+
+# ---------------------------------------------------------------------------- refusals
+def test_unrelated_images_raise(scene):
+    ref, _, _ = scene
+    rng = np.random.default_rng(11)
+    other = _read(WHU / "prev" / "000213.png")
+    obs, _ = _observe(other, _viewpoint(rng), rng, n=10)
+    with pytest.raises(AlignmentError):
+        coarse_align(ref, obs)
+    noise = rng.random((SIZE, SIZE, 3)).astype(np.float32)
+    with pytest.raises(AlignmentError):
+        coarse_align(ref, noise)
+    with pytest.raises(AlignmentError):
+        coarse_align(noise, ref)
+
+
+def test_constant_image_raises(scene):
+    ref, obs, _ = scene
+    flat = np.full((600, 700, 3), 0.4, np.float32)
+    with pytest.raises(AlignmentError, match="textureless"):
+        coarse_align(flat, obs)
+    with pytest.raises(AlignmentError, match="textureless"):
+        coarse_align(ref, np.zeros((SIZE, SIZE), np.uint8))
+
+
+def test_bad_arguments(scene):
+    ref, obs, _ = scene
+    assert issubclass(AlignmentError, ValueError)
+    with pytest.raises(ValueError, match="method"):
+        coarse_align(ref, obs, method="sift")
+    with pytest.raises(ValueError, match="shape"):
+        coarse_align(ref[None], obs)
+    with pytest.raises(ValueError, match="min_side"):
+        coarse_align(ref, obs, min_side=512, max_side=256)
+
+
+@pytest.mark.parametrize(
+    ("H", "reason"),
+    [
+        (np.diag([-1.0, 1.0, 1.0]) @ translation(-1023, 0), "mirrored"),
+        (translation(-1535.5, -1535.5) @ np.diag([3.0, 3.0, 1.0]), "zoom"),
+        (np.diag([1.9, 0.6, 1.0]), "stretch"),
+        (translation(900, 900), "covers"),
+        (np.array([[1.0, 0, 0], [0, 1.0, 0], [-0.002, 0, 1.0]]), "horizon"),
+    ],
+)
+def test_implausible_homographies_are_refused(H, reason):
+    with pytest.raises(AlignmentError, match=reason):
+        align_mod._check_plausible(
+            H, (SIZE, SIZE), (SIZE, SIZE), max_zoom=2.0, max_anisotropy=2.0, min_overlap=0.2
+        )
