@@ -286,6 +286,27 @@ def _pad(core, halo: int, shape) -> tuple[int, int, int, int]:
     return (y0, x0, y1 - y0, x1 - x0)
 
 
+def align_coarse(reference, observed, shakes=(8.0, 16.0, 32.0, 64.0)):
+    """Coarse alignment, trying camera-shake extents from small to large.
+
+    :func:`reblur.align.coarse_align` refines at the finest pyramid level where the shake
+    spans a few pixels and verifies the result with blur kernels fitted region by region;
+    a blur larger than ``shake_px`` fails verification.  The smallest extent that verifies
+    works at the finest level, hence the most accurate alignment (on the demo pair: 0.3 px
+    worst error at ``shake_px=8`` against 5.4 px at 16).
+    """
+    from .align import AlignmentError, coarse_align
+
+    err: Exception | None = None
+    for sp in shakes:
+        try:
+            return coarse_align(reference, observed, shake_px=sp)
+        except AlignmentError as e:
+            err = e
+    assert err is not None
+    raise err
+
+
 def detect_changes(
     reference,
     observed,
@@ -400,9 +421,7 @@ def detect_changes(
     t = time.perf_counter()
     report("align", 0.0)
     if align:
-        from .align import coarse_align
-
-        alignment = coarse_align(reference, observed)
+        alignment = align_coarse(reference, observed)
         H0 = alignment.H
         align_info = alignment.to_dict()
     else:
