@@ -130,7 +130,8 @@ def main(timing_sides=(5000, 10000, 32000)) -> str:
         "from 500 x 500 windows; PSNR of three 500 x 500 windows the estimate never saw "
         "(bottom centre, top centre, left centre).",
         "",
-        "| grid | estimation windows | time (s) | fit on own windows (dB, worst) | unseen windows (dB) |",
+        "| grid | estimation windows | time (s) | fit on own windows (dB, worst) "
+        "| unseen windows (dB) |",
         "|---|---|---|---|---|",
     ]
     (H, W), rows = run_accuracy(3, 3, 2150, 0.3, 9.0)

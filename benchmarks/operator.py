@@ -91,7 +91,8 @@ def main() -> str:
     lines = [
         "## Operator and solver (full 8125-pose paper grid)",
         "",
-        "`python -m benchmarks.operator` — LEVIR image, central crop, each case in a fresh process.",
+        "`python -m benchmarks.operator` — LEVIR image, central crop, each case in a fresh "
+        "process.",
         "",
         "| case | crop | engine | build (s) | time (s) | peak RSS (MB) |",
         "|---|---|---|---|---|---|",
@@ -123,7 +124,8 @@ def main() -> str:
         f"fit {solve['psnr_db']:.1f} dB, {solve['n_outer']} outer iterations, "
         f"{solve['n_active']} active poses. Target: <= 3 s, <= 300 MB.",
         "",
-        f"FISTA on the same problem (cross-check solver): {fi.get('psnr_at_3s', float('nan')):.1f} dB "
+        "FISTA on the same problem (cross-check solver): "
+        f"{fi.get('psnr_at_3s', float('nan')):.1f} dB "
         f"after 3 s, {fi.get('psnr_at_10s', float('nan')):.1f} dB after 10 s "
         f"({fi['time_s']:.0f} s for 120 iterations).",
         "",

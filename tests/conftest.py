@@ -45,7 +45,9 @@ def levir_pairs():
 
 @pytest.fixture(scope="session")
 def levir_rgb() -> np.ndarray:
-    assert LEVIR.exists(), f"real test imagery missing: {LEVIR} (../shared must sit beside the repo)"
+    assert LEVIR.exists(), (
+        f"real test imagery missing: {LEVIR} (../shared must sit beside the repo)"
+    )
     return levir_before(0)
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 import scipy.ndimage as ndi
@@ -13,6 +14,7 @@ from reblur.decide import (
     decide,
     decide_tile,
     estimate_threshold,
+    fit_model_error,
     fit_photometry,
     tile_boxes,
 )
@@ -313,5 +315,50 @@ def test_input_validation(colour):
     with pytest.raises(ValueError, match="boundary_fraction"):
         DecisionParams(boundary_fraction=1.0)
     p = DecisionParams()
-    assert p.local_radius == 8 + 2 * 3 + 1
+    assert p.local_radius == 8 + 2 * 3 + 2  # window radius + opening + gradient + 1
     assert p.halo(100) == p.local_radius + 100
+
+
+# --------------------------------------------------------------------------- model error
+def _structured(seed=0, shape=(512, 512)):
+    """A smooth random image with edges and fine texture, and its gradient / Laplacian."""
+    rng = np.random.default_rng(seed)
+    m = cv2.GaussianBlur(rng.random(shape).astype(np.float32), (0, 0), 1.2)
+    m = (m - m.min()) / np.ptp(m)
+    m = m + 0.5 * (cv2.GaussianBlur(rng.random(shape).astype(np.float32), (0, 0), 8) > 0.5)
+    m = m.astype(np.float32)
+    gx = cv2.Sobel(m, cv2.CV_64F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT) / 8.0
+    gy = cv2.Sobel(m, cv2.CV_64F, 0, 1, ksize=3, borderType=cv2.BORDER_REFLECT) / 8.0
+    lap = cv2.Laplacian(m.astype(np.float64), cv2.CV_64F, ksize=1, borderType=cv2.BORDER_REFLECT)
+    return rng, m, gx * gx + gy * gy, lap * lap
+
+
+def test_model_error_fit_recovers_known_coefficients():
+    """Residual drawn from N(0, s^2 + a |grad m|^2 + b (lap m)^2) with known a, b."""
+    rng, m, g2, l2 = _structured()
+    s, k_edge, k_curv = 0.01, 0.15, 0.08
+    sd = np.sqrt(s * s + k_edge**2 * g2 + k_curv**2 * l2)
+    obs = m + rng.standard_normal(m.shape) * sd
+    known = np.ones(m.shape, bool)
+    ek, ck = fit_model_error(obs, m, known, [s])
+    assert ek[0] == pytest.approx(k_edge, rel=0.15)
+    assert ck[0] == pytest.approx(k_curv, rel=0.2)
+    # a change (a strong square, 4 % of the pixels) does not inflate the fit much
+    obs2 = obs.copy()
+    obs2[100:202, 100:202] += 0.3
+    ek2, ck2 = fit_model_error(obs2, m, known, [s])
+    assert ek2[0] == pytest.approx(k_edge, rel=0.25) and ck2[0] == pytest.approx(k_curv, rel=0.3)
+    # pure noise: no model error
+    ek0, ck0 = fit_model_error(m + s * rng.standard_normal(m.shape), m, known, [s])
+    assert ek0[0] < 0.03 and ck0[0] < 0.03
+
+
+def test_statistic_with_model_error_matches_explicit_formula():
+    rng, m, g2, l2 = _structured(1, (96, 96))
+    obs = (m + 0.02 * rng.standard_normal(m.shape)).astype(np.float32)
+    known = np.ones(m.shape, bool)
+    known[:5] = False
+    S = change_statistic(obs, m, known, [0.01], smooth=0.0, edge_k=[0.2], curv_k=[0.1])
+    z2 = (obs.astype(np.float64) - m) ** 2 / (0.01**2 + 0.04 * g2 + 0.01 * l2)
+    np.testing.assert_allclose(S[known], np.sqrt(z2[known]), rtol=1e-5)
+    assert not S[~known].any()

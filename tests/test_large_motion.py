@@ -7,12 +7,11 @@ path with 0.3 deg of roll about the FULL image centre (not on any grid), also wi
 
 import numpy as np
 import pytest
+from conftest import levir_pairs, load_rgb
 
 from reblur import PoseGrid, estimate_motion
 from reblur.simulate import MosaicScene, blur_along_path, random_camera_path
 from reblur.tiled import SparsePoses, reblur_tile
-
-from conftest import levir_pairs, load_rgb
 
 S, MARGIN = 500, 300
 

@@ -11,7 +11,8 @@ SHAPE = (300, 400)
 
 
 def _grid(**kw):
-    return PoseGrid(SHAPE, tx=np.arange(-3, 4), ty=np.arange(-2, 5), rz=[-2.0, -0.5, 0.0, 1.5], **kw)
+    return PoseGrid(SHAPE, tx=np.arange(-3, 4), ty=np.arange(-2, 5), rz=[-2.0, -0.5, 0.0, 1.5],
+                    **kw)
 
 
 @pytest.mark.parametrize("channels", [1, 3])

@@ -441,7 +441,7 @@ def test_make_pair_consistent(levir):
     V = np.array(meta["viewpoint"])
     reblur, valid = blur_along_path(pair.reference, path, base=V)
     np.testing.assert_array_equal(valid, ~pair.unknown)
-    carried, _ = blur_along_path(pair.scene_truth.astype(np.float32), path, base=V)
+    carried, _ = blur_along_path(pair.scene_changed.astype(np.float32), path, base=V)
     quiet = valid & (carried == 0)
     assert quiet.mean() > 0.5
     np.testing.assert_allclose(pair.observed[quiet], reblur[quiet], atol=1e-5)
@@ -450,7 +450,8 @@ def test_make_pair_consistent(levir):
     assert np.median(diff[pair.truth]) > 0.05
     assert np.median(diff[quiet]) < 1e-5
     # the truth is the change mask carried by the same motion, thresholded at 0.5
-    np.testing.assert_array_equal(pair.truth, (carried >= 0.5) & valid)
+    held, _ = blur_along_path(pair.scene_truth.astype(np.float32), path, base=V)
+    np.testing.assert_array_equal(pair.truth, (held >= 0.5) & valid)
     # the viewpoint is not the identity and the shake has the requested extent
     assert np.abs(V - np.eye(3)).max() > 1e-3
     assert path.extent()["tx"] == pytest.approx(6.0) and path.extent()["rz"] == pytest.approx(1.0)
@@ -477,6 +478,7 @@ def test_make_pair_after_image_noise_and_seed():
     # scene = after image outside the pasted changes
     np.testing.assert_array_equal(p1.scene[~p1.scene_truth], b[~p1.scene_truth])
     np.testing.assert_array_equal(p1.truth, p1.scene_truth)
+    np.testing.assert_array_equal(p1.scene_changed, p1.scene_truth)  # nothing moving
     p2 = make_pair(
         a,
         b,
@@ -490,3 +492,37 @@ def test_make_pair_after_image_noise_and_seed():
     np.testing.assert_array_equal(p1.observed, p2.observed)
     with pytest.raises(ValueError):
         make_pair(a, b[:100], rng=0)
+
+
+def test_moving_object_half_max_footprint(levir):
+    """The half-maximum footprint: the same smear, the pixels covered at least half as long as
+    the most covered one (checked against the occupancy recomputed independently)."""
+    img = levir[0:200, 0:240]
+    kw = dict(size_range=(0.1, 0.1), travel_range=(0.05, 0.05), n_steps=16)
+    out_s, swept = moving_object(img, 9, **kw)
+    out_h, half = moving_object(img, 9, truth="half_max", **kw)
+    np.testing.assert_array_equal(out_s, out_h)  # same scene, only the footprint differs
+    assert half.any() and not np.any(half & ~swept) and half.sum() < swept.sum()
+    # the ends of the smear, covered for a short part of the exposure, change the image
+    # much less than the half-max core
+    d = np.abs(out_s - img).max(axis=2)
+    assert np.median(d[half]) > 2 * np.median(d[swept & ~half])
+    with pytest.raises(ValueError, match="truth"):
+        moving_object(img, 9, truth="all")
+    # the occupancy: the fraction of the time steps the object covers each pixel
+    _, occ = moving_object(img, 9, truth="occupancy", **kw)
+    assert occ.dtype == np.float32 and occ.max() <= 1.0 + 1e-6
+    np.testing.assert_array_equal(occ > 0, swept)
+    np.testing.assert_array_equal(occ >= 0.5 * occ.max(), half)
+
+
+def test_make_pair_moving_truth(levir):
+    """The pair's truth holds the moving object by its half-maximum footprint, carried
+    through the camera blur; every pixel it may change is in ``scene_changed``."""
+    img = levir[200:456, 600:856]
+    pair = make_pair(img, rng=5, n_changes=0, noise_sigma=0.0, viewpoint=None,
+                     moving={"travel_range": (0.1, 0.1)})
+    assert pair.scene_truth.any() and pair.scene_truth.sum() < pair.scene_changed.sum()
+    assert not np.any(pair.scene_truth & ~pair.scene_changed)
+    untouched = ~pair.scene_changed
+    np.testing.assert_array_equal(pair.scene[untouched], img[untouched])

@@ -17,7 +17,8 @@ def test_tiles_cover_image_once():
 
 def test_tiled_equals_whole_and_explicit(levir_rgb):
     img = levir_rgb[:700, :900].astype(np.float32)
-    grid = PoseGrid((700, 900), tx=np.arange(-6, 7), ty=np.arange(-6, 7), rz=[-2.0, -1.0, 0.0, 1.0, 2.5])
+    grid = PoseGrid((700, 900), tx=np.arange(-6, 7), ty=np.arange(-6, 7),
+                    rz=[-2.0, -1.0, 0.0, 1.0, 2.5])
     w = grid_path(grid, rng=1, n_poses=25)
     whole, vwhole = reblur(img, w, grid, tile_size=4096)
     tiled, vtiled = reblur(img, w, grid, tile_size=128, workers=2)

@@ -656,7 +656,7 @@ def coarse_align(
     ecc_iterations: int = 100,
     polish: bool = True,
     min_r2: float = 0.3,
-    min_regions: float = 0.25,
+    min_regions: float = 0.15,
     min_agree: float = 0.6,
     min_spread: float = 0.3,
     min_ecc: float = 0.4,

@@ -259,8 +259,10 @@ def main() -> None:
               help="Pose grid: largest in-plane translation |tx|, |ty| (pixels).")
 @click.option("--rz-max", type=click.FloatRange(min=0), default=3.0, show_default=True,
               help="Pose grid: largest in-plane rotation |rz| (degrees).")
-@click.option("--rz-step", type=click.FloatRange(min=0, min_open=True), default=0.5,
-              show_default=True, help="Pose grid: rotation step (degrees).")
+@click.option("--rz-step", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="Pose grid: rotation step (degrees).  Default: the step that moves the "
+                   "farthest pixel by one pixel (0.5 deg is the paper's, too coarse for "
+                   "large images).")
 @click.option("--lam", type=click.FloatRange(min=0), default=0.1, show_default=True,
               help="l1 weight lambda of the joint blur/change estimate (intensities in [0, 1]).")
 @click.option("--tile-size", type=click.IntRange(min=64), default=1024, show_default=True,
@@ -276,7 +278,7 @@ def main() -> None:
 @quiet_option
 @verbose_option
 def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float,
-           rz_step: float, lam: float, tile_size: int, threshold: float | None,
+           rz_step: float | None, lam: float, tile_size: int, threshold: float | None,
            truth: Path | None, max_pixels: int, workers: int, overwrite: bool,
            quiet: bool) -> None:
     """Find what changed between REFERENCE (sharp) and OBSERVED (later, blurred).

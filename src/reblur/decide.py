@@ -97,7 +97,7 @@ __all__ = [
     "DecisionParams",
     "change_statistic",
     "estimate_threshold",
-    "fit_edge_error",
+    "fit_model_error",
     "decide_tile",
     "decide",
     "tile_boxes",
@@ -260,6 +260,7 @@ class Photometry:
     field_gain: np.ndarray | None = None
     field_offset: np.ndarray | None = None
     edge_k: np.ndarray | None = None
+    curv_k: np.ndarray | None = None
     info: dict[str, Any] = field(default_factory=dict)
 
     @property
@@ -337,6 +338,7 @@ class Photometry:
             "image_shape": None if self.image_shape is None else list(self.image_shape),
             "field_block": self.field_block,
             "edge_k": None if self.edge_k is None else [float(v) for v in self.edge_k],
+            "curv_k": None if self.curv_k is None else [float(v) for v in self.curv_k],
         }
         if self.has_field:
             d["field_gain"] = np.asarray(self.field_gain).tolist()
@@ -472,6 +474,7 @@ def fit_photometry(
     field_block: int | None = None,
     max_samples: int = 200_000,
     smoothness: float = 0.01,
+    edge_error: bool = True,
     rng=None,
 ) -> Photometry:
     """Fit the per-band photometric model robustly, from a whole image or from a sample.
@@ -508,6 +511,10 @@ def fit_photometry(
         (see ``_fit_field``); linear trends are not penalised.
     rng : int or numpy.random.Generator, optional
         Seed of the subsampling (default 0: reproducible).
+
+    edge_error : bool
+        Also fit the model error ``edge_k`` and ``curv_k`` (:func:`fit_model_error`) on
+        full-resolution input (not when ``scale != 1``).
 
     Returns
     -------
@@ -568,10 +575,29 @@ def fit_photometry(
             oo = _grid_sample(fo[c], ys, xs, field_block)
             sigma[c] = _robust_scale(obs[:, c] - gg * reb[:, c] - oo)
     sigma = np.where(sigma > 0, sigma, np.finfo(np.float32).eps)
-    return Photometry(
+    ph = Photometry(
         gain=gain, offset=offset, sigma=sigma, image_shape=image_shape,
         field_block=field_block, field_gain=fg, field_offset=fo, info=info,
     )
+    if edge_error and scale == 1.0:
+        # gradients need full-resolution data: tiles or the whole image
+        if isinstance(observed, np.ndarray) or not isinstance(observed, Sequence):
+            tiles = [(observed, reblurred, valid, None)]
+        else:
+            vs = valid if valid is not None else [None] * len(observed)
+            tiles = list(zip(observed, reblurred, vs, boxes, strict=True))
+        os_, ms_, ks_ = [], [], []
+        for o, r, v, b in tiles:
+            o = _channels(_float(o))
+            k = np.all(np.isfinite(o), axis=2)
+            if v is not None:
+                k &= np.asarray(v, bool)
+            os_.append(o)
+            ms_.append(_channels(ph.apply(r, b)))
+            ks_.append(k)
+        ek, ck = fit_model_error(os_, ms_, ks_, sigma)
+        ph = dataclasses.replace(ph, edge_k=ek, curv_k=ck)
+    return ph
 
 
 
@@ -680,16 +706,19 @@ def change_statistic(
     smooth: float = 2.0,
     truncate: float = 4.0,
     edge_k=None,
+    curv_k=None,
 ) -> np.ndarray:
     """Local RMS of the robust per-band z-scores of ``observed - matched``.
 
-    With ``edge_k`` (per band, pixels), the residual scale grows with the local gradient of
-    the reblurred reference: ``sigma_c(x)^2 = sigma_c^2 + (edge_k_c |grad m_c(x)|)^2``.  The
-    reblur model is exact only up to a fraction of a pixel (whole-pixel translations on the
-    pose grid, interpolation, a residual mis-registration), and such an error ``d`` leaves
-    a residual ``d |grad m|``: large on strong edges, nil on flat ground.  Normalising by it
-    stops edges from being flagged while keeping flat-area sensitivity
-    (:func:`fit_edge_error` measures ``edge_k`` from the data).
+    With ``edge_k`` and ``curv_k`` (per band), the residual scale grows with the local
+    structure of the reblurred reference:
+    ``sigma_c(x)^2 = sigma_c^2 + (edge_k_c |grad m_c(x)|)^2 + (curv_k_c lap m_c(x))^2``.
+    The reblur model is exact only up to a fraction of a pixel: a residual mis-registration
+    ``d`` leaves ``d |grad m|`` (strong on edges), and the difference between the
+    interpolation of a few grid poses and the camera's continuous motion acts like a
+    slight change of sharpness, ``~ c lap m`` (strong on fine texture).  Both are nil on
+    flat ground; normalising by them stops edges and fine texture from being flagged while
+    keeping flat-area sensitivity (:func:`fit_model_error` measures both from the data).
 
     Parameters
     ----------
@@ -721,16 +750,19 @@ def change_statistic(
         raise ValueError(f"known has shape {known.shape}, expected {o.shape[:2]}")
     s = np.broadcast_to(np.asarray(sigma, dtype=np.float64).reshape(-1), (o.shape[2],))
     e = np.zeros(o.shape[:2], np.float64)
-    ks = None if edge_k is None else np.broadcast_to(
-        np.asarray(edge_k, dtype=np.float64).reshape(-1), (o.shape[2],))
-    for c in range(o.shape[2]):
+    C = o.shape[2]
+    ks = np.zeros(C) if edge_k is None else np.broadcast_to(
+        np.asarray(edge_k, dtype=np.float64).reshape(-1), (C,))
+    kc = np.zeros(C) if curv_k is None else np.broadcast_to(
+        np.asarray(curv_k, dtype=np.float64).reshape(-1), (C,))
+    for c in range(C):
         r = o[:, :, c].astype(np.float64) - m[:, :, c]
-        if ks is not None and ks[c] > 0:
-            g2 = _grad2(m[:, :, c])
-            z2 = r * r / (s[c] * s[c] + ks[c] * ks[c] * g2)
-        else:
-            z2 = (r / s[c]) ** 2
-        e += np.where(known, z2, 0.0)
+        var = np.full(r.shape, s[c] * s[c])
+        if ks[c] > 0:
+            var = var + ks[c] * ks[c] * _grad2(m[:, :, c])
+        if kc[c] > 0:
+            var = var + kc[c] * kc[c] * _lap2(m[:, :, c])
+        e += np.where(known, r * r / var, 0.0)
     e /= o.shape[2]
     if smooth > 0:
         kw = dict(sigma=smooth, mode="constant", cval=0.0, truncate=truncate)
@@ -750,15 +782,26 @@ def _grad2(a: np.ndarray) -> np.ndarray:
     return (gx * gx + gy * gy).astype(np.float64)
 
 
-def fit_edge_error(observed, matched, known, sigma, *, quantile: float = 0.9,
-                   k_max: float = 0.5) -> np.ndarray:
-    """Model error in pixels: the ``edge_k`` of :func:`change_statistic`, per band.
+def _lap2(a: np.ndarray) -> np.ndarray:
+    """Squared Laplacian (per pixel, 4-neighbour 3x3 stencil)."""
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    lap = cv2.Laplacian(a, cv2.CV_32F, ksize=1, borderType=cv2.BORDER_REFLECT)
+    return (lap.astype(np.float64)) ** 2
 
-    On the pixels whose reblurred gradient is in the top ``1 - quantile``, the residual is
-    modelled as ``N(0, sigma^2 + (k |grad m|)^2)``; ``k`` is fitted robustly (median of
-    ``r^2 - sigma^2`` over median of ``|grad m|^2``, times the Gaussian MAD factor) so that
-    changes, a minority there too, do not inflate it.  Capped at ``k_max`` pixels: a larger
-    model error would hide real changes on edges.
+
+def fit_model_error(observed, matched, known, sigma, *, bins: int = 8,
+                    max_samples: int = 400_000, k_max: float = 0.5, c_max: float = 0.5,
+                    rng=0) -> tuple[np.ndarray, np.ndarray]:
+    """Model error of the reblur: the ``edge_k`` and ``curv_k`` of :func:`change_statistic`.
+
+    The residual is modelled as ``N(0, sigma^2 + a |grad m|^2 + b (lap m)^2)`` per band.
+    Known pixels (a random sample of at most ``max_samples``) are binned by the quantiles
+    of ``|grad m|^2`` and of ``(lap m)^2`` (``bins x bins`` cells); in each cell the excess
+    variance is the median of ``r^2`` over 0.455 (the median of a chi-square with one
+    degree of freedom) minus ``sigma^2`` -- robust to changes, a minority in every cell --
+    and ``a, b >= 0`` are fitted to the cells by non-negative least squares weighted by
+    the cell counts.  ``edge_k = sqrt(a)`` (pixels) and ``curv_k = sqrt(b)`` are capped at
+    ``k_max`` and ``c_max``: a larger model error would hide real changes on structure.
 
     Parameters
     ----------
@@ -767,35 +810,64 @@ def fit_edge_error(observed, matched, known, sigma, *, quantile: float = 0.9,
     known : bool ndarray or sequence of them
     sigma : (C,) array_like
         Flat-area residual scale per band (:attr:`Photometry.sigma`).
+    bins : int
+        Quantile bins per predictor.
+    max_samples : int
+        Pixels sampled per band.
+    k_max, c_max : float
+        Caps of ``edge_k`` and ``curv_k``.
+    rng : int or numpy.random.Generator
+        Seed of the sampling.
+
+    Returns
+    -------
+    edge_k, curv_k : (C,) ndarray
     """
+    from scipy.optimize import nnls
+
     if isinstance(observed, np.ndarray):
         observed, matched, known = [observed], [matched], [known]
+    rng = np.random.default_rng(rng)
     s = np.asarray(sigma, dtype=np.float64).reshape(-1)
     C = s.size
-    r2s: list[list[np.ndarray]] = [[] for _ in range(C)]
-    g2s: list[list[np.ndarray]] = [[] for _ in range(C)]
+    acc: list[list[list[np.ndarray]]] = [[[], [], []] for _ in range(C)]
     for o, m, k in zip(observed, matched, known, strict=True):
         o, m = _channels(_float(o)), _channels(_float(m))
-        k = np.asarray(k, bool)
+        # pixels whose 3x3 stencil is known: the values at unknown pixels are arbitrary
+        k = ndi.binary_erosion(np.asarray(k, bool), np.ones((3, 3), bool), border_value=1)
         for c in range(C):
-            g2 = _grad2(m[:, :, c])[k]
-            r = (o[:, :, c].astype(np.float64) - m[:, :, c])[k]
-            r2s[c].append(r * r)
-            g2s[c].append(g2)
-    out = np.zeros(C)
+            acc[c][0].append(((o[:, :, c].astype(np.float64) - m[:, :, c]) ** 2)[k])
+            acc[c][1].append(_grad2(m[:, :, c])[k])
+            acc[c][2].append(_lap2(m[:, :, c])[k])
+    ek, ck = np.zeros(C), np.zeros(C)
     for c in range(C):
-        g2 = np.concatenate(g2s[c]) if g2s[c] else np.zeros(0)
-        r2 = np.concatenate(r2s[c]) if r2s[c] else np.zeros(0)
-        if g2.size < 100:
+        r2, g2, l2 = (np.concatenate(a) if a else np.zeros(0) for a in acc[c])
+        if r2.size < 20 * bins * bins:
             continue
-        hi = g2 >= np.quantile(g2, quantile)
-        med_g2 = float(np.median(g2[hi]))
-        if med_g2 <= 0:
+        if r2.size > max_samples:
+            pick = rng.choice(r2.size, max_samples, replace=False)
+            r2, g2, l2 = r2[pick], g2[pick], l2[pick]
+        qg = np.searchsorted(np.quantile(g2, np.linspace(0, 1, bins + 1)[1:-1]), g2, "right")
+        ql = np.searchsorted(np.quantile(l2, np.linspace(0, 1, bins + 1)[1:-1]), l2, "right")
+        cell = qg * bins + ql
+        rows, rhs, wts = [], [], []
+        for b in np.unique(cell):
+            sel = cell == b
+            n = int(sel.sum())
+            if n < 20:
+                continue
+            rows.append([g2[sel].mean(), l2[sel].mean()])
+            rhs.append(float(np.median(r2[sel])) / 0.455 - s[c] ** 2)
+            wts.append(np.sqrt(n))
+        if len(rows) < 2:
             continue
-        # median of r^2 of a Gaussian is 0.455 sigma^2
-        var = float(np.median(r2[hi])) / 0.455 - s[c] ** 2
-        out[c] = min(np.sqrt(max(var, 0.0) / med_g2), k_max)
-    return out
+        A = np.asarray(rows) * np.asarray(wts)[:, None]
+        scale = np.maximum(A.max(axis=0), 1e-300)  # conditioning: columns to unit range
+        coef, _ = nnls(A / scale, np.asarray(rhs) * np.asarray(wts))
+        a, b = coef / scale
+        ek[c] = min(np.sqrt(max(a, 0.0)), k_max)
+        ck[c] = min(np.sqrt(max(b, 0.0)), c_max)
+    return ek, ck
 
 
 def estimate_threshold(
@@ -1089,7 +1161,7 @@ def decide_tile(
     shape = image_shape if image_shape is not None else photometry.image_shape
     matched = photometry.apply(r, (by0, bx0, bh, bw))
     S = change_statistic(o, matched, known, photometry.sigma, smooth=p.smooth, truncate=p.truncate,
-                         edge_k=photometry.edge_k)
+                         edge_k=photometry.edge_k, curv_k=photometry.curv_k)
     mask, cand, counts = _decide_core(S, known, float(threshold), p)
     ly, lx = cy0 - by0, cx0 - bx0
     # completeness: regions reaching the core must stay clear of non-border tile edges
@@ -1195,13 +1267,11 @@ def decide(
     if not known.any():
         raise ValueError("no known pixel: every pixel is unknown or non-finite")
     if photometry is None:
-        photometry = fit_photometry(o, r, known, field_block=field_block, rng=rng)
-        if edge_error:
-            ek = fit_edge_error(o, photometry.apply(r), known, photometry.sigma)
-            photometry = dataclasses.replace(photometry, edge_k=ek)
+        photometry = fit_photometry(o, r, known, field_block=field_block, rng=rng,
+                                    edge_error=edge_error)
     matched = photometry.apply(r)
     S = change_statistic(o, matched, known, photometry.sigma, smooth=p.smooth, truncate=p.truncate,
-                         edge_k=photometry.edge_k)
+                         edge_k=photometry.edge_k, curv_k=photometry.curv_k)
     if threshold is None:
         threshold, tinfo = estimate_threshold(S[known], method=threshold_method)
     else:

@@ -29,6 +29,7 @@ from .decide import (
 )
 from .estimate import estimate_motion, intensity_scale
 from .grid import PoseGrid
+from .refine import refine_alignment
 from .result import ChangeResult, CropChoice
 from .select import SelectParams, select_windows
 from .tiled import SparsePoses, reblur_tile
@@ -206,7 +207,8 @@ def reblur_and_decide(
         stats = []
         for (_b, o, _r, _u), k, mt in zip(samples, known, matched, strict=True):
             S = change_statistic(o, mt, k, photometry.sigma, smooth=p.smooth,
-                                 truncate=p.truncate, edge_k=photometry.edge_k)
+                                 truncate=p.truncate, edge_k=photometry.edge_k,
+                                 curv_k=photometry.curv_k)
             stats.append(S[k])
         threshold, tinfo = estimate_threshold(stats)
     else:
@@ -317,6 +319,7 @@ def detect_changes(
     rz_step: float | None = None,
     lam: float = 0.1,
     align: bool = True,
+    refine: bool = True,
     windows: int | None = None,
     large_side: int = 2500,
     select: SelectParams | None = None,
@@ -343,15 +346,21 @@ def detect_changes(
         and ``|rz| <= rz_max`` in steps of ``rz_step`` degrees (the paper's grid with the
         defaults).
     t_max, rz_max, rz_step : int, float, float
-        Ranges of the default grid.  ``rz_step=None`` (default): the paper's 0.5 degrees
-        for images up to ``large_side`` pixels on the long side; above, the step that moves
-        the farthest pixel of the full image by one pixel (solved coarse to fine), because
-        a 0.5 degree step moves a corner pixel by ``radius x 0.0087`` px (41 px on a
-        6680 px image) and cannot represent the motion far from the centre.
+        Ranges of the default grid.  ``rz_step=None`` (default): the step that moves the
+        farthest pixel of the full image by one pixel (solved coarse to fine), because the
+        paper's 0.5 degree step moves a corner pixel by ``radius x 0.0087`` px (41 px on a
+        6680 px image, 11 px on a 2500 px one) and cannot represent the motion far from
+        the centre; ``rz_step=0.5`` gives the paper's grid.
     lam : float
         Eq. 5's ``lambda`` (intensities in [0, 1]).
     align : bool
         Run the coarse alignment (needed when the viewpoint moved beyond the grid).
+    refine : bool
+        After the motion estimate, measure the residual misregistration of the reblurred
+        reference on probe windows spread over the whole image and correct the base
+        homography (:func:`reblur.refine.refine_alignment`): the grid cannot represent a
+        residual scale / shear / perspective error of the coarse alignment, and the
+        estimation windows do not see the rest of the image.
     windows : int, optional
         Windows estimated jointly (1 = the paper's Algorithm 1, single growing crop).
         Default: 2 up to ``large_side``, 4 above, spread around the principal point: a
@@ -466,6 +475,16 @@ def detect_changes(
     timings["estimate"] = time.perf_counter() - t
     report("estimate", 1.0)
 
+    # 3b. geometric check over the whole image, correcting the base homography
+    refine_info: dict[str, Any] = {"applied": False, "model": "off"}
+    if refine:
+        t = time.perf_counter()
+        ref_res = refine_alignment(reference, observed, motion.weights, grid, H0,
+                                   ref_scale=s_ref, obs_scale=s_obs)
+        refine_info = ref_res.info
+        H0 = ref_res.base
+        timings["refine"] = time.perf_counter() - t
+
     # 4. tiled reblur and decision
     t = time.perf_counter()
     poses = SparsePoses(motion.weights, grid, H0)
@@ -488,7 +507,7 @@ def detect_changes(
         alignment=H0,
         crop=crop,
         threshold=dec.threshold,
-        decision=dict(dec.info, alignment=align_info),
+        decision=dict(dec.info, alignment=dict(align_info, refinement=refine_info)),
         timings=timings,
         regions=dec.regions,
     )

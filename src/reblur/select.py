@@ -55,6 +55,9 @@ class SelectParams:
     max_occluded: float = 2.0 / 3.0  #: reject a window with more occluded pixels than this
     windows: int = 1  #: windows estimated jointly (1 = the paper's Algorithm 1)
     spread_size: int = 5  #: window side (units) when ``windows >= 2``
+    #: spread windows scoring at least this fraction of the best window count as fully
+    #: textured: their distance apart, not their texture, then decides (roll observability)
+    texture_floor: float = 0.1
     lam: float = 0.1
     overview_side: int = 1024  #: resolution of the region-score map
     extra: dict = field(default_factory=dict)
@@ -303,9 +306,10 @@ def select_windows(
                 if m >= thr:
                     rec["reason"] = "m >= T_m (looks space-invariant)"
                     continue
-                chosen = [b] + _spread_partners(cells, cover, S, unit, b, p.windows - 1, (H, W))
-                est = estimate_motion(reference, observed, grid, boxes=[c.as_tuple() for c in chosen],
-                                      base=base, lam=p.lam)
+                chosen = [b] + _spread_partners(cells, cover, S, unit, b, p.windows - 1, (H, W),
+                                               p.texture_floor)
+                est = estimate_motion(reference, observed, grid,
+                                      boxes=[c.as_tuple() for c in chosen], base=base, lam=p.lam)
                 occ = _occluded_fraction(est)
                 if occ > p.max_occluded:
                     rec["reason"] = f"{occ:.0%} occluded"
@@ -329,7 +333,8 @@ def select_windows(
         rec = min((r for r in grown if r["size"] == largest), key=lambda r: r["m"])
         invariant = all(r["m"] >= p.invariant_ratio * m1 for r in grown)
         b = Box(*rec["box"])
-        chosen = [b] + _spread_partners(cells, cover, rec["size"], unit, b, p.windows - 1, (H, W))
+        chosen = [b] + _spread_partners(cells, cover, rec["size"], unit, b, p.windows - 1,
+                                       (H, W), p.texture_floor)
         est = estimate_motion(reference, observed, grid, boxes=[c.as_tuple() for c in chosen],
                               base=base, lam=p.lam)
         rec["accepted"] = True
@@ -345,7 +350,7 @@ def _select_spread(reference, observed, grid, base, p: SelectParams, cells, cove
 
     Seen from one window, a small roll about a distant principal point is nearly a pure
     translation, so the roll is observable only from windows far apart.  The first window
-    maximises (score^0.5 x distance from the principal point), each next one (score^0.5 x
+    maximises (texture x distance from the principal point), each next one (texture x
     distance to the nearest chosen window); all are estimated jointly (eq. 5 stacked, one
     set of weights).  A window more than ``max_occluded`` occluded is replaced by the next
     best one.
@@ -378,7 +383,7 @@ def _select_spread(reference, observed, grid, base, p: SelectParams, cells, cove
                 allowed = ok
             if not allowed.any():
                 break
-            obj = np.where(allowed, np.sqrt(sc / smax) * d, -np.inf)
+            obj = np.where(allowed, _texture_term(sc, smax, p.texture_floor) * d, -np.inf)
             iy, ix = np.unravel_index(int(np.argmax(obj)), obj.shape)
             chosen.append(Box(int(iy * unit), int(ix * unit), S * unit, S * unit))
         return chosen
@@ -429,11 +434,20 @@ def _occluded_fraction(est: MotionEstimate) -> float:
     return occ / max(n, 1)
 
 
-def _spread_partners(cells, cover, S, unit, first: Box, k: int, shape) -> list[Box]:
+def _texture_term(sc: np.ndarray, smax: float, floor: float) -> np.ndarray:
+    """Texture factor of the spread placement: 1 at or above ``floor * smax``, then
+    ``sqrt`` of the relative score (a weak window must be much farther to be chosen)."""
+    ref = max(float(floor) * float(smax), 1e-300)
+    return np.sqrt(np.clip(sc / ref, 0.0, 1.0))
+
+
+def _spread_partners(cells, cover, S, unit, first: Box, k: int, shape,
+                     floor: float = 0.1) -> list[Box]:
     """``k`` more windows of the same size, far from ``first`` and from each other.
 
     Rotation about the principal point is only observable from windows far apart, so each
-    next window maximises (good-region score) x (distance to the nearest chosen window).
+    next window maximises (texture factor, :func:`_texture_term`) x (distance to the nearest
+    chosen window).
     """
     if k <= 0:
         return []
@@ -458,7 +472,7 @@ def _spread_partners(cells, cover, S, unit, first: Box, k: int, shape) -> list[B
         ok = valid & (dmin >= S * unit * 1.0)
         if not ok.any():
             break
-        obj = np.where(ok, (sc / smax) ** 0.5 * (dmin / diag), -np.inf)
+        obj = np.where(ok, _texture_term(sc, smax, floor) * (dmin / diag), -np.inf)
         iy, ix = np.unravel_index(int(np.argmax(obj)), obj.shape)
         b = Box(int(iy * unit), int(ix * unit), S * unit, S * unit)
         chosen.append(b)

@@ -754,6 +754,7 @@ def moving_object(
     travel_range: tuple[float, float] = (0.04, 0.12),
     n_steps: int = 32,
     sign: float | None = None,
+    truth: str = "swept",
 ) -> tuple[np.ndarray, np.ndarray]:
     """Paste an object that moves on its own during the exposure (a cyclist, a car).
 
@@ -777,15 +778,25 @@ def moving_object(
     sign : float, optional
         ``+1`` brighter / ``-1`` darker than the background (random by default; flipped
         when the background leaves no room for a strong contrast that way).
+    truth : {"swept", "half_max", "occupancy"}
+        Which footprint to return (``"occupancy"``: the float fraction itself).
+        ``"swept"``: every pixel the object covered at some instant, i.e. exactly the
+        pixels that may differ from ``image`` (including the faint ends of the smear,
+        covered for a small fraction of the exposure).
+        ``"half_max"``: pixels whose occupancy (fraction of the exposure the object covers
+        them) is at least half the largest occupancy -- the full width at half maximum of
+        the smear, the same rule as the ``>= 0.5`` footprint of a static change carried
+        through the camera blur (:func:`make_pair`).
 
     Returns
     -------
     changed : ndarray
         Copy of ``image`` with the moving object, same shape and dtype.
-    truth : (h, w) bool ndarray
-        Footprint swept by the object during the exposure (every pixel it covered at some
-        instant); exactly the pixels that may differ from ``image``.
+    truth : (h, w) ndarray
+        The footprint chosen by ``truth`` (bool; float32 for ``"occupancy"``).
     """
+    if truth not in ("swept", "half_max", "occupancy"):
+        raise ValueError(f"truth must be 'swept', 'half_max' or 'occupancy', got {truth!r}")
     rng = _rng(rng)
     img = _float_image(image)
     h, w = img.shape[:2]
@@ -843,13 +854,17 @@ def moving_object(
         swept += a
     acc /= np.float32(max(int(n_steps), 1))
     foot = swept > 0
+    if truth == "occupancy":
+        keep = swept / np.float32(max(int(n_steps), 1))
+    else:
+        keep = foot if truth == "swept" else swept >= 0.5 * swept.max()
     out = img.copy()
     out3 = out[:, :, None] if out.ndim == 2 else out
     win = out3[by0 : by0 + bh, bx0 : bx0 + bw]
     win[foot] = np.clip(acc[foot], 0.0, 1.0).astype(out.dtype)
-    truth = np.zeros((h, w), bool)
-    truth[by0 : by0 + bh, bx0 : bx0 + bw] = foot
-    return out, truth
+    mask = np.zeros((h, w), keep.dtype)
+    mask[by0 : by0 + bh, bx0 : bx0 + bw] = keep
+    return out, mask
 
 
 # ---------------------------------------------------------------------------- pairs
@@ -874,7 +889,11 @@ class SimulatedPair:
     scene : ndarray, optional
         The sharp changed scene in the reference frame (before viewpoint and blur).
     scene_truth : ndarray, optional
-        The changes in the reference frame.
+        The changes in the reference frame (the moving object by its half-maximum
+        footprint).
+    scene_changed : ndarray, optional
+        Every scene pixel that may differ from the reference (the moving object by its
+        whole swept footprint).
     """
 
     reference: np.ndarray
@@ -885,6 +904,7 @@ class SimulatedPair:
     viewpoint: np.ndarray
     scene: np.ndarray | None = None
     scene_truth: np.ndarray | None = None
+    scene_changed: np.ndarray | None = None
 
     def meta(self) -> dict:
         """JSON-ready record of the motion: ``{"path": ..., "viewpoint": ...}``."""
@@ -902,7 +922,8 @@ def make_pair(
     shake: Mapping | None = DEFAULT_SHAKE,
     viewpoint: Mapping | None = DEFAULT_VIEWPOINT,
     n_changes: int = 4,
-    moving: bool = True,
+    moving: bool | Mapping = True,
+    low_contrast: bool = True,
     noise_sigma: float = 1.0 / 255.0,
 ) -> SimulatedPair:
     """Simulate a change-detection pair: sharp reference, blurred changed observation.
@@ -912,7 +933,9 @@ def make_pair(
     moving during the exposure (:func:`moving_object`).  It is then warped by a random
     viewpoint homography, blurred along a random camera path (rotations about the
     observation's centre), noised and clipped to [0, 1].  The truth is the float change
-    mask carried the same way (same path and viewpoint) and thresholded at 0.5.
+    mask carried the same way (same path and viewpoint) and thresholded at 0.5; the moving
+    object enters it by its half-maximum smear footprint (``truth="half_max"`` of
+    :func:`moving_object`), not by the faint ends it covers for an instant.
 
     Parameters
     ----------
@@ -930,8 +953,11 @@ def make_pair(
         Default :data:`DEFAULT_VIEWPOINT` (``max_shift_frac=0.02, max_rot_deg=2``).
     n_changes : int
         Number of pasted static objects.
-    moving : bool
-        Add one object moving during the exposure.
+    moving : bool or mapping
+        Add one object moving during the exposure; a mapping is passed on to
+        :func:`moving_object` (e.g. ``{"travel_range": (0.02, 0.04)}``).
+    low_contrast : bool
+        Make the last pasted object a low-contrast one (see :func:`paste_changes`).
     noise_sigma : float
         Standard deviation of the added Gaussian noise.
 
@@ -953,10 +979,14 @@ def make_pair(
     h, w = reference.shape[:2]
     mask = np.zeros((h, w), bool)
     if n_changes > 0:
-        scene, mask = paste_changes(scene, rng, n_changes)
+        scene, mask = paste_changes(scene, rng, n_changes, low_contrast=low_contrast)
+    changed = mask.copy()
     if moving:
-        scene, m2 = moving_object(scene, rng)
-        mask |= m2
+        opts = dict(moving) if isinstance(moving, Mapping) else {}
+        opts.pop("truth", None)
+        scene, occ = moving_object(scene, rng, truth="occupancy", **opts)
+        mask |= occ >= 0.5 * occ.max()
+        changed |= occ > 0
     center = ((w - 1) / 2.0, (h - 1) / 2.0)  # observation frame = reference frame's size
     V = np.eye(3) if viewpoint is None else viewpoint_homography(rng, (h, w), **viewpoint)
     if shake is None:
@@ -976,6 +1006,7 @@ def make_pair(
         viewpoint=V,
         scene=scene,
         scene_truth=mask,
+        scene_changed=changed,
     )
 
 

@@ -1,0 +1,60 @@
+"""``make bench``: run the benchmarks and write their figures into ``docs/benchmarks.md``.
+
+Each benchmark owns one section of the file, delimited by ``<!-- NAME:begin -->`` and
+``<!-- NAME:end -->``; a run replaces only the sections it produced, so a long benchmark
+(e.g. the gigapixel cost curve, ``python -m benchmarks.scale``) can be run on its own.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import importlib
+import re
+import time
+from pathlib import Path
+
+from benchmarks.common import REPO, machine
+
+DOC = REPO / "docs" / "benchmarks.md"
+#: name -> (module, callable returning markdown)
+BENCHES = {
+    "operator": ("benchmarks.operator", "main"),
+    "large_motion": ("benchmarks.large_motion", "main"),
+    "pipeline": ("benchmarks.pipeline", "main"),
+    "quality": ("benchmarks.quality", "main"),
+}
+
+
+def write_section(name: str, body: str, path: Path = DOC) -> None:
+    """Replace (or append) the section ``name`` of ``docs/benchmarks.md``."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = path.read_text() if path.exists() else "# Benchmarks\n\nFigures from `make bench`.\n"
+    begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
+    stamp = f"_Run {datetime.date.today().isoformat()} on {machine()}._\n\n"
+    block = f"{begin}\n{stamp}{body.strip()}\n{end}"
+    pat = re.compile(re.escape(begin) + ".*?" + re.escape(end), re.S)
+    if pat.search(text):
+        text = pat.sub(lambda _m: block, text)
+    else:
+        text = text.rstrip() + "\n\n" + block + "\n"
+    tmp = path.with_suffix(".md.tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("names", nargs="*", default=list(BENCHES))
+    a = ap.parse_args()
+    for name in a.names:
+        mod, fn = BENCHES[name]
+        t = time.perf_counter()
+        print(f"[bench] {name} ...", flush=True)
+        body = getattr(importlib.import_module(mod), fn)()
+        write_section(name, body)
+        print(f"[bench] {name} done in {time.perf_counter() - t:.0f} s", flush=True)
+
+
+if __name__ == "__main__":
+    main()

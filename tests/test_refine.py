@@ -1,0 +1,93 @@
+"""Geometric refinement after the motion estimate: probe shifts and the base correction."""
+
+import numpy as np
+import pytest
+from conftest import levir_before
+
+from reblur.grid import PoseGrid, map_points, pose_homography
+from reblur.refine import measure_shifts, probe_boxes, refine_alignment
+from reblur.tiled import SparsePoses
+from reblur.warp import warp_window
+
+H, W = 900, 1300
+C = ((W - 1) / 2, (H - 1) / 2)
+
+
+@pytest.fixture(scope="module")
+def reference():
+    """Real imagery: two LEVIR tiles side by side, cropped to 900 x 1300 (grayscale)."""
+    a = np.concatenate([levir_before(0), levir_before(1)], axis=1)[:H, :W]
+    return np.ascontiguousarray(a.mean(axis=2), dtype=np.float32)
+
+
+def _grid_and_weights():
+    grid = PoseGrid.from_ranges((H, W), t_max=2, rz_max=0.5, rz_step=0.5)
+    w = np.zeros(grid.shape)
+    b0 = int(np.argmin(np.abs(np.asarray(grid.rz))))
+    w[b0, 2, 2] = 0.5  # tx = ty = 0
+    w[b0, 2, 3] = 0.5  # tx = 1: a two-pixel horizontal blur
+    return grid, w
+
+
+def _observe(reference, err):
+    """The observation the weights describe, through a base homography ``err``."""
+    grid, w = _grid_and_weights()
+    obs = np.zeros(reference.shape, np.float32)
+    for tx in (0.0, 1.0):
+        o, _ = warp_window(reference, pose_homography(tx, 0.0, center=C) @ err, (0, 0, H, W),
+                           dtype=np.float32)
+        obs += 0.5 * o.reshape(obs.shape)
+    return obs, grid, w
+
+
+def test_probe_boxes_cover_the_image():
+    boxes = probe_boxes((H, W), size=256, n=5)
+    assert len(boxes) == 3 * 5  # 900 px: three 256 px windows fit without overlap
+    assert min(b.y0 for b in boxes) == 0 and max(b.y1 for b in boxes) == H
+    assert min(b.x0 for b in boxes) == 0 and max(b.x1 for b in boxes) == W
+    assert probe_boxes((100, 80), size=256) == [probe_boxes((100, 80), size=80)[0]]
+
+
+def test_shifts_match_the_analytic_displacement(reference):
+    # observation seen through a small scale + roll error the weights do not know about
+    err = pose_homography(0.0, 0.0, 3e-4, 0.0, 0.0, 0.02, center=C)
+    obs, grid, w = _observe(reference, err)
+    shifts = measure_shifts(reference, obs, SparsePoses(w, grid), probe_boxes((H, W)))
+    assert len(shifts) >= 12
+    errs = []
+    for s in shifts:
+        # observed(x) = reblurred(err^-1 x): the displacement is err^-1 (c) - c at the
+        # centre; it varies by ~0.08 px across a 256 px probe, and ECC returns a
+        # texture-weighted mean of it, hence the tolerance
+        want = map_points(np.linalg.inv(err), np.array([[s.cx, s.cy]]))[0] - (s.cx, s.cy)
+        errs.append(np.hypot(s.dx - want[0], s.dy - want[1]))
+    assert max(errs) < 0.05 and np.median(errs) < 0.02, errs
+
+
+def test_refinement_removes_a_residual_scale_error(reference):
+    err = pose_homography(0.4, -0.3, 2e-4, 0.0, 0.0, 0.015, center=C)
+    obs, grid, w = _observe(reference, err)
+    r = refine_alignment(reference, obs, w, grid, np.eye(3))
+    assert r.applied and r.model == "homography"
+    assert r.info["before"]["max_px"] > 0.3
+    assert r.info["after"]["max_px"] < 0.03
+    corners = np.array([[0.0, 0.0], [W - 1, 0.0], [W - 1, H - 1], [0.0, H - 1]])
+    # the refined base maps the reference where the true one does, to a few hundredths
+    assert np.abs(map_points(r.base, corners) - map_points(err, corners)).max() < 0.05
+
+
+def test_refinement_leaves_a_correct_base_alone(reference):
+    obs, grid, w = _observe(reference, np.eye(3))
+    r = refine_alignment(reference, obs, w, grid, np.eye(3))
+    assert not r.applied
+    np.testing.assert_array_equal(r.base, np.eye(3))
+    assert r.info["before"]["max_px"] < 0.02
+
+
+def test_no_reliable_probe_no_correction():
+    flat = np.full((300, 300), 0.5, np.float32)
+    grid = PoseGrid.from_ranges((300, 300), t_max=1, rz_max=0.5, rz_step=0.5)
+    w = np.zeros(grid.shape)
+    w[1, 1, 1] = 1.0
+    r = refine_alignment(flat, flat, w, grid, np.eye(3))
+    assert not r.applied and r.model == "none" and r.before == []
