@@ -5,7 +5,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench experiments lint clean
+.PHONY: demo test bench lint clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV) || python3 -m venv $(VENV)
@@ -21,9 +21,6 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) -m benchmarks.run
-
-experiments: $(STAMP)
-	$(PY) -m experiments.run
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks

@@ -57,7 +57,7 @@ class SelectParams:
     spread_size: int = 5  #: window side (units) when ``windows >= 2``
     #: spread windows scoring at least this fraction of the best window count as fully
     #: textured: their distance apart, not their texture, then decides (roll observability)
-    texture_floor: float = 0.1
+    texture_floor: float = 0.2
     lam: float = 0.1
     overview_side: int = 1024  #: resolution of the region-score map
     extra: dict = field(default_factory=dict)
@@ -442,7 +442,7 @@ def _texture_term(sc: np.ndarray, smax: float, floor: float) -> np.ndarray:
 
 
 def _spread_partners(cells, cover, S, unit, first: Box, k: int, shape,
-                     floor: float = 0.1) -> list[Box]:
+                     floor: float = 0.2) -> list[Box]:
     """``k`` more windows of the same size, far from ``first`` and from each other.
 
     Rotation about the principal point is only observable from windows far apart, so each
