@@ -10,7 +10,7 @@ This module measures that error where it matters, on the data: probe windows spr
 the whole observation are reblurred with the estimated weights and registered to the
 observation by a sub-pixel translation (ECC, :func:`cv2.findTransformECC`, invariant to
 gain and offset).  The probe displacements ``p_i`` at the probe centres ``c_i`` are fitted
-by a homography ``G: c -> c + p`` (affine with fewer than 8 reliable probes), robustly
+by a homography ``G: c -> c + p`` (affine with fewer than 12 reliable probes), robustly
 (RANSAC, then least squares on the inliers), and the base homography becomes
 ``G^-1 @ base``: the reblurred image moves onto the observation everywhere.  Composing the
 correction before the poses instead of after them differs by the commutator of two
@@ -169,9 +169,9 @@ def _fit(shifts: list[ProbeShift], ransac_px: float) -> tuple[np.ndarray | None,
     src = np.array([[s.cx, s.cy] for s in shifts], np.float64)
     dst = src + np.array([[s.dx, s.dy] for s in shifts], np.float64)
     n = len(shifts)
-    if n >= 8:
+    if n >= 12:  # 8 parameters: enough redundancy not to extrapolate noise to the corners
         G, inl = cv2.findHomography(src, dst, cv2.RANSAC, ransac_px)
-        if G is not None and inl is not None and int(inl.sum()) >= 8:
+        if G is not None and inl is not None and int(inl.sum()) >= 12:
             keep = inl.ravel().astype(bool)
             G, _ = cv2.findHomography(src[keep], dst[keep], 0)  # least squares on inliers
             if G is not None:
@@ -194,7 +194,7 @@ def refine_alignment(
     ref_scale: float = 1.0,
     obs_scale: float = 1.0,
     probes: list[Box] | None = None,
-    probe_size: int = 256,
+    probe_size: int | None = None,
     n_probes: int = 5,
     min_cc: float = 0.9,
     ransac_px: float = 0.3,
@@ -216,6 +216,11 @@ def refine_alignment(
         Intensity scales of the reference and the observation.
     probes : list of Box, optional
         Probe windows (default :func:`probe_boxes` with ``probe_size`` and ``n_probes``).
+    probe_size : int, optional
+        Probe side; default a third of the short side, within [128, 256] px (large enough
+        for a sub-pixel ECC estimate, small enough for several probes per side).
+    n_probes : int
+        Probes per side (at most).
     min_cc : float
         Smallest ECC correlation of a probe used in the fit (changes, occlusions and
         photometric differences lower it).
@@ -230,6 +235,8 @@ def refine_alignment(
     Refinement
     """
     base = np.asarray(base, np.float64)
+    if probe_size is None:
+        probe_size = int(np.clip(min(grid.image_shape[:2]) // 3, 128, 256))
     boxes = probes if probes is not None else probe_boxes(
         grid.image_shape, size=probe_size, n=n_probes)
     kw = dict(ref_scale=ref_scale, obs_scale=obs_scale)
