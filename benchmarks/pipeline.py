@@ -90,7 +90,7 @@ def big_case(side: int) -> dict:
         obs = zarr.open(tifffile.imread(obs_p, aszarr=True), mode="r")
         base = peak_rss_mb()
         t = time.perf_counter()
-        res = reblur.detect_changes(ref, obs, align=False, workers=2)
+        res = reblur.detect_changes(ref, obs, workers=2)
         dt = time.perf_counter() - t
         return dict(case=f"{side}x{side}", mp=side * side / 1e6, time_s=dt, gen_s=gen,
                     peak_rss_mb=peak_rss_mb(), rss_before_mb=base,

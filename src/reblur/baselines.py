@@ -28,15 +28,14 @@ from typing import Any
 
 import cv2
 import numpy as np
-import scipy.linalg as sla
 from scipy import ndimage
-from scipy.optimize import nnls
 from skimage.filters import threshold_otsu
 
 from .estimate import estimate_motion, soft_threshold
 from .grid import PoseGrid
 from .operator import BlurOperator
 from .simulate import to_float
+from .solve import _nnls_gram
 from .tiled import reblur as reblur_image
 from .warp import as_box, read_window
 
@@ -479,24 +478,6 @@ def sign_flip_signs(
 
 
 _INSIDE = {"positive": 1.0, "negative": -1.0, "none": 0.0}
-
-
-def _nnls_gram(G: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``argmin_{w >= 0} 1/2 w^T G w - b^T w`` by NNLS on the Cholesky factor of ``G``."""
-    k = G.shape[0]
-    ridge = 1e-12 * max(float(np.trace(G)) / max(k, 1), 1e-300)
-    L = None
-    for _ in range(8):
-        try:
-            L = np.linalg.cholesky(G + ridge * np.eye(k))
-            break
-        except np.linalg.LinAlgError:
-            ridge *= 100.0
-    if L is None:
-        raise np.linalg.LinAlgError("Gram matrix of the active poses is not positive definite")
-    z = sla.solve_triangular(L, b, lower=True)
-    w, _ = nnls(L.T, z, maxiter=50 * k + 100)
-    return w
 
 
 def solve_signed(

@@ -11,7 +11,6 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -32,7 +31,7 @@ from .grid import PoseGrid
 from .refine import refine_alignment
 from .result import ChangeResult, CropChoice
 from .select import SelectParams, select_windows
-from .tiled import SparsePoses, reblur_tile
+from .tiled import SparsePoses, reblur_tile, run_tiles
 from .warp import as_box, read_window
 
 __all__ = ["detect_changes", "ScaledView"]
@@ -257,17 +256,7 @@ def reblur_and_decide(
         if progress is not None:
             progress(done[0] / len(tiles))
 
-    if workers <= 1:
-        for t in tiles:
-            run(t)
-    else:
-        n_cv = cv2.getNumThreads()
-        cv2.setNumThreads(1)
-        try:
-            with ThreadPoolExecutor(workers) as ex:
-                list(ex.map(run, tiles))
-        finally:
-            cv2.setNumThreads(n_cv)
+    run_tiles(run, tiles, workers)
     regions.sort(key=lambda r: (r["bbox"][0], r["bbox"][1]) if "bbox" in r else (0, 0))
     info = dict(
         threshold_info=tinfo,

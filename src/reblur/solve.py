@@ -266,12 +266,15 @@ def _nnls_gram(G: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``argmin_{w >= 0} 1/2 w^T G w - b^T w`` via NNLS on the Cholesky factor of ``G``."""
     k = G.shape[0]
     ridge = 1e-12 * max(float(np.trace(G)) / max(k, 1), 1e-300)
-    for _ in range(6):
+    L = None
+    for _ in range(8):
         try:
             L = np.linalg.cholesky(G + ridge * np.eye(k))
             break
         except np.linalg.LinAlgError:
             ridge *= 100.0
+    if L is None:
+        raise np.linalg.LinAlgError("Gram matrix of the active poses is not positive definite")
     z = sla.solve_triangular(L, b, lower=True)
     w, _ = nnls(L.T, z, maxiter=50 * k + 100)
     return w

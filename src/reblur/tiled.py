@@ -163,16 +163,21 @@ def reblur(
         if progress is not None:
             progress(box.h * box.w)
 
-    tiles = list(iter_tiles((H, W), tile_size))
+    run_tiles(run, list(iter_tiles((H, W), tile_size)), workers)
+    return out, valid_out
+
+
+def run_tiles(fn: Callable, tiles: list, workers: int = 1) -> None:
+    """Call ``fn(tile)`` for every tile, on ``workers`` threads (OpenCV single-threaded
+    inside each, so the threads do not oversubscribe the cores)."""
     if workers <= 1:
         for t in tiles:
-            run(t)
-    else:
-        n_cv = cv2.getNumThreads()
-        cv2.setNumThreads(1)
-        try:
-            with ThreadPoolExecutor(workers) as ex:
-                list(ex.map(run, tiles))
-        finally:
-            cv2.setNumThreads(n_cv)
-    return out, valid_out
+            fn(t)
+        return
+    n_cv = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with ThreadPoolExecutor(workers) as ex:
+            list(ex.map(fn, tiles))
+    finally:
+        cv2.setNumThreads(n_cv)
