@@ -66,7 +66,7 @@ def levir_table() -> list[str]:
                       viewpoint=dict(max_shift_frac=0.03, max_rot_deg=3.0),
                       noise_sigma=1 / 255)
         carried, _ = blur_along_path(lab.astype(np.float32), p.path, base=p.viewpoint)
-        truth = (carried[:, :, 0] >= 0.5) & ~p.unknown
+        truth = (carried.reshape(p.unknown.shape) >= 0.5) & ~p.unknown
         t = time.perf_counter()
         try:
             res = reblur.detect_changes(p.reference, p.observed)

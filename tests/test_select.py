@@ -1,0 +1,107 @@
+"""Sub-image selection (Algorithm 1): good-region scores, kernel similarity, the crop it picks,
+and the placement of spread windows."""
+
+import cv2
+import numpy as np
+import pytest
+from conftest import levir_before
+
+from reblur import PoseGrid, estimate_motion
+from reblur.metrics import psnr
+from reblur.select import (
+    SelectParams,
+    _spread_partners,
+    _texture_term,
+    kernel_similarity,
+    region_scores,
+    select_windows,
+)
+from reblur.simulate import CameraPath, blur_along_path
+from reblur.tiled import reblur
+from reblur.warp import Box
+
+
+def test_region_scores_prefer_edges_in_every_orientation():
+    """Score = geometric mean over four orientation bins of strong-gradient energy."""
+    img = np.zeros((100, 300), np.float32)
+    cv2.circle(img, (50, 50), 30, 1.0, -1)  # a disc: edges in every orientation
+    img[:, 140:160] = 1.0  # one vertical bar: edges in one orientation only
+    s = region_scores(img, 100)
+    assert s.shape == (1, 3)
+    assert s[0, 0] > 1e3 * s[0, 1]  # the bar has no 45/90/135 degree edges
+    assert s[0, 2] < 1e-6  # flat
+
+
+def _gray():
+    return np.ascontiguousarray(levir_before(0).mean(axis=2), dtype=np.float32)
+
+
+def _path(rz_deg: float, t: float, n: int = 24, center=(511.5, 511.5)) -> CameraPath:
+    s = np.linspace(0.0, 1.0, n)
+    z = np.zeros(n)
+    poses = np.column_stack([t * np.sin(np.pi * s), t * s, z, z, z, rz_deg * s])
+    return CameraPath(poses, center)
+
+
+def test_kernel_similarity_falls_when_the_blur_varies():
+    ref = _gray()
+    grid = PoseGrid.paper(ref.shape)
+    box = (312, 312, 400, 400)
+    # a pure translation: the same kernel everywhere
+    g_t, _ = blur_along_path(ref, _path(0.0, 6.0), dtype=np.float32)
+    m_t, kernels = kernel_similarity(ref, g_t.reshape(ref.shape), box, grid)
+    # a roll about a point far outside the window: kernels differ from patch to patch
+    g_r, _ = blur_along_path(ref, _path(2.5, 3.0, center=(-900.0, -900.0)), dtype=np.float32)
+    m_r, _ = kernel_similarity(ref, g_r.reshape(ref.shape), box, grid)
+    assert len(kernels) == 4 and kernels[0].shape == (25, 25)
+    assert m_t > 0.9, m_t
+    assert m_r < m_t - 0.05, (m_r, m_t)
+
+
+@pytest.fixture(scope="module")
+def rotating():
+    """1024 x 1024 real image, camera path with 2.5 degrees of roll about the image centre."""
+    ref = _gray()
+    g, valid = blur_along_path(ref, _path(2.5, 4.0), dtype=np.float32)
+    return ref, g.reshape(ref.shape), valid
+
+
+def _whole_psnr(ref, obs, valid, weights, grid):
+    out, ok = reblur(ref, weights, grid)
+    m = ok & valid
+    return psnr(out.reshape(obs.shape)[m], obs[m])
+
+
+def test_selected_crop_matches_whole_image_and_beats_a_small_crop(rotating):
+    """The paper's Fig. 3 effect: a 100 x 100 crop cannot see the roll; the crop Algorithm 1
+    grows to reblurs the whole image about as well as solving on the whole image."""
+    ref, obs, valid = rotating
+    grid = PoseGrid.paper(ref.shape)
+    crop, est = select_windows(ref, obs, grid, params=SelectParams(windows=1))
+    p_sel = _whole_psnr(ref, obs, valid, est.weights, grid)
+    m = 40  # the whole image, less the margin every pose needs
+    whole = estimate_motion(ref, obs, grid, boxes=[(m, m, 1024 - 2 * m, 1024 - 2 * m)])
+    p_whole = _whole_psnr(ref, obs, valid, whole.weights, grid)
+    small = estimate_motion(ref, obs, grid, boxes=[(462, 462, 100, 100)])
+    p_small = _whole_psnr(ref, obs, valid, small.weights, grid)
+    assert crop.size > 100 and len(crop.tried) > 1
+    assert p_sel >= p_whole - 0.5, (p_sel, p_whole, crop.size)
+    assert p_small <= p_whole - 2.0, (p_small, p_whole)
+
+
+def test_texture_term():
+    sc = np.array([1.0, 0.5, 0.2, 0.05, 0.0])
+    np.testing.assert_allclose(_texture_term(sc, 1.0, 0.2),
+                               [1.0, 1.0, 1.0, np.sqrt(0.25), 0.0])
+
+
+def test_spread_partner_goes_far_when_textured_enough():
+    """Left half richly textured, right half less: the partner of a left window goes right
+    when the right half is above the texture floor, and stays left when it is nearly flat."""
+    cover = np.ones((10, 20), bool)
+    first = Box(300, 0, 300, 300)
+    for right, expect_right in ((0.3, True), (0.002, False)):
+        cells = np.ones((10, 20))
+        cells[:, 10:] = right
+        (b,) = _spread_partners(cells, cover, 3, 100, first, 1, (1000, 2000), floor=0.2)
+        assert (b.x0 >= 1000) == expect_right, (right, b)
