@@ -28,7 +28,7 @@ import numpy as np
 from benchmarks.common import DATA
 
 LEVIR = DATA / "levir_whu_1024" / "samples_LEVIR"
-WHU = DATA / "levir_whu_1024" / "samples_WHU"
+WHU = DATA / "levir_whu_1024" / "samples_WHU-CD"
 
 
 def _rgb(path) -> np.ndarray:

@@ -160,7 +160,7 @@ def measure_shifts(
 def _stats(shifts: list[ProbeShift], min_cc: float) -> dict[str, float]:
     good = [s for s in shifts if s.cc >= min_cc]
     if not good:
-        return {"n": 0, "rms_px": float("nan"), "max_px": float("nan")}
+        return {"n": 0, "rms_px": None, "max_px": None}  # JSON-ready: no NaN
     d = np.hypot([s.dx for s in good], [s.dy for s in good])
     return {"n": len(good), "rms_px": float(np.sqrt(np.mean(d * d))), "max_px": float(d.max())}
 
@@ -258,7 +258,8 @@ def refine_alignment(
                         [0.0, grid.image_shape[0] - 1.0]])
     info["correction_at_corners_px"] = float(
         np.abs(map_points(G, corners) - corners).max())
-    ok = s1["n"] > 0 and np.isfinite(s0["rms_px"]) and s1["rms_px"] <= s0["rms_px"] - min_gain_px
+    ok = (s0["n"] > 0 and s1["n"] > 0
+          and s1["rms_px"] <= s0["rms_px"] - min_gain_px)
     info["applied"] = bool(ok)
     if not ok:
         return Refinement(base, False, model, before, after, info)
