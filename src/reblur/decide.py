@@ -13,7 +13,9 @@ as a stream of tiles:
    second-difference penalty (linear trends such as illumination ramps are free).  The
    residual scale ``sigma`` of each band (MAD of the inliers) is the unit of the statistic.
 2. **Statistic** (:func:`change_statistic`; local).  ``z_c = (g_c - a_c m_c - b_c) / sigma_c``
-   per band and ``S = sqrt(G * mean_c z_c^2 / G * 1)``: the RMS of the z-scores over a
+   per band, ``sigma_c`` grown where the reblurred reference has edges and fine texture
+   (model error: ``sigma_c^2 + (k |grad m|)^2 + (c lap m)^2``, fitted from the data), and
+   ``S = sqrt(G * mean_c z_c^2 / G * 1)``: the RMS of the z-scores over a
    Gaussian window of ``smooth`` pixels, normalised over known pixels only (unknown pixels
    neither contribute nor receive a value).  Every band enters the sum, so a change in any
    one band counts; the window averages about ``4 pi smooth^2 C`` squared z-scores, which
@@ -248,6 +250,9 @@ class Photometry:
     field_gain, field_offset : (C, ny, nx) ndarray or None
         Gain and offset at the block centres ``((i + 0.5) * block - 0.5)``, interpolated
         bilinearly (constant beyond the outer centres).
+    edge_k, curv_k : (C,) ndarray or None
+        Model error of the reblur per band (:func:`fit_model_error`): the residual variance
+        grows by ``(edge_k |grad m|)^2 + (curv_k lap m)^2`` (see :func:`change_statistic`).
     info : dict
         Fit details (samples used, blocks fitted).
     """

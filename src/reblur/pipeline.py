@@ -332,8 +332,8 @@ def detect_changes(
         Later, motion-blurred observation with the same bands; may differ in size.
     grid : PoseGrid, optional
         Pose grid on the observation geometry.  Default: integer ``|tx|, |ty| <= t_max``
-        and ``|rz| <= rz_max`` in steps of ``rz_step`` degrees (the paper's grid with the
-        defaults).
+        and ``|rz| <= rz_max`` in steps of ``rz_step`` degrees (the paper's grid with
+        ``rz_step=0.5``).
     t_max, rz_max, rz_step : int, float, float
         Ranges of the default grid.  ``rz_step=None`` (default): the step that moves the
         farthest pixel of the full image by one pixel (solved coarse to fine), because the
