@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import sys
 import tempfile
 import time
@@ -88,6 +89,18 @@ class _ReblurGroup(click.Group):
 
 
 # ---------------------------------------------------------------------------- options
+def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | None):
+    if value is None:
+        return None
+    from .dask_backend import scheduler_kind
+
+    try:
+        scheduler_kind(value)
+    except (ValueError, TypeError) as exc:
+        raise click.BadParameter(str(exc)) from None
+    return value
+
+
 def _set_verbosity(ctx: click.Context, param: click.Parameter, value: int) -> int:
     _STATE["verbose"] = max(_STATE["verbose"], int(value or 0))
     level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(_STATE["verbose"], 2)]
@@ -273,14 +286,19 @@ def main() -> None:
               help="True change mask (non-zero = change): scores go into report.json.")
 @max_pixels_option(DEFAULT_MAX_PIXELS)
 @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
-              help="Threads for the tiled stages.")
+              help="Threads for the tiled stages (processes with --scheduler processes).")
+@click.option("--scheduler", default=None, callback=_check_scheduler, metavar="SCHEDULER",
+              help="Run the tiled reblur-and-decide stage on Dask: 'threads', 'processes' "
+                   "or the address of a running Dask scheduler (tcp://host:port), whose "
+                   "workers must see the input files and the output directory.  Default: "
+                   "the local thread pool.")
 @overwrite_option
 @quiet_option
 @verbose_option
 def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float,
            rz_step: float | None, lam: float, tile_size: int, threshold: float | None,
-           truth: Path | None, max_pixels: int, workers: int, overwrite: bool,
-           quiet: bool) -> None:
+           truth: Path | None, max_pixels: int, workers: int, scheduler: str | None,
+           overwrite: bool, quiet: bool) -> None:
     """Find what changed between REFERENCE (sharp) and OBSERVED (later, blurred).
 
     Inputs: PNG, JPEG, TIFF/BigTIFF/GeoTIFF or zarr; uint8, uint16 or float; gray, RGB
@@ -306,18 +324,26 @@ def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float
 
     progress = None if quiet else _Progress()
     options = dict(t_max=t_max, rz_max=rz_max, rz_step=rz_step, lam=lam, tile_size=tile_size,
-                   threshold=threshold, workers=workers)
+                   threshold=threshold, workers=workers, scheduler=scheduler)
+    # with Dask, the workers write the full-size masks into a zarr store in the output
+    # directory (seen by every worker); it is removed once the outputs are written
+    work = out_dir / f".reblur-work-{os.getpid()}" if scheduler is not None else None
     try:
-        result = reblur.detect_changes(ref.array, obs.array, progress=progress, **options)
+        try:
+            result = reblur.detect_changes(ref.array, obs.array, progress=progress,
+                                           work_dir=work, **options)
+        finally:
+            if progress is not None:
+                progress.close()
+        files, summary = write_report(
+            result, out_dir, reference=ref, observed=obs, truth=truth_mask,
+            options=dict(options, max_pixels=max_pixels, command="detect",
+                         truth=str(truth) if truth is not None else None),
+            timings=dict(open=t_open),
+        )
     finally:
-        if progress is not None:
-            progress.close()
-    files, summary = write_report(
-        result, out_dir, reference=ref, observed=obs, truth=truth_mask,
-        options=dict(options, max_pixels=max_pixels, command="detect",
-                     truth=str(truth) if truth is not None else None),
-        timings=dict(open=t_open),
-    )
+        if work is not None:
+            shutil.rmtree(work, ignore_errors=True)
     _finish_outputs(out_dir, files)
     click.echo(summary_line(summary, out))
 

@@ -8,6 +8,7 @@ pre-match -> window selection and motion estimate (:mod:`reblur.select`,
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -21,7 +22,6 @@ from scipy import ndimage
 from .decide import (
     DecisionParams,
     change_statistic,
-    decide_tile,
     estimate_threshold,
     fit_photometry,
     tile_boxes,
@@ -32,6 +32,7 @@ from .refine import refine_alignment
 from .result import ChangeResult, CropChoice
 from .select import SelectParams, select_windows
 from .tiled import SparsePoses, reblur_tile, run_tiles
+from .tilejob import TileJob, run_tile
 from .warp import as_box, read_window
 
 __all__ = ["detect_changes", "ScaledView"]
@@ -161,6 +162,8 @@ def reblur_and_decide(
     max_region: int | None = None,
     n_sample_tiles: int = 16,
     edge_error: bool = True,
+    scheduler=None,
+    work_dir=None,
     progress: Callable[[float], None] | None = None,
 ) -> Decided:
     """Reblur the reference and decide change, streaming over tiles.
@@ -171,8 +174,12 @@ def reblur_and_decide(
     a halo of ``params.halo(max_region)`` pixels, is reblurred (each padded tile reads only
     the reference window its poses touch), decided (:func:`reblur.decide.decide_tile`) and
     its core written out; a tile whose regions reach the halo's edge is re-run with a twice
-    larger halo.  Nothing full-size is held but the output masks (and the reblurred image if
-    ``keep_reblurred``).
+    larger halo (:func:`reblur.tilejob.run_tile`).  Nothing full-size is held but the output
+    masks (and the reblurred image if ``keep_reblurred``).
+
+    Pass 2 runs on a local thread pool of ``workers`` threads, or with ``scheduler`` as a
+    Dask graph (:func:`reblur.dask_backend.decide_tiles`; ``work_dir`` holds its zarr
+    outputs): both run the same tile function, so the results are identical.
     """
     p = params or DecisionParams()
     H, W = observed.shape[:2]
@@ -216,65 +223,60 @@ def reblur_and_decide(
     del samples, known, matched
 
     # pass 2: every tile with its halo
-    change = np.zeros((H, W), bool) if change_out is None else change_out
-    unknown = np.zeros((H, W), bool) if unknown_out is None else unknown_out
-    reblurred = None
-    if keep_reblurred:
-        reblurred = np.zeros((H, W) if two_d else (H, W, C), np.float32)
-    regions: list[dict[str, Any]] = []
-    incomplete = 0
-    lock = threading.Lock()
-    tiles = list(tile_boxes((H, W), tile_size, p.halo(max_region)))
-    done = [0]
+    halo = p.halo(max_region)
+    if scheduler is not None:
+        from .dask_backend import decide_tiles
 
-    def run(pair) -> None:
-        nonlocal incomplete
-        padded, core = pair
-        halo = p.halo(max_region)
-        for attempt in range(3):
-            obs, reb, unk = load(padded)
-            mask, info = decide_tile(
-                obs, reb, unk, threshold=threshold, photometry=photometry, box=padded,
-                core=core, params=p, image_shape=(H, W),
-            )
-            if info["complete"] or attempt == 2:
-                break
-            halo *= 2
-            padded = _pad(core, halo, (H, W))
-        ly, lx = core[0] - padded[0], core[1] - padded[1]
-        sl = (slice(ly, ly + core[2]), slice(lx, lx + core[3]))
-        cs = (slice(core[0], core[0] + core[2]), slice(core[1], core[1] + core[3]))
-        with lock:
-            change[cs] = mask
-            unknown[cs] = unk[sl]
-            if reblurred is not None:
-                m = photometry.apply(reb[sl], core)
-                reblurred[cs] = m[:, :, 0] if two_d else m
-            regions.extend(info["regions"])
-            incomplete += 0 if info["complete"] else 1
-            done[0] += 1
-        if progress is not None:
-            progress(done[0] / len(tiles))
+        out = decide_tiles(
+            reference, observed, poses, scheduler=scheduler, s_ref=s_ref, s_obs=s_obs,
+            gain=gain, offset=offset, threshold=threshold, photometry=photometry, params=p,
+            halo=halo, tile_size=tile_size, workers=workers, keep_reblurred=keep_reblurred,
+            change_out=change_out, unknown_out=unknown_out, store=work_dir,
+            progress=progress,
+        )
+        change, unknown, reblurred = out.change, out.unknown, out.reblurred
+        regions, incomplete = out.regions, out.incomplete
+        backend = out.info
+    else:
+        change = np.zeros((H, W), bool) if change_out is None else change_out
+        unknown = np.zeros((H, W), bool) if unknown_out is None else unknown_out
+        reblurred = None
+        if keep_reblurred:
+            reblurred = np.zeros((H, W) if two_d else (H, W, C), np.float32)
+        job = TileJob(
+            poses=poses, s_ref=float(s_ref), s_obs=float(s_obs), gain=gain, offset=offset,
+            threshold=threshold, photometry=photometry, params=p, halo=halo,
+            image_shape=(H, W), two_d=two_d, change_out=change, unknown_out=unknown,
+            reblurred_out=reblurred, lock_writes=True, client_pid=os.getpid(),
+        )
+        tiles = list(tile_boxes((H, W), tile_size, halo))
+        results: list[dict[str, Any]] = []
+        lock = threading.Lock()
 
-    run_tiles(run, tiles, workers)
+        def run(pair) -> None:
+            res = run_tile(job, reference, observed, *pair)
+            with lock:
+                results.append(res)
+                n_done = len(results)
+            if progress is not None:
+                progress(n_done / len(tiles))
+
+        run_tiles(run, tiles, workers)
+        regions = [r for res in results for r in res["regions"]]
+        incomplete = sum(0 if res["complete"] else 1 for res in results)
+        backend = {"scheduler": None, "kind": "local threads", "workers": int(workers)}
     regions.sort(key=lambda r: (r["bbox"][0], r["bbox"][1]) if "bbox" in r else (0, 0))
     info = dict(
         threshold_info=tinfo,
         photometry=photometry.to_dict(),
         params=p.to_dict(),
         statistic="local RMS of robust per-band z-scores of observed - matched reblurred",
-        n_tiles=len(tiles),
+        n_tiles=-(-H // tile_size) * -(-W // tile_size),
         incomplete_tiles=incomplete,
-        halo=p.halo(max_region),
+        halo=halo,
+        backend=backend,
     )
     return Decided(change, unknown, reblurred, threshold, info, regions)
-
-
-def _pad(core, halo: int, shape) -> tuple[int, int, int, int]:
-    y, x, h, w = core
-    y0, x0 = max(y - halo, 0), max(x - halo, 0)
-    y1, x1 = min(y + h + halo, shape[0]), min(x + w + halo, shape[1])
-    return (y0, x0, y1 - y0, x1 - x0)
 
 
 def align_coarse(reference, observed, shakes=(8.0, 16.0, 32.0, 64.0)):
@@ -298,119 +300,47 @@ def align_coarse(reference, observed, shakes=(8.0, 16.0, 32.0, 64.0)):
     raise err
 
 
-def detect_changes(
+@dataclass
+class Estimated:
+    """Output of the estimation stage of :func:`detect_changes` (small: it may travel
+    from a Dask worker)."""
+
+    base: np.ndarray
+    gain: np.ndarray
+    offset: np.ndarray
+    grid: PoseGrid
+    motion: Any
+    crop: CropChoice
+    align_info: dict[str, Any]
+    refine_info: dict[str, Any]
+    timings: dict[str, float]
+
+
+def _estimate_stage(
     reference,
     observed,
     *,
-    grid: PoseGrid | None = None,
-    t_max: int = 12,
-    rz_max: float = 3.0,
-    rz_step: float | None = None,
-    lam: float = 0.1,
-    align: bool = True,
-    refine: bool = True,
-    windows: int | None = None,
-    large_side: int = 2500,
-    select: SelectParams | None = None,
-    boxes: list | None = None,
-    tile_size: int = 1024,
-    threshold: float | None = None,
-    decision: DecisionParams | None = None,
-    workers: int = 1,
-    keep_reblurred: bool | None = None,
-    change_out=None,
-    unknown_out=None,
+    grid: PoseGrid | None,
+    t_max: int,
+    rz_max: float,
+    rz_step: float | None,
+    lam: float,
+    align: bool,
+    refine: bool,
+    windows: int | None,
+    large_side: int,
+    select: SelectParams | None,
+    boxes: list | None,
     progress: Callable[[str, float], None] | None = None,
-) -> ChangeResult:
-    """Find what changed between a sharp reference and a blurred, re-viewpointed observation.
-
-    Parameters
-    ----------
-    reference : array-like, (H, W) or (H, W, C)
-        Sharp reference (numpy, zarr, tifffile's zarr store: read window by window).
-    observed : array-like, (H', W') or (H', W', C)
-        Later, motion-blurred observation with the same bands; may differ in size.
-    grid : PoseGrid, optional
-        Pose grid on the observation geometry.  Default: integer ``|tx|, |ty| <= t_max``
-        and ``|rz| <= rz_max`` in steps of ``rz_step`` degrees (the paper's grid with
-        ``rz_step=0.5``).
-    t_max, rz_max, rz_step : int, float, float
-        Ranges of the default grid.  ``rz_step=None`` (default): the step that moves the
-        farthest pixel of the full image by one pixel (solved coarse to fine), because the
-        paper's 0.5 degree step moves a corner pixel by ``radius x 0.0087`` px (41 px on a
-        6680 px image, 11 px on a 2500 px one) and cannot represent the motion far from
-        the centre; ``rz_step=0.5`` gives the paper's grid.
-    lam : float
-        Eq. 5's ``lambda`` (intensities in [0, 1]).
-    align : bool
-        Run the coarse alignment (needed when the viewpoint moved beyond the grid).
-    refine : bool
-        After the motion estimate, measure the residual misregistration of the reblurred
-        reference on probe windows spread over the whole image and correct the base
-        homography (:func:`reblur.refine.refine_alignment`): the grid cannot represent a
-        residual scale / shear / perspective error of the coarse alignment, and the
-        estimation windows do not see the rest of the image.
-    windows : int, optional
-        Windows estimated jointly (1 = the paper's Algorithm 1, single growing crop).
-        Default: 2 up to ``large_side``, 4 above, spread around the principal point: a
-        small roll about a distant centre is only observable from windows far apart
-        (``benchmarks/large_motion.py``: on 41.6 MP, unseen windows reach 23-38 dB from one
-        central window with the paper's grid, 49-63 dB from two corners and 58-68 dB from
-        four with the sized grid).
-    large_side : int
-        Long side (pixels) above which the large-image defaults apply.
-    select : SelectParams, optional
-        Constants of Algorithm 1.
-    boxes : list of (y0, x0, h, w), optional
-        Skip the selection and estimate on these windows.
-    tile_size : int
-        Tile side for reblur and decision.
-    threshold : float, optional
-        Override the data-driven decision threshold (units of the decision statistic).
-    decision : DecisionParams, optional
-        Decision and clean-up settings.
-    workers : int
-        Threads pulling tiles.
-    keep_reblurred : bool, optional
-        Return the full reblurred reference (default: when the observation has <= 64 MP).
-    change_out, unknown_out : array-like, optional
-        Where to write the full-size masks (e.g. zarr arrays); default numpy arrays.
-    progress : callable, optional
-        ``progress(stage, fraction)`` for progress bars.
-
-    Returns
-    -------
-    ChangeResult
-
-    Raises
-    ------
-    ValueError
-        Invalid inputs, textureless images (motion cannot be estimated), or
-        :class:`reblur.align.AlignmentError` when the images cannot be aligned.
-
-    Examples
-    --------
-    >>> import numpy as np, reblur
-    >>> from reblur.simulate import random_camera_path, blur_along_path
-    >>> rng = np.random.default_rng(1)
-    >>> import cv2
-    >>> ref = cv2.GaussianBlur(rng.random((400, 400)), (0, 0), 2)
-    >>> ref = (ref - ref.min()) / np.ptp(ref)
-    >>> path = random_camera_path(1, center=(199.5, 199.5), t_max=3, rz_max=0.5)
-    >>> obs = blur_along_path(ref, path, dtype=np.float64)[0].reshape(400, 400)
-    >>> obs[150:200, 150:200] = 1.0                    # something new appeared
-    >>> res = reblur.detect_changes(ref, obs, align=False, t_max=5, rz_max=1)
-    >>> bool(res.change[160:190, 160:190].mean() > 0.9), bool(res.change[:100].mean() < 0.01)
-    (True, True)
-    """
+) -> Estimated:
+    """Coarse alignment, photometric pre-match, window selection, motion estimate and
+    whole-image geometric refinement (steps 1-3 of :func:`detect_changes`)."""
     timings: dict[str, float] = {}
-    t_all = time.perf_counter()
 
     def report(stage: str, frac: float) -> None:
         if progress is not None:
             progress(stage, frac)
 
-    _check_inputs(reference, observed)
     Ho, Wo = observed.shape[:2]
     s_ref = intensity_scale(reference.dtype)
     s_obs = intensity_scale(observed.dtype)
@@ -474,6 +404,160 @@ def detect_changes(
         H0 = ref_res.base
         timings["refine"] = time.perf_counter() - t
 
+    return Estimated(base=H0, gain=gain, offset=offset, grid=grid, motion=motion, crop=crop,
+                     align_info=align_info, refine_info=refine_info, timings=timings)
+
+
+def detect_changes(
+    reference,
+    observed,
+    *,
+    grid: PoseGrid | None = None,
+    t_max: int = 12,
+    rz_max: float = 3.0,
+    rz_step: float | None = None,
+    lam: float = 0.1,
+    align: bool = True,
+    refine: bool = True,
+    windows: int | None = None,
+    large_side: int = 2500,
+    select: SelectParams | None = None,
+    boxes: list | None = None,
+    tile_size: int = 1024,
+    threshold: float | None = None,
+    decision: DecisionParams | None = None,
+    workers: int = 1,
+    keep_reblurred: bool | None = None,
+    change_out=None,
+    unknown_out=None,
+    scheduler=None,
+    work_dir=None,
+    progress: Callable[[str, float], None] | None = None,
+) -> ChangeResult:
+    """Find what changed between a sharp reference and a blurred, re-viewpointed observation.
+
+    Parameters
+    ----------
+    reference : array-like, (H, W) or (H, W, C)
+        Sharp reference (numpy, zarr, tifffile's zarr store: read window by window).
+    observed : array-like, (H', W') or (H', W', C)
+        Later, motion-blurred observation with the same bands; may differ in size.
+    grid : PoseGrid, optional
+        Pose grid on the observation geometry.  Default: integer ``|tx|, |ty| <= t_max``
+        and ``|rz| <= rz_max`` in steps of ``rz_step`` degrees (the paper's grid with
+        ``rz_step=0.5``).
+    t_max, rz_max, rz_step : int, float, float
+        Ranges of the default grid.  ``rz_step=None`` (default): the step that moves the
+        farthest pixel of the full image by one pixel (solved coarse to fine), because the
+        paper's 0.5 degree step moves a corner pixel by ``radius x 0.0087`` px (41 px on a
+        6680 px image, 11 px on a 2500 px one) and cannot represent the motion far from
+        the centre; ``rz_step=0.5`` gives the paper's grid.
+    lam : float
+        Eq. 5's ``lambda`` (intensities in [0, 1]).
+    align : bool
+        Run the coarse alignment (needed when the viewpoint moved beyond the grid).
+    refine : bool
+        After the motion estimate, measure the residual misregistration of the reblurred
+        reference on probe windows spread over the whole image and correct the base
+        homography (:func:`reblur.refine.refine_alignment`): the grid cannot represent a
+        residual scale / shear / perspective error of the coarse alignment, and the
+        estimation windows do not see the rest of the image.
+    windows : int, optional
+        Windows estimated jointly (1 = the paper's Algorithm 1, single growing crop).
+        Default: 2 up to ``large_side``, 4 above, spread around the principal point: a
+        small roll about a distant centre is only observable from windows far apart
+        (``benchmarks/large_motion.py``: on 41.6 MP, unseen windows reach 23-38 dB from one
+        central window with the paper's grid, 49-63 dB from two corners and 58-68 dB from
+        four with the sized grid).
+    large_side : int
+        Long side (pixels) above which the large-image defaults apply.
+    select : SelectParams, optional
+        Constants of Algorithm 1.
+    boxes : list of (y0, x0, h, w), optional
+        Skip the selection and estimate on these windows.
+    tile_size : int
+        Tile side for reblur and decision.
+    threshold : float, optional
+        Override the data-driven decision threshold (units of the decision statistic).
+    decision : DecisionParams, optional
+        Decision and clean-up settings.
+    workers : int
+        Threads pulling tiles (with a local Dask scheduler: its threads or processes).
+    keep_reblurred : bool, optional
+        Return the full reblurred reference (default: when the observation has <= 64 MP).
+    change_out, unknown_out : array-like, optional
+        Where to write the full-size masks (e.g. zarr arrays); default numpy arrays.
+    scheduler : None or str or distributed.Client
+        None (default): the local path, a thread pool pulling tiles.  ``"threads"``,
+        ``"processes"``, ``"tcp://host:port"`` (a running Dask scheduler), ``"distributed"``
+        (the current client) or a :class:`distributed.Client`: the reblur-and-decide pass
+        runs as a Dask graph (:mod:`reblur.dask_backend`) and, on a cluster, the motion
+        estimate runs once on one worker.  Same result as the local path.  Inputs for
+        other processes must be numpy arrays (small images), zarr arrays or TIFF-backed
+        arrays (reopened by path in each worker).
+    work_dir : path, optional
+        With ``scheduler``: directory of the zarr outputs the workers write (default a
+        temporary directory; it must be shared storage for a cluster on several
+        machines).  For more than ``reblur.dask_backend.NUMPY_MAX_PIXELS`` pixels the
+        masks stay there as zarr arrays (``result.decision["backend"]["store"]``).
+    progress : callable, optional
+        ``progress(stage, fraction)`` for progress bars.
+
+    Returns
+    -------
+    ChangeResult
+
+    Raises
+    ------
+    ValueError
+        Invalid inputs, textureless images (motion cannot be estimated), or
+        :class:`reblur.align.AlignmentError` when the images cannot be aligned.
+
+    Examples
+    --------
+    >>> import numpy as np, reblur
+    >>> from reblur.simulate import random_camera_path, blur_along_path
+    >>> rng = np.random.default_rng(1)
+    >>> import cv2
+    >>> ref = cv2.GaussianBlur(rng.random((400, 400)), (0, 0), 2)
+    >>> ref = (ref - ref.min()) / np.ptp(ref)
+    >>> path = random_camera_path(1, center=(199.5, 199.5), t_max=3, rz_max=0.5)
+    >>> obs = blur_along_path(ref, path, dtype=np.float64)[0].reshape(400, 400)
+    >>> obs[150:200, 150:200] = 1.0                    # something new appeared
+    >>> res = reblur.detect_changes(ref, obs, align=False, t_max=5, rz_max=1)
+    >>> bool(res.change[160:190, 160:190].mean() > 0.9), bool(res.change[:100].mean() < 0.01)
+    (True, True)
+    """
+    timings: dict[str, float] = {}
+    t_all = time.perf_counter()
+
+    def report(stage: str, frac: float) -> None:
+        if progress is not None:
+            progress(stage, frac)
+
+    _check_inputs(reference, observed)
+    Ho, Wo = observed.shape[:2]
+    s_ref = intensity_scale(reference.dtype)
+    s_obs = intensity_scale(observed.dtype)
+    options = dict(grid=grid, t_max=t_max, rz_max=rz_max, rz_step=rz_step, lam=lam,
+                   align=align, refine=refine, windows=windows, large_side=large_side,
+                   select=select, boxes=boxes)
+    if scheduler is not None:
+        from .dask_backend import portable, run_once, scheduler_kind
+
+        if scheduler_kind(scheduler) == "distributed":
+            # the motion estimate runs once, on one worker; only its result travels back
+            report("estimate", 0.0)
+            est = run_once(_estimate_stage, portable(reference, "reference"),
+                           portable(observed, "observed"), scheduler=scheduler, **options)
+            report("estimate", 1.0)
+        else:
+            est = _estimate_stage(reference, observed, progress=progress, **options)
+    else:
+        est = _estimate_stage(reference, observed, progress=progress, **options)
+    timings.update(est.timings)
+    H0, gain, offset, grid, motion = est.base, est.gain, est.offset, est.grid, est.motion
+
     # 4. tiled reblur and decision
     t = time.perf_counter()
     poses = SparsePoses(motion.weights, grid, H0)
@@ -482,6 +566,7 @@ def detect_changes(
         reference, observed, poses, s_ref=s_ref, s_obs=s_obs, gain=gain, offset=offset,
         tile_size=tile_size, threshold=threshold, params=decision, workers=workers,
         keep_reblurred=keep, change_out=change_out, unknown_out=unknown_out,
+        scheduler=scheduler, work_dir=work_dir,
         progress=(lambda f: report("reblur + decide", f)) if progress else None,
     )
     timings["reblur_decide"] = time.perf_counter() - t
@@ -494,9 +579,9 @@ def detect_changes(
         reblurred=dec.reblurred,
         motion=motion,
         alignment=H0,
-        crop=crop,
+        crop=est.crop,
         threshold=dec.threshold,
-        decision=dict(dec.info, alignment=dict(align_info, refinement=refine_info)),
+        decision=dict(dec.info, alignment=dict(est.align_info, refinement=est.refine_info)),
         timings=timings,
         regions=dec.regions,
     )

@@ -1,0 +1,157 @@
+"""One tile of the reblur-and-decide pass: the unit of work of every scheduler.
+
+:func:`reblur.pipeline.reblur_and_decide` (local thread pool) and
+:func:`reblur.dask_backend.decide_tiles` (Dask) both run :func:`run_tile` on every output
+tile, so the two paths compute exactly the same thing.  A :class:`TileJob` holds what every
+tile shares: the sparse pose weights, the photometric model, the threshold, the decision
+parameters and the output arrays.  It is small (no image data), so a distributed scheduler
+ships it once per worker.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from .decide import DecisionParams, Photometry, decide_tile
+from .tiled import SparsePoses, reblur_tile
+from .warp import as_box, read_window
+
+__all__ = ["TileJob", "run_tile", "pad_box"]
+
+#: Serialises in-process writes into outputs whose chunks straddle tiles.
+_WRITE_LOCK = threading.Lock()
+
+
+@dataclass
+class TileJob:
+    """Everything a tile task needs besides the two images.
+
+    Attributes
+    ----------
+    poses : SparsePoses
+        Non-zero pose weights (with the coarse alignment composed).
+    s_ref, s_obs : float
+        Intensity scales of the reference and the observation (to [0, 1] units).
+    gain, offset : (C,) ndarray
+        Photometric pre-match of the reblurred reference to the observation.
+    threshold : float
+        Global threshold of the change statistic.
+    photometry : Photometry
+        Global photometric model.
+    params : DecisionParams
+        Decision parameters (the same for every tile).
+    halo : int
+        First-try halo of the padded tiles (doubled, at most twice, for a tile whose
+        regions reach the halo's edge).
+    image_shape : (int, int)
+        Observation size.
+    two_d : bool
+        The observation is 2-D (the reblurred output is then 2-D).
+    change_out, unknown_out : array-like
+        Full-size ``(H, W)`` bool outputs (numpy in this process, zarr for other processes).
+    reblurred_out : array-like or None
+        Full-size float32 output of the matched reblurred reference, or None.
+    lock_writes : bool
+        Serialise writes (in-process outputs whose chunks straddle tiles).
+    client_pid : int
+        Process that built the job; a task running in another process sets OpenCV to one
+        thread (one task per worker thread: no nested thread pools).
+    """
+
+    poses: SparsePoses
+    s_ref: float
+    s_obs: float
+    gain: np.ndarray
+    offset: np.ndarray
+    threshold: float
+    photometry: Photometry
+    params: DecisionParams
+    halo: int
+    image_shape: tuple[int, int]
+    two_d: bool
+    change_out: Any
+    unknown_out: Any
+    reblurred_out: Any = None
+    lock_writes: bool = True
+    client_pid: int = 0
+
+
+def pad_box(core: Sequence[int], halo: int, shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    """``core`` grown by ``halo`` pixels on every side, clipped to an image of ``shape``."""
+    y, x, h, w = (int(v) for v in core)
+    y0, x0 = max(y - halo, 0), max(x - halo, 0)
+    y1, x1 = min(y + h + halo, shape[0]), min(x + w + halo, shape[1])
+    return (y0, x0, y1 - y0, x1 - x0)
+
+
+def run_tile(
+    job: TileJob, reference, observed, padded: Sequence[int], core: Sequence[int]
+) -> dict[str, Any]:
+    """Reblur, decide and write one tile.
+
+    The padded tile is reblurred (reading only the reference window its poses touch),
+    pre-matched, decided by :func:`reblur.decide.decide_tile`, re-run with a twice larger
+    halo (at most twice) when a region reaches the halo's edge, and its core written into
+    the job's outputs.
+
+    Parameters
+    ----------
+    job : TileJob
+    reference, observed : array-like
+        Full-size images (numpy, zarr or any window reader).
+    padded, core : (y0, x0, h, w)
+        The tile with its halo and the part it owns.
+
+    Returns
+    -------
+    dict
+        ``core`` (box), ``regions`` (list of dict, full-image coordinates), ``complete``
+        (bool: the result equals the whole-image decision).
+    """
+    if os.getpid() != job.client_pid and cv2.getNumThreads() != 1:
+        cv2.setNumThreads(1)
+    H, W = job.image_shape
+    gain = np.asarray(job.gain, np.float32)
+    offset = np.asarray(job.offset, np.float32)
+    padded = tuple(int(v) for v in padded)
+    core = tuple(int(v) for v in core)
+    halo = int(job.halo)
+    for attempt in range(3):
+        box = as_box(padded)
+        reb, valid = reblur_tile(job.poses, reference, box)
+        reb = reb / np.float32(job.s_ref) * gain + offset  # pre-matched to the observation
+        obs = read_window(observed, box, np.float32) / np.float32(job.s_obs)
+        unk = ~valid
+        mask, info = decide_tile(
+            obs, reb, unk, threshold=job.threshold, photometry=job.photometry, box=padded,
+            core=core, params=job.params, image_shape=(H, W),
+        )
+        if info["complete"] or attempt == 2:
+            break
+        halo *= 2
+        padded = pad_box(core, halo, (H, W))
+    ly, lx = core[0] - padded[0], core[1] - padded[1]
+    sl = (slice(ly, ly + core[2]), slice(lx, lx + core[3]))
+    cs = (slice(core[0], core[0] + core[2]), slice(core[1], core[1] + core[3]))
+    m = None
+    if job.reblurred_out is not None:
+        m = job.photometry.apply(reb[sl], core)
+        m = m[:, :, 0] if job.two_d else m
+    if job.lock_writes:
+        _WRITE_LOCK.acquire()
+    try:
+        job.change_out[cs] = mask
+        job.unknown_out[cs] = unk[sl]
+        if m is not None:
+            job.reblurred_out[cs] = m
+    finally:
+        if job.lock_writes:
+            _WRITE_LOCK.release()
+    return {"core": core, "regions": info["regions"], "complete": bool(info["complete"])}

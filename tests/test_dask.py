@@ -1,0 +1,171 @@
+"""The Dask backend computes exactly what the local path computes.
+
+The reference result is the default local path (a thread pool pulling tiles), computed
+independently of Dask; the Dask runs (threads, processes, a two-worker LocalCluster) must
+reproduce its masks, reblurred image, regions and threshold bit for bit on a multi-tile
+image, with inputs in memory and as tiled TIFF files.
+"""
+
+from __future__ import annotations
+
+import pickle
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import tifffile
+import zarr
+
+import reblur
+from reblur.dask_backend import TiffSource, portable, scheduler_kind
+from reblur.simulate import make_pair
+
+TILE = 256
+
+
+@pytest.fixture(scope="module")
+def pair(levir_gray):
+    # 640 x 896 -> 3 x 4 tiles of 256 px; changes and a viewpoint change inside the grid
+    img = levir_gray[:640, :896]
+    p = make_pair(img, rng=11, shake=dict(t_max=4.0, rz_max=0.5), viewpoint=None,
+                  n_changes=4, moving=False, low_contrast=False)
+    ref = np.clip(np.round(p.reference * 255), 0, 255).astype(np.uint8)
+    obs = np.clip(np.round(p.observed * 255), 0, 255).astype(np.uint8)
+    return ref, obs, p.truth
+
+
+@pytest.fixture(scope="module")
+def local(pair):
+    ref, obs, truth = pair
+    res = reblur.detect_changes(ref, obs, align=False, t_max=5, rz_max=1.0, tile_size=TILE)
+    # the fixture is meaningful: it finds the pasted changes and is multi-tile
+    assert res.decision["n_tiles"] == 12
+    assert reblur.metrics.jaccard(truth, res.change) > 0.5
+    return res
+
+
+def _same(a, b) -> None:
+    np.testing.assert_array_equal(np.asarray(a.change[...]), np.asarray(b.change[...]))
+    np.testing.assert_array_equal(np.asarray(a.unknown[...]), np.asarray(b.unknown[...]))
+    np.testing.assert_array_equal(a.motion.weights, b.motion.weights)
+    assert a.threshold == b.threshold
+    assert a.regions == b.regions
+    if a.reblurred is not None and b.reblurred is not None:
+        np.testing.assert_array_equal(np.asarray(a.reblurred), np.asarray(b.reblurred))
+
+
+@pytest.mark.parametrize("scheduler", ["threads", "processes"])
+def test_local_dask_schedulers_match_local_path(pair, local, scheduler):
+    ref, obs, _ = pair
+    res = reblur.detect_changes(ref, obs, align=False, t_max=5, rz_max=1.0, tile_size=TILE,
+                                scheduler=scheduler, workers=2)
+    assert res.decision["backend"]["kind"] == scheduler
+    _same(local, res)
+
+
+def _tiffs(tmp_path, ref, obs):
+    paths = []
+    for name, a in (("ref", ref), ("obs", obs)):
+        p = tmp_path / f"{name}.tif"
+        tifffile.imwrite(p, a, tile=(128, 128), compression="zstd")
+        paths.append(p)
+    return paths
+
+
+def test_local_cluster_two_workers_matches_local_path(pair, local, tmp_path):
+    distributed = pytest.importorskip("distributed")
+    ref, obs, _ = pair
+    ref_p, obs_p = _tiffs(tmp_path, ref, obs)
+    # the files are read lazily, as the CLI does, and reopened by path in each worker
+    ref_z = zarr.open(tifffile.imread(ref_p, aszarr=True), mode="r")
+    obs_z = zarr.open(tifffile.imread(obs_p, aszarr=True), mode="r")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True,
+                                  dashboard_address=None) as cluster:
+        with distributed.Client(cluster) as client, distributed.get_task_stream(client) as ts:
+            res = reblur.detect_changes(ref_z, obs_z, align=False, t_max=5, rz_max=1.0,
+                                        tile_size=TILE, scheduler=cluster.scheduler_address,
+                                        work_dir=tmp_path / "work")
+    # every tile ran as a task, on both workers; the estimate ran once, on one worker
+    tiles = [t for t in ts.data if "reblur-tile" in str(t["key"])]
+    assert len(tiles) == 12
+    assert len({t["worker"] for t in tiles}) == 2
+    assert sum("_estimate_stage" in str(t["key"]) for t in ts.data) == 1
+    assert res.decision["backend"]["kind"] == "distributed"
+    _same(local, res)
+    # small image: masks came back as numpy and the work store was removed
+    assert isinstance(res.change, np.ndarray)
+    assert not (tmp_path / "work").exists() or not any((tmp_path / "work").iterdir())
+
+
+def test_large_outputs_stay_in_zarr(pair, local, tmp_path, monkeypatch):
+    import reblur.dask_backend as db
+
+    ref, obs, _ = pair
+    monkeypatch.setattr(db, "NUMPY_MAX_PIXELS", 1000)  # pretend the image is huge
+    res = reblur.detect_changes(ref, obs, align=False, t_max=5, rz_max=1.0, tile_size=TILE,
+                                scheduler="processes", workers=2, work_dir=tmp_path / "w",
+                                keep_reblurred=False)
+    assert isinstance(res.change, zarr.Array)
+    assert res.change.chunks == (TILE, TILE)
+    assert res.decision["backend"]["store"] == str(tmp_path / "w")
+    np.testing.assert_array_equal(res.change[...], local.change)
+    np.testing.assert_array_equal(res.unknown[...], local.unknown)
+
+
+def test_tiff_source_reads_windows_and_pickles(tmp_path):
+    rng = np.random.default_rng(0)
+    a = rng.integers(0, 65535, (300, 200, 3), dtype=np.uint16)
+    p = tmp_path / "a.tif"
+    tifffile.imwrite(p, a, tile=(64, 64))
+    src = TiffSource(p)
+    assert src.shape == a.shape and src.dtype == a.dtype
+    np.testing.assert_array_equal(src[17:140, 5:199], a[17:140, 5:199])
+    back = pickle.loads(pickle.dumps(src))
+    np.testing.assert_array_equal(back[250:, :30], a[250:, :30])
+    # a zarr array over tifffile's store is not picklable; portable() reopens it by path
+    z = zarr.open(tifffile.imread(p, aszarr=True), mode="r")
+    with pytest.raises(TypeError):
+        pickle.dumps(z)
+    pz = pickle.loads(pickle.dumps(portable(z)))
+    np.testing.assert_array_equal(pz[100:120, 60:70], a[100:120, 60:70])
+
+
+def test_scheduler_names():
+    assert scheduler_kind("threads") == "threads"
+    assert scheduler_kind("processes") == "processes"
+    assert scheduler_kind("tcp://127.0.0.1:8786") == "distributed"
+    with pytest.raises(ValueError, match="unknown scheduler"):
+        scheduler_kind("gpu")
+
+
+def test_cli_scheduler_flag_same_mask(pair, tmp_path):
+    ref, obs, _ = pair
+    ref_p, obs_p = _tiffs(tmp_path, ref, obs)
+    outs = {}
+    for name, extra in (("plain", []), ("dask", ["--scheduler", "threads", "--workers", "2"])):
+        out = tmp_path / name
+        r = subprocess.run(
+            [sys.executable, "-m", "reblur", "detect", str(ref_p), str(obs_p), "--out", str(out),
+             "--t-max", "5", "--rz-max", "1", "--tile-size", str(TILE), "--quiet", *extra],
+            capture_output=True, text=True, timeout=600,
+        )
+        assert r.returncode == 0, r.stderr
+        outs[name] = tifffile.imread(out / "reblurred.tif"), _png(out / "changes.png")
+    np.testing.assert_array_equal(outs["plain"][1], outs["dask"][1])
+    np.testing.assert_array_equal(outs["plain"][0], outs["dask"][0])
+    bad = subprocess.run(
+        [sys.executable, "-m", "reblur", "detect", str(ref_p), str(obs_p), "--out",
+         str(tmp_path / "bad"), "--scheduler", "gpu"], capture_output=True, text=True,
+        timeout=120,
+    )
+    assert bad.returncode != 0
+    assert "Traceback" not in bad.stderr and len(bad.stderr.strip().splitlines()) == 1
+    assert "scheduler" in bad.stderr
+    assert not (tmp_path / "bad").exists() or not any((tmp_path / "bad").iterdir())
+
+
+def _png(path):
+    import cv2
+
+    return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
