@@ -369,7 +369,7 @@ def decide_tiles(
         ``change``, ``unknown``, ``reblurred`` (numpy for images up to
         :data:`NUMPY_MAX_PIXELS` pixels when no output was given, else the output arrays),
         ``regions`` (sorted like the local path), ``incomplete`` (tiles still incomplete
-        after two halo doublings) and ``info`` (scheduler, store).
+        after three halo doublings) and ``info`` (scheduler, store).
     """
     kind = scheduler_kind(scheduler)
     H, W = observed.shape[:2]

@@ -956,6 +956,33 @@ def _shape_ok(sub: np.ndarray, area: int, p: DecisionParams) -> bool:
     return area / (4.0 * r_in * r_in) <= p.max_aspect
 
 
+def _labelled(S: np.ndarray, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Labels and values of the labelled pixels only (candidates are a small fraction)."""
+    sel = lab > 0
+    return lab[sel], S[sel].astype(np.float64)
+
+
+def _label_max(S: np.ndarray, lab: np.ndarray, n: int) -> np.ndarray:
+    """``ndimage.maximum(S, lab, 1..n)`` over the labelled pixels only."""
+    lv, v = _labelled(S, lab)
+    out = np.full(n + 1, -np.inf)
+    np.maximum.at(out, lv, v)
+    return out[1:]
+
+
+def _label_median(S: np.ndarray, lab: np.ndarray, n: int) -> np.ndarray:
+    """``ndimage.median(S, lab, 1..n)`` (mean of the two middle values for an even count)
+    over the labelled pixels only: one sort of the candidates, not of the whole tile."""
+    lv, v = _labelled(S, lab)
+    order = np.lexsort((v, lv))
+    v = v[order]
+    counts = np.bincount(lv, minlength=n + 1)[1:]
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    lo = start + (counts - 1) // 2
+    hi = start + counts // 2
+    return (v[lo] + v[hi]) / 2.0
+
+
 def _decide_core(
     S: np.ndarray, known: np.ndarray, threshold: float, p: DecisionParams
 ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
@@ -976,9 +1003,8 @@ def _decide_core(
         lab, n = ndi.label(m, structure=_EIGHT)
         if n == 0:
             break
-        idx = np.arange(1, n + 1)
         area = np.bincount(lab.ravel(), minlength=n + 1)[1:]
-        smax = np.asarray(ndi.maximum(S, lab, idx))
+        smax = _label_max(S, lab, n)
         keep = np.zeros(n + 1, bool)
         nxt = np.zeros(n + 1, bool)
         last = li == len(levels) - 1
@@ -1007,7 +1033,7 @@ def _decide_core(
         # object boundary at a fixed fraction of the region's own level: the absolute
         # threshold sits far down the flank of a strong change and would bleed outwards
         lab, n = ndi.label(accepted, structure=_EIGHT)
-        level = np.asarray(ndi.median(S, lab, np.arange(1, n + 1)))
+        level = _label_median(S, lab, n)
         cut = np.concatenate([[np.inf], np.maximum(p.boundary_fraction * level, threshold)])
         accepted &= S >= cut[lab]
         lab, n = ndi.label(accepted, structure=_EIGHT)

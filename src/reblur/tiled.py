@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from .grid import PoseGrid, translation
-from .warp import Box, as_box, warp_window
+from .warp import Box, as_box, read_window, source_box, warp_window
 
 __all__ = ["reblur", "reblur_tile", "iter_tiles", "SparsePoses"]
 
@@ -68,24 +68,50 @@ def reblur_tile(poses: SparsePoses, reference, box, *, dtype=np.float32):
     valid = np.ones((box.h, box.w), bool)
     if not poses.groups:
         return out, np.zeros_like(valid)
+    # every warp of the tile reads from one reference window, read once
+    warps = []
     for b, tw in poses.groups.items():
         Hb = poses.base_h[b]
         if not poses.integer:
-            for tx, ty, v in tw:
-                img, ok = warp_window(reference, translation(tx, ty) @ Hb, box, dtype=dtype)
-                out += np.asarray(v, dtype) * img
-                valid &= ok
+            warps += [(translation(tx, ty) @ Hb, box, v) for tx, ty, v in tw]
             continue
         tx = tw[:, 0].astype(int)
         ty = tw[:, 1].astype(int)
-        txmax, txmin, tymax, tymin = tx.max(), tx.min(), ty.max(), ty.min()
-        ext = box.grow(int(tymax), int(-tymin), int(txmax), int(-txmin))
-        img, ok = warp_window(reference, Hb, ext, dtype=dtype)
-        for sx, sy, v in zip(tx, ty, tw[:, 2], strict=True):
+        ext = box.grow(int(ty.max()), int(-ty.min()), int(tx.max()),
+                       int(-tx.min()))
+        warps.append((Hb, ext, (tx, ty, tw[:, 2])))
+    source = _shared_source(reference, [(H, dst) for H, dst, _ in warps], dtype)
+    tmp = np.empty_like(out)
+    for H, dst, what in warps:
+        img, ok = warp_window(reference, H, dst, dtype=dtype, source=source)
+        if not poses.integer:
+            out += np.asarray(what, dtype) * img
+            valid &= ok
+            continue
+        tx, ty, wv = what
+        tymax, txmax = ty.max(), tx.max()
+        all_ok = bool(ok.all())
+        for sx, sy, v in zip(tx, ty, wv, strict=True):
             oy, ox = tymax - sy, txmax - sx
-            out += np.asarray(v, dtype) * img[oy : oy + box.h, ox : ox + box.w]
-            valid &= ok[oy : oy + box.h, ox : ox + box.w]
+            np.multiply(img[oy : oy + box.h, ox : ox + box.w], np.asarray(v, dtype), out=tmp)
+            out += tmp
+            if not all_ok:
+                valid &= ok[oy : oy + box.h, ox : ox + box.w]
     return out, valid
+
+
+def _shared_source(reference, warps, dtype) -> tuple[np.ndarray, Box] | None:
+    """One reference window (clipped to the image) covering what every warp reads."""
+    Href, Wref = reference.shape[:2]
+    boxes = [source_box(H, dst) for H, dst in warps]
+    y0 = max(min(b.y0 for b in boxes), 0)
+    x0 = max(min(b.x0 for b in boxes), 0)
+    y1 = min(max(b.y1 for b in boxes), Href)
+    x1 = min(max(b.x1 for b in boxes), Wref)
+    if y0 >= y1 or x0 >= x1:
+        return None
+    sbox = Box(y0, x0, y1 - y0, x1 - x0)
+    return read_window(reference, sbox, dtype), sbox
 
 
 def iter_tiles(shape: tuple[int, int], tile_size: int) -> Iterator[Box]:

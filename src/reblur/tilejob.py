@@ -25,6 +25,9 @@ from .warp import as_box, read_window
 
 __all__ = ["TileJob", "run_tile", "pad_box"]
 
+#: Tries per tile: the first halo, then doubled up to three times (8x the first halo).
+_ATTEMPTS = 4
+
 #: Serialises in-process writes into outputs whose chunks straddle tiles.
 _WRITE_LOCK = threading.Lock()
 
@@ -48,7 +51,7 @@ class TileJob:
     params : DecisionParams
         Decision parameters (the same for every tile).
     halo : int
-        First-try halo of the padded tiles (doubled, at most twice, for a tile whose
+        First-try halo of the padded tiles (doubled, at most three times, for a tile whose
         regions reach the halo's edge).
     image_shape : (int, int)
         Observation size.
@@ -98,8 +101,8 @@ def run_tile(
 
     The padded tile is reblurred (reading only the reference window its poses touch),
     pre-matched, decided by :func:`reblur.decide.decide_tile`, re-run with a twice larger
-    halo (at most twice) when a region reaches the halo's edge, and its core written into
-    the job's outputs.
+    halo (at most three times) when a region reaches the halo's edge, and its core written
+    into the job's outputs.
 
     Parameters
     ----------
@@ -123,7 +126,7 @@ def run_tile(
     padded = tuple(int(v) for v in padded)
     core = tuple(int(v) for v in core)
     halo = int(job.halo)
-    for attempt in range(3):
+    for attempt in range(_ATTEMPTS):
         box = as_box(padded)
         reb, valid = reblur_tile(job.poses, reference, box)
         reb = reb / np.float32(job.s_ref) * gain + offset  # pre-matched to the observation
@@ -133,7 +136,7 @@ def run_tile(
             obs, reb, unk, threshold=job.threshold, photometry=job.photometry, box=padded,
             core=core, params=job.params, image_shape=(H, W),
         )
-        if info["complete"] or attempt == 2:
+        if info["complete"] or attempt == _ATTEMPTS - 1:
             break
         halo *= 2
         padded = pad_box(core, halo, (H, W))

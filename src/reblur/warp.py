@@ -165,6 +165,9 @@ def warp_window(
         src = as_channels(src).astype(dtype, copy=False)
     M = local_homography(H, (sbox.x0, sbox.y0), (dst.x0, dst.y0))
     out = _warp(src, M, dst, interpolation)
+    if need.y0 >= 0 and need.x0 >= 0 and need.y1 <= Href and need.x1 <= Wref:
+        # every pixel's footprint (with a margin) lies inside the reference
+        return out, np.ones((dst.h, dst.w), bool)
     # validity: the reference extent expressed in the source window, warped like the data
     inside = np.zeros(src.shape[:2], np.float32)
     ya, yb = max(-sbox.y0, 0), min(Href - sbox.y0, sbox.h)
