@@ -26,22 +26,11 @@ import cv2
 import numpy as np
 
 from benchmarks.common import DATA
-
-LEVIR = DATA / "levir_whu_1024" / "samples_LEVIR"
-WHU = DATA / "levir_whu_1024" / "samples_WHU-CD"
+from experiments.common import dev_pairs as _pairs
 
 
 def _rgb(path) -> np.ndarray:
     return cv2.imread(str(path), cv2.IMREAD_COLOR)[:, :, ::-1].astype(np.float32) / 255.0
-
-
-def _pairs():
-    out = []
-    for a in sorted((LEVIR / "A").glob("*.png")):
-        out.append((f"LEVIR {a.stem}", a, LEVIR / "B" / a.name, LEVIR / "label" / a.name))
-    for a in sorted((WHU / "prev").glob("*.png")):
-        out.append((f"WHU {a.stem}", a, WHU / "curr" / a.name, WHU / "label" / a.name))
-    return out
 
 
 def _row(name, m, t) -> str:
