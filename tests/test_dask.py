@@ -154,6 +154,7 @@ def test_cli_scheduler_flag_same_mask(pair, tmp_path):
         outs[name] = tifffile.imread(out / "reblurred.tif"), _png(out / "changes.png")
     np.testing.assert_array_equal(outs["plain"][1], outs["dask"][1])
     np.testing.assert_array_equal(outs["plain"][0], outs["dask"][0])
+    assert not list((tmp_path / "dask").glob(".reblur-work-*"))  # the work store is gone
     bad = subprocess.run(
         [sys.executable, "-m", "reblur", "detect", str(ref_p), str(obs_p), "--out",
          str(tmp_path / "bad"), "--scheduler", "gpu"], capture_output=True, text=True,
@@ -169,3 +170,38 @@ def _png(path):
     import cv2
 
     return cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+
+
+def test_cli_large_inputs_keep_masks_on_disk(pair, tmp_path, monkeypatch):
+    """Above LARGE_MASK_PIXELS the CLI has the masks written into a zarr store in the output
+    directory (not memory): same outputs, store removed afterwards."""
+    from click.testing import CliRunner
+
+    import reblur.cli as cli
+
+    ref, obs, _ = pair
+    ref_p, obs_p = _tiffs(tmp_path, ref, obs)
+    seen = {}
+    real = reblur.detect_changes
+
+    def spy(*a, **k):
+        seen.update(k)
+        return real(*a, **k)
+
+    def run(out):
+        r = CliRunner().invoke(cli.main, [
+            "detect", str(ref_p), str(obs_p), "--out", str(out), "--t-max", "5", "--rz-max",
+            "1", "--tile-size", str(TILE), "--quiet"])
+        assert r.exit_code == 0, r.output
+        return _png(out / "changes.png"), _png(out / "unknown.png")
+
+    plain = run(tmp_path / "plain")
+    monkeypatch.setattr(cli, "LARGE_MASK_PIXELS", 1000)
+    monkeypatch.setattr(reblur, "detect_changes", spy)
+    out = tmp_path / "large"
+    large = run(out)
+    assert isinstance(seen["change_out"], zarr.Array)
+    np.testing.assert_array_equal(plain[0], large[0])
+    np.testing.assert_array_equal(plain[1], large[1])
+    assert (plain[0] > 0).any()
+    assert not list(out.glob(".reblur-work-*"))

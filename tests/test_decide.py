@@ -362,3 +362,30 @@ def test_statistic_with_model_error_matches_explicit_formula():
     z2 = (obs.astype(np.float64) - m) ** 2 / (0.01**2 + 0.04 * g2 + 0.01 * l2)
     np.testing.assert_allclose(S[known], np.sqrt(z2[known]), rtol=1e-5)
     assert not S[~known].any()
+
+
+def test_label_statistics_match_ndimage():
+    # the candidate-only max / median against scipy's whole-array versions (the reference)
+    from scipy import ndimage as ndi
+
+    from reblur.decide import _label_max, _label_median
+
+    rng = np.random.default_rng(5)
+    for _ in range(10):
+        S = rng.random((120, 170)).astype(np.float32)
+        lab, n = ndi.label(rng.random((120, 170)) > 0.55)
+        idx = np.arange(1, n + 1)
+        np.testing.assert_array_equal(_label_max(S, lab, n), ndi.maximum(S, lab, idx))
+        np.testing.assert_allclose(_label_median(S, lab, n), ndi.median(S, lab, idx),
+                                   rtol=0, atol=1e-7)
+
+
+def test_gaussian_zero_matches_ndimage():
+    from scipy import ndimage as ndi
+
+    from reblur.decide import gaussian_zero
+
+    a = np.random.default_rng(2).random((61, 83))
+    for sigma, trunc in ((2.0, 4.0), (1.3, 3.0)):
+        ref = ndi.gaussian_filter(a, sigma, mode="constant", cval=0.0, truncate=trunc)
+        np.testing.assert_allclose(gaussian_zero(a, sigma, trunc), ref, rtol=0, atol=1e-12)

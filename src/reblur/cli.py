@@ -24,7 +24,15 @@ from typing import Any
 
 import click
 
-from .io import DEFAULT_MAX_PIXELS, Image, InputError, open_image, read_mask, reconcile_bands
+from .io import (
+    DEFAULT_MAX_PIXELS,
+    Image,
+    InputError,
+    open_image,
+    read_mask,
+    reconcile_bands,
+    zarr_masks,
+)
 
 __all__ = ["main"]
 
@@ -34,6 +42,8 @@ log = logging.getLogger("reblur")
 _STATE: dict[str, int] = {"verbose": 0}
 
 #: Files ``reblur simulate`` writes.
+#: Above this many observation pixels the full-size masks are kept in a zarr store on disk.
+LARGE_MASK_PIXELS = 64_000_000
 SIMULATE_NAMES = ("reference.tif", "observed.tif", "truth.png", "unknown.png", "path.json")
 
 
@@ -325,13 +335,19 @@ def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float
     progress = None if quiet else _Progress()
     options = dict(t_max=t_max, rz_max=rz_max, rz_step=rz_step, lam=lam, tile_size=tile_size,
                    threshold=threshold, workers=workers, scheduler=scheduler)
-    # with Dask, the workers write the full-size masks into a zarr store in the output
-    # directory (seen by every worker); it is removed once the outputs are written
-    work = out_dir / f".reblur-work-{os.getpid()}" if scheduler is not None else None
+    # full-size masks of large inputs (and every mask written by Dask workers) go to a zarr
+    # store in the output directory, never to memory; it is removed once the outputs exist
+    large = obs.n_pixels > LARGE_MASK_PIXELS
+    work = (out_dir / f".reblur-work-{os.getpid()}"
+            if scheduler is not None or large else None)
     try:
+        masks = {}
+        if large:
+            masks = dict(zip(("change_out", "unknown_out"),
+                             zarr_masks(work, obs.shape[:2], tile_size), strict=True))
         try:
             result = reblur.detect_changes(ref.array, obs.array, progress=progress,
-                                           work_dir=work, **options)
+                                           work_dir=work, **masks, **options)
         finally:
             if progress is not None:
                 progress.close()

@@ -770,13 +770,27 @@ def change_statistic(
         e += np.where(known, r * r / var, 0.0)
     e /= o.shape[2]
     if smooth > 0:
-        kw = dict(sigma=smooth, mode="constant", cval=0.0, truncate=truncate)
-        num = ndi.gaussian_filter(e, **kw)
-        den = ndi.gaussian_filter(known.astype(np.float64), **kw)
+        num = gaussian_zero(e, smooth, truncate)
+        den = gaussian_zero(known.astype(np.float64), smooth, truncate)
         e = np.where(den > 1e-6, num / np.maximum(den, 1e-6), 0.0)
     S = np.sqrt(np.maximum(e, 0.0)).astype(np.float32)
     S[~known] = 0.0
     return S
+
+
+def gaussian_zero(a: np.ndarray, sigma: float, truncate: float = 4.0) -> np.ndarray:
+    """Gaussian filter with zeros outside ``a`` (float64).
+
+    The kernel and border of ``scipy.ndimage.gaussian_filter(a, sigma, mode="constant",
+    truncate=truncate)`` (radius ``int(truncate * sigma + 0.5)``), run by OpenCV: about
+    three times faster, and it releases the GIL, so tile threads run it in parallel.
+    """
+    r = int(truncate * sigma + 0.5)
+    x = np.arange(-r, r + 1, dtype=np.float64)
+    k = np.exp(-0.5 * (x / sigma) ** 2)
+    k /= k.sum()
+    a = np.ascontiguousarray(a, dtype=np.float64)
+    return cv2.sepFilter2D(a, cv2.CV_64F, k, k, borderType=cv2.BORDER_CONSTANT)
 
 
 def _grad2(a: np.ndarray) -> np.ndarray:
@@ -948,7 +962,9 @@ def _disc(r: int) -> np.ndarray:
 
 
 def _shape_ok(sub: np.ndarray, area: int, p: DecisionParams) -> bool:
-    if p.min_solidity > 0:
+    # the hull lies inside the bounding box: area / box >= min_solidity settles the
+    # solidity test without the (slow) hull
+    if p.min_solidity > 0 and area < p.min_solidity * sub.size:
         hull = int(np.count_nonzero(convex_hull_image(sub)))
         if hull and area / hull < p.min_solidity:
             return False

@@ -837,6 +837,26 @@ def _umask() -> int:
     return mask
 
 
+def zarr_masks(
+    directory: str | os.PathLike, shape: tuple[int, int], chunk: int,
+    names: Sequence[str] = ("change", "unknown"),
+) -> list[Any]:
+    """New full-size bool zarr arrays on disk (one per name), chunked ``chunk`` x ``chunk``.
+
+    For masks too large to hold in memory: tile writers (thread or Dask workers) fill them
+    chunk by chunk and the report writers read them back tile by tile.
+    """
+    import zarr
+
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    return [
+        zarr.create_array(str(d / n), shape=tuple(int(v) for v in shape), chunks=(chunk, chunk),
+                          dtype=bool, fill_value=False, overwrite=True)
+        for n in names
+    ]
+
+
 def write_png(path: str | os.PathLike, array: np.ndarray, *, compression: int = 6) -> Path:
     """Write a uint8/uint16 (or bool, as 0/255) gray, RGB or RGBA image as PNG, atomically.
 
