@@ -33,6 +33,13 @@ def demo_case() -> dict:
                 fpr=m["fpr"], timings=res.timings)
 
 
+def big_changes(H: int, W: int) -> list[tuple[int, int, int]]:
+    """The 40 pasted squares ``(y0, x0, side)`` of :func:`make_big` (seeded)."""
+    rng = np.random.default_rng(0)
+    return [(int(rng.integers(0, H - 200)), int(rng.integers(0, W - 200)),
+             int(rng.integers(40, 160))) for _ in range(40)]
+
+
 def make_big(dirpath: Path, side: int, tile: int = 512) -> tuple[Path, Path]:
     """Write a side x side gray uint8 pair as tiled TIFFs, tile by tile."""
     import cv2
@@ -48,9 +55,7 @@ def make_big(dirpath: Path, side: int, tile: int = 512) -> tuple[Path, Path]:
     scene = MosaicScene(ims, 2048, n, n, rng=1)
     H = W = side
     path = random_camera_path(3, center=((W - 1) / 2, (H - 1) / 2), t_max=5.0, rz_max=0.05)
-    rng = np.random.default_rng(0)
-    changes = [(int(rng.integers(0, H - 200)), int(rng.integers(0, W - 200)),
-                int(rng.integers(40, 160))) for _ in range(40)]
+    changes = big_changes(H, W)
 
     def tiles(kind):
         for y in range(0, H, tile):
