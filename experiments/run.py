@@ -10,12 +10,12 @@ import sys
 import time
 from collections.abc import Sequence
 
-from experiments import fig3, fig5, fig6, table1
+from experiments import error_map, fig3, fig5, fig6, table1
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Run Fig. 3, Fig. 5, Fig. 6 and Table I (with the baselines), one after the other."""
-    for mod in (fig3, fig5, fig6, table1):
+    """Run Fig. 3, Fig. 5, Fig. 6, Table I (with the baselines) and the error map, in turn."""
+    for mod in (fig3, fig5, fig6, table1, error_map):
         t = time.perf_counter()
         mod.main([])
         print(f"{mod.__name__}: {time.perf_counter() - t:.0f} s", flush=True)

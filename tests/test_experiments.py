@@ -11,7 +11,7 @@ from conftest import REPO
 if str(REPO) not in sys.path:  # the experiments live beside src/, not in the package
     sys.path.insert(0, str(REPO))
 
-from experiments import common, fig3, fig5  # noqa: E402
+from experiments import common, error_map, fig3, fig5  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -62,3 +62,21 @@ def test_measure_sees_an_allocation():
     got = common.measure(alloc, interval=0.005)
     assert got.value == 25_000_000.0
     assert got.peak_rss_mb - got.start_rss_mb > 150.0, got
+
+
+def test_error_map_lattice_is_regular_disjoint_and_inside():
+    """The error map's lattice: n x n windows centred in the cells of an n x n partition of
+    the 6450 x 6450 image (row-major), inside it, disjoint, and refused when they cannot be."""
+    H = W = 6450
+    boxes = error_map.lattice((H, W), 12, 256)
+    assert len(boxes) == 144 and all(b[2:] == (256, 256) for b in boxes)
+    y0 = np.array([b[0] for b in boxes]).reshape(12, 12)
+    x0 = np.array([b[1] for b in boxes]).reshape(12, 12)
+    assert (y0 == y0[:, :1]).all() and (x0 == x0[:1, :]).all()  # rows share y, columns x
+    cy = y0[:, 0] + 128
+    assert np.abs(cy - (np.arange(12) + 0.5) * H / 12).max() <= 0.5
+    assert y0.min() >= 0 and x0.min() >= 0 and y0.max() + 256 <= H and x0.max() + 256 <= W
+    assert np.diff(y0[:, 0]).min() >= 256 and np.diff(x0[0]).min() >= 256
+    assert error_map.lattice((H, W), 1, 256) == [(3097, 3097, 256, 256)]
+    with pytest.raises(ValueError):
+        error_map.lattice((H, W), 26, 256)
