@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import os
 import platform
 import tempfile
@@ -88,6 +89,22 @@ def centred_box(shape: tuple[int, int], side: int) -> tuple[int, int, int, int]:
 
 
 # ---------------------------------------------------------------------------- output
+def sweep_parser(name: str, description: str | None) -> argparse.ArgumentParser:
+    """Command line of an images x camera-paths sweep: ``--full``, ``--images``, ``--paths``,
+    ``--out``; see :func:`sweep_sizes`."""
+    ap = argparse.ArgumentParser(prog=f"python -m experiments.{name}", description=description)
+    ap.add_argument("--full", action="store_true", help="the paper's 5 images x 5 paths")
+    ap.add_argument("--images", type=int, default=None, help="images (default 3)")
+    ap.add_argument("--paths", type=int, default=None, help="camera paths (default 2)")
+    ap.add_argument("--out", type=Path, default=OUT)
+    return ap
+
+
+def sweep_sizes(args: argparse.Namespace) -> tuple[int, int]:
+    """``(images, paths)`` of a sweep: explicit counts, else 5 x 5 with ``--full``, else 3 x 2."""
+    return args.images or (5 if args.full else 3), args.paths or (5 if args.full else 2)
+
+
 def write_text(path: Path, text: str) -> Path:
     """Write ``text`` to ``path`` atomically (temporary file in the same folder, then rename)."""
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -18,7 +18,6 @@ compared with the whole observation (PSNR over the pixels every pose covers); ``
 
 from __future__ import annotations
 
-import argparse
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -26,13 +25,14 @@ from pathlib import Path
 import numpy as np
 
 from experiments.common import (
-    OUT,
     fmt,
     machine,
     md_table,
     pyplot,
     save_figure,
     strong_rotation_path,
+    sweep_parser,
+    sweep_sizes,
     test_image,
     write_text,
 )
@@ -201,15 +201,10 @@ def report(recs: list[dict], command: str, seconds: float) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Command line entry point."""
-    ap = argparse.ArgumentParser(prog="python -m experiments.fig3", description=__doc__)
-    ap.add_argument("--full", action="store_true", help="the paper's 5 images x 5 paths")
-    ap.add_argument("--images", type=int, default=None, help="images per size (default 3)")
-    ap.add_argument("--paths", type=int, default=None, help="camera paths (default 2)")
+    ap = sweep_parser("fig3", __doc__)
     ap.add_argument("--sides", type=int, nargs="+", default=[1000, 2000])
-    ap.add_argument("--out", type=Path, default=OUT)
     a = ap.parse_args(argv)
-    n_img = a.images or (5 if a.full else 3)
-    n_path = a.paths or (5 if a.full else 2)
+    n_img, n_path = sweep_sizes(a)
     cmd = "python -m experiments.fig3" + (" " + " ".join(argv) if argv else "")
     t = time.perf_counter()
     recs = run(a.sides, n_img, n_path)

@@ -16,7 +16,6 @@ every pose covers: it measures how well the motion was recovered despite the cha
 
 from __future__ import annotations
 
-import argparse
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -24,13 +23,14 @@ from pathlib import Path
 import numpy as np
 
 from experiments.common import (
-    OUT,
     fmt,
     machine,
     md_table,
     pyplot,
     save_figure,
     strong_rotation_path,
+    sweep_parser,
+    sweep_sizes,
     test_image,
     write_text,
 )
@@ -191,14 +191,9 @@ def report(recs: list[dict], command: str, seconds: float) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Command line entry point."""
-    ap = argparse.ArgumentParser(prog="python -m experiments.fig5", description=__doc__)
-    ap.add_argument("--full", action="store_true", help="5 images x 5 paths")
-    ap.add_argument("--images", type=int, default=None, help="images (default 3)")
-    ap.add_argument("--paths", type=int, default=None, help="camera paths (default 2)")
-    ap.add_argument("--out", type=Path, default=OUT)
+    ap = sweep_parser("fig5", __doc__)
     a = ap.parse_args(argv)
-    n_img = a.images or (5 if a.full else 3)
-    n_path = a.paths or (5 if a.full else 2)
+    n_img, n_path = sweep_sizes(a)
     cmd = "python -m experiments.fig5" + (" " + " ".join(argv) if argv else "")
     t = time.perf_counter()
     recs = run(n_img, n_path)
