@@ -23,6 +23,7 @@ BENCHES = {
     "large_motion": ("benchmarks.large_motion", "main"),
     "pipeline": ("benchmarks.pipeline", "main"),
     "quality": ("benchmarks.quality", "main"),
+    "outskirts": ("benchmarks.outskirts", "main"),
     "scale": ("benchmarks.scale", "main"),
 }
 
