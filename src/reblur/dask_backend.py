@@ -429,7 +429,15 @@ def decide_tiles(
         observed = portable(observed, "observed")
 
     graph = tile_graph(job, reference, observed, tile_size)
-    results = _compute(graph, kind, scheduler, workers, progress)
+    try:
+        results = _compute(graph, kind, scheduler, workers, progress)
+    except BaseException:
+        if root is not None:  # nothing half-written is left behind
+            for name in created:
+                shutil.rmtree(root / name, ignore_errors=True)
+            if store is None:
+                shutil.rmtree(root, ignore_errors=True)
+        raise
 
     regions = [r for res in results for r in res["regions"]]
     regions.sort(key=lambda r: (r["bbox"][0], r["bbox"][1]) if "bbox" in r else (0, 0))
