@@ -206,7 +206,13 @@ def reblur_and_decide(
     t_pass1 = time.perf_counter()
     cores = [c for _, c in tile_boxes((H, W), min(tile_size, 1024), 0)]
     pick = np.unique(np.linspace(0, len(cores) - 1, min(n_sample_tiles, len(cores))).astype(int))
-    samples = [(cores[i], *load(cores[i])) for i in pick]
+    loaded: list = [None] * len(pick)
+
+    def load_sample(k: int) -> None:
+        loaded[k] = (cores[pick[k]], *load(cores[pick[k]]))
+
+    run_tiles(load_sample, list(range(len(pick))), workers)
+    samples = loaded
     known = [~u for _, _, _, u in samples]
     if not any(k.any() for k in known):
         raise ValueError("the reference covers no pixel of the observation")
@@ -216,12 +222,18 @@ def reblur_and_decide(
     )
     matched = [photometry.apply(r, b) for b, _, r, _ in samples]
     if threshold is None:
-        stats = []
-        for (_b, o, _r, _u), k, mt in zip(samples, known, matched, strict=True):
+        stats: list = [None] * len(samples)
+
+        def sample_statistic(item) -> None:
+            i, o, mt, k = item
             S = change_statistic(o, mt, k, photometry.sigma, smooth=p.smooth,
                                  truncate=p.truncate, edge_k=photometry.edge_k,
                                  curv_k=photometry.curv_k)
-            stats.append(S[k])
+            stats[i] = S[k]
+
+        run_tiles(sample_statistic, [(i, smp[1], mt, k) for i, (smp, mt, k) in
+                                     enumerate(zip(samples, matched, known, strict=True))],
+                  workers)
         threshold, tinfo = estimate_threshold(stats)
     else:
         tinfo = {"method": "given"}
