@@ -41,9 +41,9 @@ log = logging.getLogger("reblur")
 #: Verbosity of the running command (read by the error handler of :func:`main`).
 _STATE: dict[str, int] = {"verbose": 0}
 
-#: Files ``reblur simulate`` writes.
 #: Above this many observation pixels the full-size masks are kept in a zarr store on disk.
 LARGE_MASK_PIXELS = 64_000_000
+#: Files ``reblur simulate`` writes.
 SIMULATE_NAMES = ("reference.tif", "observed.tif", "truth.png", "unknown.png", "path.json")
 
 
