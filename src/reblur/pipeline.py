@@ -31,9 +31,8 @@ from .grid import PoseGrid
 from .refine import refine_alignment
 from .result import ChangeResult, CropChoice
 from .select import SelectParams, select_windows
-from .tiled import SparsePoses, reblur_tile, run_tiles
-from .tilejob import TileJob, run_tile
-from .warp import as_box, read_window
+from .tiled import SparsePoses, run_tiles
+from .tilejob import TileJob, load_tile, run_tile
 
 __all__ = ["detect_changes", "ScaledView"]
 
@@ -195,11 +194,8 @@ def reblur_and_decide(
         max_region = max(32, min(64, tile_size // 4))
 
     def load(box):
-        box = as_box(box)
-        reb, valid = reblur_tile(poses, reference, box)
-        reb = reb / np.float32(s_ref) * gain + offset  # pre-matched to the observation
-        obs = read_window(observed, box, np.float32) / np.float32(s_obs)
-        return obs, reb, ~valid
+        return load_tile(poses, reference, observed, box, s_ref=s_ref, s_obs=s_obs,
+                         gain=gain, offset=offset)
 
     # pass 1: photometry and threshold from a spread sample of windows (at most 1024 px a
     # side whatever the tile size: the sample, not the tiling, sets its cost)

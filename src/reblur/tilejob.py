@@ -23,7 +23,7 @@ from .decide import DecisionParams, Photometry, decide_tile
 from .tiled import SparsePoses, reblur_tile
 from .warp import as_box, read_window
 
-__all__ = ["TileJob", "run_tile", "pad_box"]
+__all__ = ["TileJob", "load_tile", "run_tile", "pad_box"]
 
 #: Tries per tile: the first halo, then doubled up to three times (8x the first halo).
 _ATTEMPTS = 4
@@ -94,6 +94,24 @@ def pad_box(core: Sequence[int], halo: int, shape: tuple[int, int]) -> tuple[int
     return (y0, x0, y1 - y0, x1 - x0)
 
 
+def load_tile(poses: SparsePoses, reference, observed, box, *, s_ref: float, s_obs: float,
+              gain: np.ndarray, offset: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Observation window, reblurred reference pre-matched to it, and the unknown mask.
+
+    Returns
+    -------
+    obs, reb : (h, w, C) float32 ndarray
+        ``observed / s_obs`` and ``reblurred / s_ref * gain + offset`` on ``box``.
+    unknown : (h, w) bool ndarray
+        Pixels some non-zero pose reads outside the reference.
+    """
+    box = as_box(box)
+    reb, valid = reblur_tile(poses, reference, box)
+    reb = reb / np.float32(s_ref) * np.asarray(gain, np.float32) + np.asarray(offset, np.float32)
+    obs = read_window(observed, box, np.float32) / np.float32(s_obs)
+    return obs, reb, ~valid
+
+
 def run_tile(
     job: TileJob, reference, observed, padded: Sequence[int], core: Sequence[int]
 ) -> dict[str, Any]:
@@ -127,11 +145,8 @@ def run_tile(
     core = tuple(int(v) for v in core)
     halo = int(job.halo)
     for attempt in range(_ATTEMPTS):
-        box = as_box(padded)
-        reb, valid = reblur_tile(job.poses, reference, box)
-        reb = reb / np.float32(job.s_ref) * gain + offset  # pre-matched to the observation
-        obs = read_window(observed, box, np.float32) / np.float32(job.s_obs)
-        unk = ~valid
+        obs, reb, unk = load_tile(job.poses, reference, observed, padded, s_ref=job.s_ref,
+                                  s_obs=job.s_obs, gain=gain, offset=offset)
         mask, info = decide_tile(
             obs, reb, unk, threshold=job.threshold, photometry=job.photometry, box=padded,
             core=core, params=job.params, image_shape=(H, W),
