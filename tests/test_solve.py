@@ -156,3 +156,27 @@ def test_uint8_input_is_scaled(levir_gray, paper_grid):
     est = estimate_motion(ref8, obs, paper_grid, boxes=[BOX])
     assert 0.9 < est.weights.sum() < 1.1
     assert mass_near_truth(est.weights, w_true) >= 0.9
+
+
+def test_coarse_to_fine_matches_the_direct_solve(levir_gray):
+    """Coarse to fine over the roll angles (and, on coarse levels, every 2nd/4th translation)
+    must reach the optimum of the direct solve over the whole fine grid."""
+    H, W = levir_gray.shape
+    path = random_camera_path(4, center=((W - 1) / 2, (H - 1) / 2), t_max=6.0, rz_max=1.0)
+    boxes = [(150, 150, 240, 240), (634, 634, 240, 240)]
+    obs = np.zeros((H, W))
+    for b in boxes:
+        g, _ = blur_along_path(levir_gray, path, b, dtype=np.float32)
+        obs[b[0] : b[0] + b[2], b[1] : b[1] + b[3]] = g.reshape(b[2], b[3])
+    grid = PoseGrid.from_ranges((H, W), t_max=10, rz_max=2.0, rz_step=0.05)  # 81 angles
+    direct = estimate_motion(levir_gray, obs, grid, boxes=boxes, coarse_to_fine=False)
+    c2f = estimate_motion(levir_gray, obs, grid, boxes=boxes, coarse_to_fine=True, max_bases=6)
+    assert len(c2f.info["levels"]) >= 3
+    assert c2f.info["levels"][0]["t_stride"] > 1
+    ops = [BlurOperator(levir_gray, grid, b) for b in boxes]
+    gs = [obs[b[0] : b[0] + b[2], b[1] : b[1] + b[3], None] for b in boxes]
+    f_direct = huber_objective(ops, gs, direct.weights, 0.1)
+    f_c2f = huber_objective(ops, gs, c2f.weights, 0.1)
+    data_direct = f_direct - 0.1 * direct.weights.sum()  # the data term of eq. 5
+    assert f_c2f - f_direct <= 0.02 * data_direct, (f_c2f, f_direct, data_direct)
+    assert min(c2f.info["psnr"]) >= min(direct.info["psnr"]) - 0.5

@@ -95,6 +95,9 @@ def estimate_motion(
         Solve on a subset of the roll angles first (at most ``max_bases``, evenly spread),
         then refine, level by level with half the angle stride, only around the angles that
         carry weight, warm-starting each level; the result lives on the full ``grid``.
+        A level whose angle stride moves the far windows by ``s`` pixels also keeps only
+        every ``ts``-th translation (``ts`` the largest power of two <= ``s / 4``, at most a
+        quarter of the translation range): finer shifts cannot be told apart there.
         ``"auto"``: when the grid varies only ``rz`` and has more than ``max_bases`` angles.
         This keeps fine rotation grids (a step that moves the farthest pixel of a huge
         image by one pixel) affordable.
@@ -231,24 +234,46 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
 
     Coarse levels solve on the central ``coarse_side`` pixels of each window (the windows
     stay far apart, so roll stays observable) and, after the first level, only over the
-    translations that carry weight plus ``t_margin`` pixels; the last level uses the full
-    windows.  The result is embedded in the full grid.
+    translations that carry weight plus ``t_margin`` pixels (every ``ts``-th of them on
+    coarse levels, nested from level to level so that warm starts carry over); the last
+    level uses the full windows and every translation.  The result is embedded in the full
+    grid.
     """
     n = grid.n_bases
     stride = int(np.ceil((n - 1) / max(max_bases - 1, 1)))
     centre = int(np.argmin(np.abs(np.asarray(grid.rz))))
     idx = sorted(set(range(centre % stride, n, stride)) | {centre})
     tx, ty = list(grid.tx), list(grid.ty)
-    w0 = None
+    # coarse levels also use every ``ts``-th translation: with a roll step that moves the
+    # far windows by ``stride`` pixels, finer translations cannot be told apart there
+    x0 = int(np.argmin(np.abs(np.asarray(grid.tx))))
+    y0 = int(np.argmin(np.abs(np.asarray(grid.ty))))
+    t_cap = max(1, min(len(grid.tx), len(grid.ty)) // 4)
+
+    def t_stride(s: int) -> int:
+        ts = 1
+        while ts * 2 <= min(s / 4.0, t_cap):
+            ts *= 2
+        return ts
+
+    def every(vals: list, full: list, i0: int, ts: int) -> list:
+        return [v for v in vals if (full.index(v) - i0) % ts == 0]
+
+    w_prev = None
     total = dict(objective=[], n_outer=0, time_s=0.0)
     while True:
         last = stride == 1
-        sub = PoseGrid(grid.image_shape, tx=tx, ty=ty, rz=[grid.rz[i] for i in idx],
+        ts = t_stride(stride)
+        sub = PoseGrid(grid.image_shape, tx=every(tx, list(grid.tx), x0, ts),
+                       ty=every(ty, list(grid.ty), y0, ts), rz=[grid.rz[i] for i in idx],
                        center=grid.center)
+        w0 = None if w_prev is None else w_prev[np.ix_(
+            idx, [grid.ty.index(v) for v in sub.ty], [grid.tx.index(v) for v in sub.tx])]
         bx = boxes if last else [_shrink(b, coarse_side) for b in boxes]
         w, info, ops, gs = _solve(reference, observed, sub, bx, base, engine, s_ref, s_obs,
                                   lam, occlusion, "active-set", max_outer, time_limit, 0, w0)
-        levels.append(dict(stride=stride, n_angles=len(idx), n_t=len(tx) * len(ty),
+        levels.append(dict(stride=stride, t_stride=ts, n_angles=len(idx),
+                           n_t=len(sub.tx) * len(sub.ty),
                            n_outer=info["n_outer"], time_s=info["time_s"],
                            n_active=info["n_active"]))
         total["objective"] += info["objective"]
@@ -268,8 +293,9 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
         # translations: those carrying weight, plus a margin, within the grid
         nz = np.argwhere(w_full > 0)
         if nz.size:
-            ylo, yhi = nz[:, 1].min() - t_margin, nz[:, 1].max() + t_margin
-            xlo, xhi = nz[:, 2].min() - t_margin, nz[:, 2].max() + t_margin
+            mg = max(t_margin, ts)
+            ylo, yhi = nz[:, 1].min() - mg, nz[:, 1].max() + mg
+            xlo, xhi = nz[:, 2].min() - mg, nz[:, 2].max() + mg
             ty = list(grid.ty[max(ylo, 0) : yhi + 1])
             tx = list(grid.tx[max(xlo, 0) : xhi + 1])
-        w0 = w_full[np.ix_(idx, [grid.ty.index(v) for v in ty], [grid.tx.index(v) for v in tx])]
+        w_prev = w_full

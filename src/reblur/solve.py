@@ -85,26 +85,45 @@ class _Window:
                 out += v * self.op.column(k)
         return out
 
+    def residual(self, active: list[int], wa: np.ndarray) -> np.ndarray:
+        """``M (g - A w)``: the masked residual of the active columns."""
+        r = self.gm - self.forward(active, wa)
+        r[~self.m3] = 0.0
+        return r
+
     def block_products(self, cols_all: list[int], cols_new: list[int]):
-        """``A_all^T M A_new`` and ``A_new^T M g`` over valid pixels, by row blocks."""
-        h = self.op.box.h
-        rows = max(1, _CHUNK // (self.op.box.w * self.op.dimsd[2]))
-        G = np.zeros((len(cols_all), len(cols_new)))
-        b = np.zeros(len(cols_new))
+        """``A_all^T M A_new`` and ``A_new^T M g`` over valid pixels, by row blocks.
+
+        The columns of a block are copied as contiguous rows (``A^T``), so each copy is
+        one contiguous write and the product one GEMM.
+        """
+        h, w = self.op.box.h, self.op.box.w
+        C = self.op.dimsd[2]
+        rows = max(1, _CHUNK // (w * C))
+        n_all, n_new = len(cols_all), len(cols_new)
+        G = np.zeros((n_all, n_new))
+        b = np.zeros(n_new)
+        buf = np.empty((n_all, rows * w * C))
         for r0 in range(0, h, rows):
             r1 = min(r0 + rows, h)
             mk = self.m[r0:r1]
             if not mk.any():
                 continue
             if mk.all():
-                A = np.empty((mk.size * self.op.dimsd[2], len(cols_all)))
+                n_pix = (r1 - r0) * w * C
+                At = buf[:, :n_pix]
                 for j, k in enumerate(cols_all):
-                    A[:, j] = self.op.column(k)[r0:r1].reshape(-1)
+                    np.copyto(At[j].reshape(r1 - r0, w, C), self.op.column(k)[r0:r1])
+                gb = self.g[r0:r1].reshape(-1)
             else:
-                A = np.stack([self.op.column(k)[r0:r1][mk].ravel() for k in cols_all], axis=1)
-            An = A[:, len(cols_all) - len(cols_new) :]
-            G += A.T @ An
-            b += An.T @ self.g[r0:r1][mk].ravel()
+                n_pix = int(mk.sum()) * C
+                At = buf[:, :n_pix]
+                for j, k in enumerate(cols_all):
+                    At[j] = self.op.column(k)[r0:r1][mk].ravel()
+                gb = self.g[r0:r1][mk].ravel()
+            Atn = At[n_all - n_new :]
+            G += At @ Atn.T
+            b += Atn @ gb
         return G, b
 
 
@@ -180,6 +199,7 @@ def active_set(
         G0, b0 = _gram_add(wins, [], active, G0, b0)
 
     history: list[float] = []
+    res: list[np.ndarray] | None = None  # residuals of (active, wa), when known
     grad_scale = None
     converged = False
     kkt = np.nan
@@ -188,9 +208,9 @@ def active_set(
         # residuals, Huber weights and the full gradient (one FFT adjoint per window)
         grad = np.full(P, lam)
         obj = lam * float(wa.sum())
-        for win in wins:
-            r = win.gm - win.forward(active, wa)
-            r[~win.m3] = 0.0
+        if res is None:
+            res = [win.residual(active, wa) for win in wins]
+        for win, r in zip(wins, res, strict=True):
             psi = 2.0 * r if delta is None else 2.0 * np.clip(r, -delta, delta)
             obj += float(_rho(r[win.m3], delta).sum())
             grad -= win.op.rmatvec(psi).ravel()
@@ -214,7 +234,8 @@ def active_set(
         G0, b0 = _gram_add(wins, active, new, G0, b0)
         active = active + new
         wa = np.concatenate([wa, np.zeros(len(new))])
-        wa = _irls(wins, active, wa, G0, b0, lam, delta, max_irls)
+        # new columns enter at weight zero: the residuals are unchanged
+        wa, res = _irls(wins, active, wa, G0, b0, lam, delta, max_irls, res)
         keep = wa > 0
         if not keep.all():
             idx = np.flatnonzero(keep)
@@ -280,29 +301,32 @@ def _nnls_gram(G: np.ndarray, b: np.ndarray) -> np.ndarray:
     return w
 
 
-def _irls(wins, active, wa, G0, b0, lam, delta, max_irls) -> np.ndarray:
+def _irls(wins, active, wa, G0, b0, lam, delta, max_irls, res=None):
     """Exact Huber NNLS on the active columns by IRLS (each step an exact weighted NNLS).
 
     The weighted Gram ``A^T D A`` is the cached ``A^T M A`` minus a correction over the
     outlier pixels only (``|r| > delta``, weight ``delta / |r| < 1``): few pixels, cheap.
+    ``res`` (optional) are the residuals of ``wa``.  Returns the new weights and their
+    residuals when they were computed (else None), so the caller need not recompute them.
     """
     prev = np.inf
+    exact = False  # ``wa`` solves the problem of a step without outliers
     for _ in range(max_irls):
+        if res is None:
+            res = [win.residual(active, wa) for win in wins]
         G = G0.copy()
         b = b0 - lam / 2.0
         obj = lam * float(wa.sum())
         n_out = 0
-        for win in wins:
-            r = win.gm - win.forward(active, wa)
-            r[~win.m3] = 0.0
+        for win, r in zip(wins, res, strict=True):
             obj += float(_rho(r[win.m3], delta).sum())
             if delta is None:
                 continue
             out = np.abs(r) > delta
             if not out.any():
                 continue
+            n_out += 1
             rows_all, cols_all, chans_all = np.nonzero(out)
-            n_out += rows_all.size
             for c0 in range(0, rows_all.size, _CHUNK):  # bounded memory
                 rows = rows_all[c0 : c0 + _CHUNK]
                 cols = cols_all[c0 : c0 + _CHUNK]
@@ -313,13 +337,17 @@ def _irls(wins, active, wa, G0, b0, lam, delta, max_irls) -> np.ndarray:
                 Aw = A * om[:, None]
                 G -= A.T @ Aw
                 b -= Aw.T @ win.g[rows, cols, chans]
+        if exact and n_out == 0:
+            break  # the least-squares step had no outlier and its result has none: optimal
         if prev - obj <= 1e-6 * max(obj, 1e-300) and np.isfinite(prev):
             break
         prev = obj
         wa = _nnls_gram(G, b)
+        res = None
+        exact = n_out == 0
         if delta is None:
             break
-    return wa
+    return wa, res
 
 
 def power_norm(op: BlurOperator, n_iter: int = 30, rng=None) -> float:
