@@ -40,6 +40,21 @@ def test_fast_equals_exact(channels, box):
 
 
 @pytest.mark.parametrize("engine", ["fast", "exact"])
+def test_gather_many_reads_the_columns(engine):
+    rng = np.random.default_rng(3)
+    img = cv2.GaussianBlur(rng.random(SHAPE + (3,)), (0, 0), 1.0)
+    g = _grid()
+    op = BlurOperator(img, g, (40, 250, 48, 56), engine=engine)
+    ks = rng.choice(g.size, 9, replace=False)
+    rows, cols = rng.integers(0, 48, 50), rng.integers(0, 56, 50)
+    chans = rng.integers(0, 3, 50)
+    got = op.gather_many(ks, rows, cols, chans)
+    want = np.stack([op.column(int(k))[rows, cols, chans] for k in ks], axis=1)
+    np.testing.assert_array_equal(got, want)
+    assert op.gather_many([], rows, cols, chans).shape == (50, 0)
+
+
+@pytest.mark.parametrize("engine", ["fast", "exact"])
 def test_adjoint(engine):
     rng = np.random.default_rng(7)
     img = rng.random(SHAPE + (2,))

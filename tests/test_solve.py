@@ -180,3 +180,50 @@ def test_coarse_to_fine_matches_the_direct_solve(levir_gray):
     data_direct = f_direct - 0.1 * direct.weights.sum()  # the data term of eq. 5
     assert f_c2f - f_direct <= 0.02 * data_direct, (f_c2f, f_direct, data_direct)
     assert min(c2f.info["psnr"]) >= min(direct.info["psnr"]) - 0.5
+
+
+@pytest.mark.parametrize("changed", [0.1, 0.6])
+def test_huber_optimum_with_many_outliers(changed):
+    """KKT certificate, from the explicit matrix, of the active-set optimum when a large
+    part of the window changed (most residuals in the linear part of the Huber loss), and
+    no worse than a bound-constrained quasi-Newton solve of the same objective."""
+    import cv2
+    from scipy.optimize import minimize
+
+    rng = np.random.default_rng(12)
+    f = cv2.GaussianBlur(rng.random((100, 100)), (0, 0), 1.5)
+    grid = PoseGrid((100, 100), tx=np.arange(-2, 3), ty=np.arange(-2, 3), rz=[-1.0, 0.0, 1.0])
+    box = (14, 14, 72, 72)
+    op = BlurOperator(f, grid, box)
+    w_true = np.zeros(grid.shape)
+    w_true[1, 2, 2], w_true[2, 1, 3], w_true[0, 3, 1] = 0.5, 0.3, 0.2
+    g = op.matvec(w_true)[:, :, 0]
+    yy, xx = np.mgrid[:72, :72]
+    patch = yy < changed * 72  # a band of changed rows, both polarities
+    g[patch] += np.where(xx[patch] < 36, 0.3, -0.25)
+    g += rng.normal(0, 0.01, g.shape)
+    lam = 0.05
+    delta = lam / 2
+    w_as, info = active_set([op], [g[:, :, None]], lam=lam)
+    assert info["converged"]
+    A = np.stack([op.column(k)[:, :, 0].ravel() for k in range(grid.size)], axis=1)
+    m = op.valid.ravel()
+    A, gv = A[m], g.ravel()[m]
+    r = gv - A @ w_as.ravel()
+    assert np.mean(np.abs(r) > delta) >= 0.8 * changed  # the outliers are really there
+    grad = lam - A.T @ (2 * np.clip(r, -delta, delta))
+    on = w_as.ravel() > 0
+    scale = np.abs(A.T @ (2 * np.clip(gv, -delta, delta))).max()
+    assert np.all(np.abs(grad[on]) <= 1e-6 * scale)
+    assert np.all(grad[~on] >= -1e-6 * scale)
+
+    def fun(w):
+        rr = gv - A @ w
+        a = np.abs(rr)
+        val = np.where(a <= delta, rr * rr, 2 * delta * a - delta * delta).sum() + lam * w.sum()
+        return val, lam - A.T @ (2 * np.clip(rr, -delta, delta))
+
+    ref = minimize(fun, np.full(grid.size, 1.0 / grid.size), jac=True, method="L-BFGS-B",
+                   bounds=[(0, None)] * grid.size, options=dict(maxiter=20000, gtol=1e-12))
+    f_as = huber_objective([op], [g[:, :, None]], w_as, lam)
+    assert f_as <= ref.fun * (1 + 1e-9), (f_as, ref.fun)

@@ -209,6 +209,22 @@ class BlurOperator:
             return self.stack[b, rows + self._oy[iy], cols + self._ox[ix]]
         return self.column(k)[rows, cols]
 
+    def gather_many(self, ks, rows: np.ndarray, cols: np.ndarray,
+                    chans: np.ndarray) -> np.ndarray:
+        """Values of the columns ``ks`` at window pixels ``(rows, cols, chans)``:
+        an ``(n, len(ks))`` array (one flat ``take`` on the fast engine)."""
+        ks = np.asarray(ks, dtype=np.int64)
+        if ks.size == 0:
+            return np.zeros((rows.size, 0))
+        if self.engine == "fast":
+            b, iy, ix = np.unravel_index(ks, self.grid.shape)
+            _, He, We, C = self.stack.shape
+            col_off = ((b * He + self._oy[iy]) * We + self._ox[ix]) * C
+            pix_off = (rows.astype(np.int64) * We + cols) * C + chans
+            return np.take(self.stack.reshape(-1), pix_off[:, None] + col_off[None, :])
+        sel = np.arange(rows.size)
+        return np.stack([self.gather(int(k), rows, cols)[sel, chans] for k in ks], axis=1)
+
     # ------------------------------------------------------------------ products
     def matvec(self, weights: np.ndarray) -> np.ndarray:
         """``F w``: the window of the reference blurred with pose weights ``w``."""

@@ -14,9 +14,13 @@ Eq. 3 (no occlusion) is the same with ``rho(r) = r^2``.
 conditioned problem: batched Lawson-Hanson on the pose weights.  The gradient over ALL poses
 comes from one FFT adjoint per outer iteration; the most negative entries join the active set;
 the small problem on the active columns (explicit columns are free: shifted slices of the
-rotated stack) is solved exactly by IRLS on the Huber weights, each step an NNLS on the
-Cholesky factor of the active Gram matrix.  :func:`fista` (accelerated proximal gradient on
-the joint ``(w, chi)`` problem) is kept as a slow cross-check for small problems.
+rotated stack) is solved exactly by a finite Newton method on the Huber partition (inliers
+quadratic, outliers linear): each step an NNLS on the Cholesky factor of the cached inlier
+Gram matrix plus an exact line search, the cache updated over the pixels that change
+partition only -- so a window that is mostly change costs about what a clean one does
+(an IRLS on the Huber weights, used before, rebuilt the outlier correction at every step,
+over every outlier pixel).  :func:`fista` (accelerated proximal gradient on the joint
+``(w, chi)`` problem) is kept as a slow cross-check for small problems.
 """
 
 from __future__ import annotations
@@ -69,7 +73,14 @@ def joint_objective(op, g, w, chi, lam, mask=None) -> float:
 
 
 class _Window:
-    """Per-window state of the active-set solver."""
+    """Per-window state of the active-set solver.
+
+    The Huber loss is handled by a *partition* of the valid pixels: inliers (``|r| <=
+    delta``, quadratic) and outliers with their sign (linear).  The solver caches, for the
+    active columns ``A``, the inlier Gram ``A^T D A``, ``A^T D g`` and ``A^T s`` (``D`` the
+    inlier indicator, ``s`` the outlier signs) and updates them over the pixels that change
+    partition only.
+    """
 
     def __init__(self, op: BlurOperator, g: np.ndarray, mask: np.ndarray):
         self.op = op
@@ -77,6 +88,8 @@ class _Window:
         self.m = np.asarray(mask, bool)
         self.m3 = np.broadcast_to(self.m[:, :, None], op.dimsd)
         self.gm = np.where(self.m3, self.g, 0.0)
+        self.inl = self.m3.copy()  # inlier pixels of the current partition
+        self.sgn = np.zeros(op.dimsd, np.int8)  # outlier signs (0: inlier or masked)
 
     def forward(self, active: list[int], wa: np.ndarray) -> np.ndarray:
         out = np.zeros(self.op.dimsd)
@@ -91,8 +104,16 @@ class _Window:
         r[~self.m3] = 0.0
         return r
 
+    def partition(self, r: np.ndarray, delta: float | None) -> tuple[np.ndarray, np.ndarray]:
+        """Inlier mask and outlier signs of the residual ``r``."""
+        if delta is None:
+            return self.m3.copy(), np.zeros(self.op.dimsd, np.int8)
+        inl = self.m3 & (np.abs(r) <= delta)
+        sgn = np.where(self.m3 & ~inl, np.sign(r), 0).astype(np.int8)
+        return inl, sgn
+
     def block_products(self, cols_all: list[int], cols_new: list[int]):
-        """``A_all^T M A_new`` and ``A_new^T M g`` over valid pixels, by row blocks.
+        """``A_all^T D A_new``, ``A_new^T D g`` and ``A_new^T s`` by row blocks.
 
         The columns of a block are copied as contiguous rows (``A^T``), so each copy is
         one contiguous write and the product one GEMM.
@@ -103,6 +124,7 @@ class _Window:
         n_all, n_new = len(cols_all), len(cols_new)
         G = np.zeros((n_all, n_new))
         b = np.zeros(n_new)
+        d = np.zeros(n_new)
         buf = np.empty((n_all, rows * w * C))
         for r0 in range(0, h, rows):
             r1 = min(r0 + rows, h)
@@ -115,16 +137,52 @@ class _Window:
                 for j, k in enumerate(cols_all):
                     np.copyto(At[j].reshape(r1 - r0, w, C), self.op.column(k)[r0:r1])
                 gb = self.g[r0:r1].reshape(-1)
+                ib = self.inl[r0:r1].reshape(-1)
+                sb = self.sgn[r0:r1].reshape(-1)
             else:
                 n_pix = int(mk.sum()) * C
                 At = buf[:, :n_pix]
                 for j, k in enumerate(cols_all):
                     At[j] = self.op.column(k)[r0:r1][mk].ravel()
                 gb = self.g[r0:r1][mk].ravel()
+                ib = self.inl[r0:r1][mk].ravel()
+                sb = self.sgn[r0:r1][mk].ravel()
             Atn = At[n_all - n_new :]
-            G += At @ Atn.T
-            b += Atn @ gb
-        return G, b
+            Ati = Atn if ib.all() else Atn * ib
+            G += At @ Ati.T
+            b += Ati @ gb
+            if sb.any():
+                d += Atn @ sb.astype(float)
+        return G, b, d
+
+    def repartition(self, r: np.ndarray, delta: float | None, active: list[int],
+                    G: np.ndarray, b: np.ndarray, d: np.ndarray) -> int:
+        """Move to the partition of ``r``, updating ``G, b, d`` in place over the pixels
+        that change.  Returns their number."""
+        if delta is None:
+            return 0
+        inl, sgn = self.partition(r, delta)
+        changed = (inl != self.inl) | (sgn != self.sgn)
+        if not changed.any():
+            return 0
+        rows_all, cols_all, chans_all = np.nonzero(changed)
+        n = rows_all.size
+        step = max(1, _CHUNK * 8 // max(len(active), 1))  # bounded gather memory
+        for c0 in range(0, n, step):
+            rows = rows_all[c0 : c0 + step]
+            cols = cols_all[c0 : c0 + step]
+            chans = chans_all[c0 : c0 + step]
+            A = self.op.gather_many(active, rows, cols, chans)
+            di = (inl[rows, cols, chans].astype(float)
+                  - self.inl[rows, cols, chans].astype(float))
+            ds = (sgn[rows, cols, chans].astype(float)
+                  - self.sgn[rows, cols, chans].astype(float))
+            Ad = A * di[:, None]
+            G += A.T @ Ad
+            b += Ad.T @ self.g[rows, cols, chans]
+            d += A.T @ ds
+        self.inl, self.sgn = inl, sgn
+        return n
 
 
 def active_set(
@@ -158,8 +216,11 @@ def active_set(
         Pixels that enter the data term (default: ``op.valid``).
     batch : int
         Poses added to the active set per outer iteration.
-    max_outer, max_irls : int
-        Iteration caps.
+    max_outer : int
+        Outer iterations (active-set growth) at most.
+    max_irls : int
+        Huber Newton steps per outer iteration at most (the name is historical: the
+        steps were IRLS steps).
     tol : float
         Stop when the relative objective change of an outer iteration is below ``tol`` and
         no inactive pose has a clearly negative gradient.
@@ -190,20 +251,27 @@ def active_set(
 
     active: list[int] = []
     wa = np.zeros(0)
-    G0 = np.zeros((0, 0))  # unweighted (mask only) Gram of active columns
-    b0 = np.zeros(0)  # A^T M g
+    # cached over the active columns, for the windows' current partition (see _Window)
+    G = np.zeros((0, 0))  # A^T D A
+    b = np.zeros(0)  # A^T D g
+    d = np.zeros(0)  # A^T s
+    res: list[np.ndarray] | None = None  # residuals of (active, wa), when known
     if w0 is not None:
         nz = np.flatnonzero(np.asarray(w0).ravel() > 0)
         active = [int(k) for k in nz]
         wa = np.asarray(w0).ravel()[nz].astype(float)
-        G0, b0 = _gram_add(wins, [], active, G0, b0)
+        res = [win.residual(active, wa) for win in wins]
+        for win, r in zip(wins, res, strict=True):  # start from the warm start's partition
+            win.inl, win.sgn = win.partition(r, delta)
+        G, b, d = _gram_add(wins, [], active, G, b, d)
+    # (a cold start keeps the all-inlier partition: its first step is least squares)
 
     history: list[float] = []
-    res: list[np.ndarray] | None = None  # residuals of (active, wa), when known
     grad_scale = None
     converged = False
     kkt = np.nan
     n_outer = 0
+    n_newton = 0
     for n_outer in range(1, max_outer + 1):  # noqa: B007 (reported after the loop)
         # residuals, Huber weights and the full gradient (one FFT adjoint per window)
         grad = np.full(P, lam)
@@ -211,9 +279,8 @@ def active_set(
         if res is None:
             res = [win.residual(active, wa) for win in wins]
         for win, r in zip(wins, res, strict=True):
-            psi = 2.0 * r if delta is None else 2.0 * np.clip(r, -delta, delta)
             obj += float(_rho(r[win.m3], delta).sum())
-            grad -= win.op.rmatvec(psi).ravel()
+            grad -= win.op.rmatvec(_psi(r, delta)).ravel()
         history.append(obj)
         if grad_scale is None:
             grad_scale = max(float(np.max(np.abs(grad - lam))), 1e-300)
@@ -231,16 +298,17 @@ def active_set(
             break
         order = np.argsort(cand)[:batch]
         new = [int(k) for k in order if cand[k] < 0]
-        G0, b0 = _gram_add(wins, active, new, G0, b0)
+        G, b, d = _gram_add(wins, active, new, G, b, d)
         active = active + new
-        wa = np.concatenate([wa, np.zeros(len(new))])
         # new columns enter at weight zero: the residuals are unchanged
-        wa, res = _irls(wins, active, wa, G0, b0, lam, delta, max_irls, res)
+        wa = np.concatenate([wa, np.zeros(len(new))])
+        wa, res, steps = _huber_newton(wins, active, wa, res, G, b, d, lam, delta, max_irls)
+        n_newton += steps
         keep = wa > 0
         if not keep.all():
             idx = np.flatnonzero(keep)
             active = [active[i] for i in idx]
-            wa, G0, b0 = wa[idx], G0[np.ix_(idx, idx)], b0[idx]
+            wa, G, b, d = wa[idx], G[np.ix_(idx, idx)], b[idx], d[idx]
         if callback is not None:
             callback(_full(grid, active, wa))
 
@@ -249,6 +317,7 @@ def active_set(
         objective=history,
         n_outer=n_outer,
         n_active=len(active),
+        n_newton=n_newton,
         converged=converged,
         kkt=kkt,
         time_s=time.perf_counter() - t_start,
@@ -264,23 +333,25 @@ def _full(grid, active, wa) -> np.ndarray:
     return w.reshape(grid.shape)
 
 
-def _gram_add(wins, active, new, G0, b0):
-    """Grow the cached Gram matrix and ``A^T M g`` by the columns ``new``."""
+def _gram_add(wins, active, new, G, b, d):
+    """Grow the cached ``A^T D A``, ``A^T D g`` and ``A^T s`` by the columns ``new``."""
     if not new:
-        return G0, b0
+        return G, b, d
     cols = active + new
     k, kn = len(active), len(new)
     Gn = np.zeros((k + kn, kn))
     bn = np.zeros(kn)
+    dn = np.zeros(kn)
     for win in wins:
-        G, b = win.block_products(cols, new)
-        Gn += G
-        bn += b
+        Gw, bw, dw = win.block_products(cols, new)
+        Gn += Gw
+        bn += bw
+        dn += dw
     out = np.zeros((k + kn, k + kn))
-    out[:k, :k] = G0
+    out[:k, :k] = G
     out[:, k:] = Gn
     out[k:, :] = Gn.T
-    return out, np.concatenate([b0, bn])
+    return out, np.concatenate([b, bn]), np.concatenate([d, dn])
 
 
 def _nnls_gram(G: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -301,53 +372,66 @@ def _nnls_gram(G: np.ndarray, b: np.ndarray) -> np.ndarray:
     return w
 
 
-def _irls(wins, active, wa, G0, b0, lam, delta, max_irls, res=None):
-    """Exact Huber NNLS on the active columns by IRLS (each step an exact weighted NNLS).
+def _psi(r: np.ndarray, delta: float | None) -> np.ndarray:
+    """Derivative of :func:`_rho`."""
+    return 2.0 * r if delta is None else 2.0 * np.clip(r, -delta, delta)
 
-    The weighted Gram ``A^T D A`` is the cached ``A^T M A`` minus a correction over the
-    outlier pixels only (``|r| > delta``, weight ``delta / |r| < 1``): few pixels, cheap.
-    ``res`` (optional) are the residuals of ``wa``.  Returns the new weights and their
-    residuals when they were computed (else None), so the caller need not recompute them.
+
+def _line_search(wins, res, deltas, dw_sum, lam, delta, iters: int = 40) -> float:
+    """Exact step ``t`` in [0, 1] minimising the (convex) objective along a direction.
+
+    ``phi(t) = lam * t * dw_sum + sum rho(r - t D)`` (plus constants); its derivative is
+    non-decreasing, so bisection on its sign finds the minimiser.
     """
-    prev = np.inf
-    exact = False  # ``wa`` solves the problem of a step without outliers
-    for _ in range(max_irls):
-        if res is None:
-            res = [win.residual(active, wa) for win in wins]
-        G = G0.copy()
-        b = b0 - lam / 2.0
-        obj = lam * float(wa.sum())
-        n_out = 0
-        for win, r in zip(wins, res, strict=True):
-            obj += float(_rho(r[win.m3], delta).sum())
-            if delta is None:
-                continue
-            out = np.abs(r) > delta
-            if not out.any():
-                continue
-            n_out += 1
-            rows_all, cols_all, chans_all = np.nonzero(out)
-            for c0 in range(0, rows_all.size, _CHUNK):  # bounded memory
-                rows = rows_all[c0 : c0 + _CHUNK]
-                cols = cols_all[c0 : c0 + _CHUNK]
-                chans = chans_all[c0 : c0 + _CHUNK]
-                om = 1.0 - delta / np.abs(r[rows, cols, chans])  # 1 - omega
-                sel = np.arange(rows.size)
-                A = np.stack([win.op.gather(k, rows, cols)[sel, chans] for k in active], axis=1)
-                Aw = A * om[:, None]
-                G -= A.T @ Aw
-                b -= Aw.T @ win.g[rows, cols, chans]
-        if exact and n_out == 0:
-            break  # the least-squares step had no outlier and its result has none: optimal
-        if prev - obj <= 1e-6 * max(obj, 1e-300) and np.isfinite(prev):
+    pix = [(r[win.m3], D[win.m3]) for win, r, D in zip(wins, res, deltas, strict=True)]
+
+    def slope(t: float) -> float:
+        return lam * dw_sum - sum(float(np.dot(_psi(r - t * D, delta), D)) for r, D in pix)
+
+    if slope(1.0) <= 0.0:
+        return 1.0
+    lo, hi = 0.0, 1.0
+    for _ in range(iters):
+        mid = 0.5 * (lo + hi)
+        if slope(mid) <= 0.0:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+def _huber_newton(wins, active, wa, res, G, b, d, lam, delta, max_steps):
+    """Exact Huber NNLS on the active columns: a finite Newton method on the partition.
+
+    For the current partition (inliers quadratic, outliers linear with their sign) the
+    objective is a quadratic whose gradient equals the true one at ``wa``; its
+    non-negative minimiser (NNLS on the Cholesky factor of the cached inlier Gram) gives a
+    descent direction, an exact line search the step, and the partition then moves to
+    that of the new residuals, updating the cache over the pixels that changed only.  It
+    stops at a full step that changes no pixel: the exact optimum.  ``G, b, d`` are
+    updated in place.  Returns the weights, their residuals and the number of steps.
+    """
+    steps = 0
+    for steps in range(1, max_steps + 1):  # noqa: B007
+        c = b - lam / 2.0 if delta is None else b + delta * d - lam / 2.0
+        wq = _nnls_gram(G, c)
+        dw = wq - wa
+        if not np.any(dw):
             break
-        prev = obj
-        wa = _nnls_gram(G, b)
-        res = None
-        exact = n_out == 0
-        if delta is None:
+        deltas = [win.forward(active, dw) for win in wins]
+        for win, D in zip(wins, deltas, strict=True):
+            D[~win.m3] = 0.0
+        t = _line_search(wins, res, deltas, float(dw.sum()), lam, delta)
+        if t <= 0.0:
             break
-    return wa, res
+        wa = np.maximum(wa + t * dw, 0.0) if t < 1.0 else wq
+        res = [r - t * D for r, D in zip(res, deltas, strict=True)]
+        n_changed = sum(
+            win.repartition(r, delta, active, G, b, d) for win, r in zip(wins, res, strict=True)
+        )
+        if n_changed == 0 and t == 1.0:
+            break
+    return wa, res, steps
 
 
 def power_norm(op: BlurOperator, n_iter: int = 30, rng=None) -> float:
