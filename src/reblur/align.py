@@ -21,6 +21,17 @@ at low resolution, where the camera-shake blur is small (a 25 px blur is 3 px at
 5. Sanity checks: orientation, zoom, anisotropy, overlap, inliers, region agreement and
    correlation.  Anything implausible raises :class:`AlignmentError` -- never silent garbage.
 
+Between captures years apart (other season, sun, sensor; buildings changed) local features
+and the polish's blur model both fail, so the default ``method="auto"`` decides with
+*gradient blocks* first: signed-gradient fields of the reference warped by the current
+estimate and of the observation are correlated block by block (``_BLOCK_PX`` blocks, +-8
+pixels), and a robust similarity through the blocks whose correlation peak is confident
+corrects the estimate.  Enough confident blocks -- a clear majority of them -- spread over
+the image must agree; unrelated images give almost no confident block.  The initial
+estimate is the SIFT one when it holds, else the best of a few in-plane rotation
+hypotheses searched with larger blocks on a coarse level.  The polish then runs as
+well and is kept where its blur model fits (a same-scene pair).
+
 Coordinates follow :mod:`reblur.grid`: ``(x, y)`` = (column, row) with pixel centres on
 integers, and ``H`` maps a reference pixel to the observation pixel.  An overview made with
 the integer block factor ``k`` (``scale = 1 / k``) has pixel ``x_s`` centred on the full
@@ -944,10 +955,14 @@ def coarse_align(
         Longest side of the finest overview (both images share one integer block factor).
     min_side : int
         Longest side of the coarsest pyramid level.
-    method : {"auto", "features", "ecc"}
-        ``"features"``: SIFT matching only as the initial estimate; ``"ecc"``: phase
-        correlation only; ``"auto"``: features, falling back to phase correlation.  Both are
-        refined by ECC and the kernel polish (unless disabled).
+    method : {"auto", "features", "gradient", "ecc"}
+        ``"auto"``: gradient blocks (see Notes) seeded by the SIFT estimate when there is
+        one, else by rotation hypotheses; they decide and verify, and the kernel polish is
+        kept only where its blur model fits most regions.  If the blocks cannot verify, the
+        SIFT estimate with ECC and the polish, then phase correlation with ECC and the
+        polish.  ``"gradient"``: gradient blocks from rotation hypotheses only.
+        ``"features"``: SIFT, ECC and the polish only; ``"ecc"``: phase correlation, ECC
+        and the polish only.
     shake_px : float
         Largest camera-shake displacement expected during the exposure, in full-resolution
         pixels, anywhere in the image (an in-plane roll moves the corners by radius x
@@ -1005,6 +1020,19 @@ def coarse_align(
         Largest accepted ratio of the local stretches of ``H``.
     min_overlap : float
         Smallest accepted fraction of the observation covered by the mapped reference.
+    gradient_side : int
+        The gradient blocks are refined down to the finest level whose longest side is at
+        most this (or the working level, if finer).
+    rotations : tuple of float
+        In-plane rotations (degrees) tried as hypotheses when no feature estimate seeds the
+        gradient blocks.
+    block_ncc : float
+        Correlation peak a gradient block must reach to count as confident (the peak
+        between unrelated 96 px blocks stays near 0.1).
+    min_blocks : int
+        Fewest confident gradient blocks that must agree with the result; at least
+        ``min_agree`` of the confident blocks and ``min_spread`` of the image are also
+        required.
 
     Returns
     -------
