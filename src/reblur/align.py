@@ -21,6 +21,17 @@ at low resolution, where the camera-shake blur is small (a 25 px blur is 3 px at
 5. Sanity checks: orientation, zoom, anisotropy, overlap, inliers, region agreement and
    correlation.  Anything implausible raises :class:`AlignmentError` -- never silent garbage.
 
+Between captures years apart (other season, sun, sensor; buildings changed) local features
+and the polish's blur model both fail, so the default ``method="auto"`` decides with
+*gradient blocks* first: signed-gradient fields of the reference warped by the current
+estimate and of the observation are correlated block by block (``_BLOCK_PX`` blocks, +-8
+pixels), and a robust similarity through the blocks whose correlation peak is confident
+corrects the estimate.  Enough confident blocks -- a clear majority of them -- spread over
+the image must agree; unrelated images give almost no confident block.  The initial
+estimate is the SIFT one when it holds, else the best of a few in-plane rotation
+hypotheses searched with larger blocks on a coarse level.  The polish then runs as
+well and is kept where its blur model fits (a same-scene pair).
+
 Coordinates follow :mod:`reblur.grid`: ``(x, y)`` = (column, row) with pixel centres on
 integers, and ``H`` maps a reference pixel to the observation pixel.  An overview made with
 the integer block factor ``k`` (``scale = 1 / k``) has pixel ``x_s`` centred on the full
@@ -49,7 +60,7 @@ _STRIP_BYTES = 64 * 2**20
 #: Side, in pixels of the working level, of the kernel-polish regions.
 _REGION_PX = 32
 
-_METHODS = ("auto", "features", "ecc")
+_METHODS = ("auto", "features", "gradient", "ecc")
 _MOTIONS = {"homography": cv2.MOTION_HOMOGRAPHY, "affine": cv2.MOTION_AFFINE}
 
 
@@ -87,6 +98,9 @@ class Alignment:
     n_regions : int
         Regions of the kernel polish that agree with ``H`` (0 when the polish did not run
         or was rejected).
+    n_blocks : int
+        Gradient blocks whose correlation is confident and that agree with ``H`` (0 when
+        the gradient blocks were not used).
     """
 
     H: np.ndarray
@@ -98,6 +112,7 @@ class Alignment:
     ecc: float | None
     overlap: float
     n_regions: int = 0
+    n_blocks: int = 0
 
     def to_dict(self) -> dict:
         """JSON-ready description of the alignment."""
@@ -111,6 +126,7 @@ class Alignment:
             "ecc": None if self.ecc is None else float(self.ecc),
             "overlap": float(self.overlap),
             "n_regions": int(self.n_regions),
+            "n_blocks": int(self.n_blocks),
         }
 
 
@@ -518,6 +534,266 @@ def _ecc_refine(
     return H, rho_out, scale_out
 
 
+# ---------------------------------------------------------------------- stage 2b: gradient blocks
+#: Side, in pixels of the level, of the blocks matched by :func:`_block_match`.
+_BLOCK_PX = 96
+#: Side of the blocks of the coarse (rotation hypothesis) search.
+_COARSE_BLOCK_PX = 64
+
+
+def _grad_field(a: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
+    """``(h, w, 2)`` signed gradient of ``a`` smoothed by ``sigma``, zero near missing data.
+
+    Gradients drop the brightness offset between captures and emphasise the edges (roads,
+    roof outlines, field borders) that survive years between them; zeroing them near
+    missing data keeps the edge of a nodata border from matching itself.
+    """
+    b = cv2.GaussianBlur(a, (0, 0), sigma)
+    gx = cv2.Sobel(b, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(b, cv2.CV_32F, 0, 1, ksize=3)
+    r = int(math.ceil(2 * sigma)) + 2
+    m = cv2.erode(
+        mask.astype(np.uint8), np.ones((2 * r + 1, 2 * r + 1), np.uint8),
+        borderType=cv2.BORDER_CONSTANT, borderValue=0,
+    )
+    return np.dstack([gx * m, gy * m])
+
+
+def _parabola(a: float, b: float, c: float) -> float:
+    d = a - 2.0 * b + c
+    return 0.0 if d >= 0 else float(np.clip(0.5 * (a - c) / d, -0.5, 0.5))
+
+
+def _block_match(
+    level: _Level, H: np.ndarray, *, block: int, search: int, step: int, sigma: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Displacements of gradient blocks between the reference warped by ``H`` and the
+    observation, on one level.
+
+    The reference is warped into the observation frame by ``H`` (full resolution); for
+    every ``block x block`` block of the observation (centres ``step`` apart) the
+    normalised correlation of the two gradient fields is searched over ``+-search`` pixels.
+    Returns ``(src, dst, ncc)``: ``src`` the matched points of the warped reference,
+    ``dst`` the block centres of the observation (level pixels), and the correlation peak.
+    """
+    Hs = _to_level(H, level.scale)
+    h, w = level.obs.shape
+    warped = cv2.warpPerspective(
+        level.ref, Hs, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
+    )
+    cover = cv2.warpPerspective(
+        level.ref_mask.astype(np.float32), Hs, (w, h), flags=cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+    ) > 0.999
+    fr = _grad_field(warped, cover, sigma)
+    fo = _grad_field(level.obs, level.obs_mask, sigma)
+    has_r = np.any(fr != 0, axis=2)
+    has_o = np.any(fo != 0, axis=2)
+    half, S = block // 2, search
+    src, dst, score = [], [], []
+    for cy in range(half + S, h - half - S + 1, step):
+        for cx in range(half + S, w - half - S + 1, step):
+            t = fo[cy - half : cy + half, cx - half : cx + half]
+            win = (slice(cy - half - S, cy + half + S), slice(cx - half - S, cx + half + S))
+            if has_o[cy - half : cy + half, cx - half : cx + half].mean() < 0.9:
+                continue
+            if has_r[win].mean() < 0.8:
+                continue
+            sr = fr[win]
+            if float(np.ptp(t)) <= 0 or float(np.ptp(sr)) <= 0:
+                continue
+            r = cv2.matchTemplate(
+                np.ascontiguousarray(sr), np.ascontiguousarray(t), cv2.TM_CCOEFF_NORMED
+            )
+            _, peak, _, (px, py) = cv2.minMaxLoc(r)
+            if not np.isfinite(peak):
+                continue
+            dx = px - S + (_parabola(*r[py, px - 1 : px + 2]) if 0 < px < 2 * S else 0.0)
+            dy = py - S + (_parabola(*r[py - 1 : py + 2, px]) if 0 < py < 2 * S else 0.0)
+            # observation block at c matches the warped reference at c + d
+            src.append((cx + dx, cy + dy))
+            dst.append((cx, cy))
+            score.append(peak)
+    return (
+        np.float64(src).reshape(-1, 2), np.float64(dst).reshape(-1, 2), np.float64(score)
+    )
+
+
+def _similarity_lsq(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Least-squares similarity (rotation, uniform scale, translation) ``src -> dst``."""
+    n = len(src)
+    A = np.zeros((2 * n, 4))
+    A[0::2] = np.c_[src[:, 0], -src[:, 1], np.ones(n), np.zeros(n)]
+    A[1::2] = np.c_[src[:, 1], src[:, 0], np.zeros(n), np.ones(n)]
+    a, b, tx, ty = np.linalg.lstsq(A, dst.reshape(-1), rcond=None)[0]
+    return np.array([[a, -b, tx], [b, a, ty], [0.0, 0.0, 1.0]])
+
+
+def _robust_similarity(
+    src: np.ndarray, dst: np.ndarray, tol: float
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """RANSAC similarity then least squares on its inliers (re-selected three times).
+
+    Returns ``(M, inliers)`` or None when fewer than 4 points agree.
+    """
+    if len(src) < 4:
+        return None
+    M, mask = cv2.estimateAffinePartial2D(
+        src, dst, method=cv2.RANSAC, ransacReprojThreshold=tol, maxIters=5000,
+        confidence=0.999, refineIters=0,
+    )
+    if M is None or mask is None:
+        return None
+    inl = mask.ravel().astype(bool)
+    M = np.vstack([M, [0.0, 0.0, 1.0]])
+    for _ in range(3):
+        if inl.sum() < 4:
+            return None
+        M = _similarity_lsq(src[inl], dst[inl])
+        inl = np.hypot(*(map_points(M, src) - dst).T) < tol
+    if inl.sum() < 4:
+        return None
+    return M, inl
+
+
+@dataclass
+class _Blocks:
+    H: np.ndarray  # full resolution
+    n_agree: int  # confident blocks that agree with H
+    n_confident: int  # blocks whose correlation peak reaches the confidence level
+    n_blocks: int  # blocks matched
+    spread: float  # convex hull of the agreeing blocks / area of the block grid
+    residual_px: float  # median misfit of the agreeing blocks, full-resolution pixels
+
+
+def _gradient_estimate(
+    level: _Level,
+    H: np.ndarray,
+    ref_shape: tuple[int, int],
+    *,
+    block: int,
+    search: int,
+    sigma: float,
+    min_ncc: float,
+    tol: float,
+    iterations: int = 3,
+) -> _Blocks | None:
+    """Correct ``H`` (full resolution) by a similarity fitted to the confident gradient
+    blocks of one level that agree within ``tol`` level pixels; repeat up to
+    ``iterations`` times while the corners still move.  None when fewer than 4 agree."""
+    best: _Blocks | None = None
+    for _ in range(iterations):
+        src, dst, score = _block_match(
+            level, H, block=block, search=search, step=max(4, block // 3), sigma=sigma
+        )
+        conf = score >= min_ncc
+        fit = _robust_similarity(src[conf], dst[conf], tol)
+        if fit is None:
+            return best
+        M, inl = fit
+        # C maps the warped-reference frame to the observation: H' = C @ H
+        Hn = _to_full(M @ _to_level(H, level.scale), level.scale)
+        pts = dst[conf][inl]
+        grid = float((np.ptp(dst[:, 0]) + block) * (np.ptp(dst[:, 1]) + block))
+        spread = cv2.contourArea(cv2.convexHull(np.float32(pts))) / max(grid, 1.0)
+        res = float(np.median(np.hypot(*(map_points(M, src[conf][inl]) - pts).T)))
+        moved = _max_corner_shift(Hn, H, ref_shape) * level.scale
+        H = Hn
+        best = _Blocks(H, int(inl.sum()), int(conf.sum()), len(score), float(spread),
+                       res / level.scale)
+        if moved < 0.1:
+            break
+    return best
+
+
+def _gradient_align(
+    levels: list[_Level],
+    H0: np.ndarray | None,
+    ref_shape: tuple[int, int],
+    fine: int,
+    *,
+    rotations: tuple[float, ...],
+    min_ncc: float,
+    min_blocks: int,
+    min_agree: float,
+    min_spread: float,
+    plausible,
+) -> _Blocks:
+    """Alignment by gradient-block correlation (independent of local features).
+
+    Without an initial ``H0``: on the finest level whose longest side is at most 256,
+    every in-plane rotation of ``rotations`` (degrees, about the reference centre) is
+    tried and blocks searched over +-10 % of the side; the hypothesis with most confident
+    agreeing blocks wins.  Then, on each level down to ``fine``, the estimate is refined
+    with a +-8 pixel search.  Raises AlignmentError unless at least ``min_blocks``
+    confident blocks, and at least ``min_agree`` of all the confident ones, agree, spread
+    over ``min_spread`` of the block grid.
+    """
+    h, w = ref_shape
+    if H0 is None:
+        ic = next((i for i, lv in enumerate(levels) if lv.side <= 256), len(levels) - 1)
+        ic = max(ic, fine)
+        lv = levels[ic]
+        search = max(8, round(0.1 * lv.side))
+        best: _Blocks | None = None
+        for rz in rotations:
+            Hr = translation((w - 1) / 2.0, (h - 1) / 2.0) @ _rotation(rz) @ translation(
+                -(w - 1) / 2.0, -(h - 1) / 2.0
+            )
+            b = _gradient_estimate(
+                lv, Hr, ref_shape, block=_COARSE_BLOCK_PX, search=search, sigma=1.0,
+                min_ncc=min_ncc, tol=1.5, iterations=1,
+            )
+            log.debug("gradient hypothesis rz=%g: %s", rz, None if b is None else b.n_agree)
+            if b is not None and (best is None or b.n_agree > best.n_agree):
+                best = b
+        if best is None or best.n_agree < 4:
+            n = 0 if best is None else best.n_agree
+            raise AlignmentError(
+                f"no consistent gradient structure: {n} confident blocks agree at "
+                f"{lv.ref.shape[1]}x{lv.ref.shape[0]} px"
+            )
+        H0, start = best.H, ic - 1
+    else:
+        start = fine
+    plausible(H0)
+    H, out = H0, None
+    for i in range(max(start, fine), fine - 1, -1):
+        lv = levels[i]
+        b = _gradient_estimate(
+            lv, H, ref_shape, block=min(_BLOCK_PX, max(lv.obs.shape) // 4), search=8,
+            sigma=1.0, min_ncc=min_ncc, tol=1.0,
+        )
+        if b is None:
+            raise AlignmentError(
+                f"gradient blocks are inconsistent at {lv.ref.shape[1]}x{lv.ref.shape[0]} px: "
+                "images unrelated or changed too much"
+            )
+        plausible(b.H)
+        H, out = b.H, b
+    assert out is not None
+    log.debug("gradient blocks: %d agree of %d confident, %d in all; spread %.2f",
+              out.n_agree, out.n_confident, out.n_blocks, out.spread)
+    need = max(min_blocks, math.ceil(min_agree * out.n_confident))
+    if out.n_agree < need:
+        raise AlignmentError(
+            f"alignment could not be verified: {out.n_agree} gradient blocks agree with it, "
+            f"of {out.n_confident} confident and {out.n_blocks} in all (need {need}): "
+            "images unrelated, changed too much or not one plane (parallax)"
+        )
+    if out.spread < min_spread:
+        raise AlignmentError(
+            f"alignment could not be verified: the {out.n_agree} gradient blocks that agree "
+            f"with it span {100 * out.spread:.0f} % of the image (< {100 * min_spread:.0f} %)"
+        )
+    return out
+
+
+def _rotation(deg: float) -> np.ndarray:
+    c, s = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
 # ---------------------------------------------------------------------- stage 3: kernels
 def _kernel_polish(
     level: _Level,
@@ -663,6 +939,10 @@ def coarse_align(
     max_zoom: float = 2.0,
     max_anisotropy: float = 2.0,
     min_overlap: float = 0.2,
+    gradient_side: int = 512,
+    rotations: tuple[float, ...] = (-12.0, -8.0, -4.0, 0.0, 4.0, 8.0, 12.0),
+    block_ncc: float = 0.25,
+    min_blocks: int = 12,
 ) -> Alignment:
     """Estimate the global reference -> observation homography at low resolution.
 
@@ -675,10 +955,14 @@ def coarse_align(
         Longest side of the finest overview (both images share one integer block factor).
     min_side : int
         Longest side of the coarsest pyramid level.
-    method : {"auto", "features", "ecc"}
-        ``"features"``: SIFT matching only as the initial estimate; ``"ecc"``: phase
-        correlation only; ``"auto"``: features, falling back to phase correlation.  Both are
-        refined by ECC and the kernel polish (unless disabled).
+    method : {"auto", "features", "gradient", "ecc"}
+        ``"auto"``: gradient blocks (see Notes) seeded by the SIFT estimate when there is
+        one, else by rotation hypotheses; they decide and verify, and the kernel polish is
+        kept only where its blur model fits most regions.  If the blocks cannot verify, the
+        SIFT estimate with ECC and the polish, then phase correlation with ECC and the
+        polish.  ``"gradient"``: gradient blocks from rotation hypotheses only.
+        ``"features"``: SIFT, ECC and the polish only; ``"ecc"``: phase correlation, ECC
+        and the polish only.
     shake_px : float
         Largest camera-shake displacement expected during the exposure, in full-resolution
         pixels, anywhere in the image (an in-plane roll moves the corners by radius x
@@ -736,6 +1020,19 @@ def coarse_align(
         Largest accepted ratio of the local stretches of ``H``.
     min_overlap : float
         Smallest accepted fraction of the observation covered by the mapped reference.
+    gradient_side : int
+        The gradient blocks are refined down to the finest level whose longest side is at
+        most this (or the working level, if finer).
+    rotations : tuple of float
+        In-plane rotations (degrees) tried as hypotheses when no feature estimate seeds the
+        gradient blocks.
+    block_ncc : float
+        Correlation peak a gradient block must reach to count as confident (the peak
+        between unrelated 96 px blocks stays near 0.1).
+    min_blocks : int
+        Fewest confident gradient blocks that must agree with the result; at least
+        ``min_agree`` of the confident blocks and ``min_spread`` of the image are also
+        required.
 
     Returns
     -------
@@ -826,8 +1123,10 @@ def coarse_align(
     n_regions = tuple(int(np.clip(round(n / region_px), 3, 8)) for n in lv.obs.shape)
     n_total = n_regions[0] * n_regions[1]
 
-    def polish_and_verify(H: np.ndarray, stages: list[str]) -> tuple[np.ndarray, int]:
-        """Kernel polish of ``H``; raise AlignmentError unless enough regions agree."""
+    def polish_and_verify(H: np.ndarray, stages: list[str]) -> tuple[np.ndarray, int, int]:
+        """Kernel polish of ``H``; raise AlignmentError unless enough regions agree.
+
+        Returns the polished ``H``, the regions that agree and the regions that fit."""
         n_agree, n_fit, spread, accepted = 0, 0, 0.0, None
         for R in (shake_at(work) + 2, shake_at(work) + 1):
             R = max(R, 2)
@@ -866,51 +1165,128 @@ def coarse_align(
                 f"{n_fit} where the blur model fits and {n_total} in all (need {need}): images "
                 f"unrelated, changed too much or blurred by more than shake_px={shake_px:g}"
             )
-        return H, n_agree
+        return H, n_agree, n_fit
 
     errors: list[str] = []
-    feats: _Features | None = None
-    if method in ("auto", "features"):
-        i0 = first_at_most(feature_side)
-        for i in dict.fromkeys((i0, min(i0 + 1, top))):
+
+    feature_cache: dict[int, tuple[_Features, np.ndarray, list[str]] | AlignmentError] = {}
+
+    def features_estimate(i: int) -> tuple[_Features, np.ndarray, list[str]]:
+        """SIFT estimate on level ``i`` (computed once), raising its AlignmentError."""
+        if i not in feature_cache:
             try:
-                f = _match_features(
-                    levels[i], n_features=n_features, ratio=ratio, ransac_px=ransac_px,
-                    min_inliers=min_inliers, min_inlier_ratio=min_inlier_ratio,
-                )
-                _check_plausible(f.H, ref_shape, obs_shape, **checks)
+                feature_cache[i] = _features_estimate(i)
             except AlignmentError as err:
-                log.debug("feature alignment failed at level %d: %s", i, err)
+                feature_cache[i] = err
+        got = feature_cache[i]
+        if isinstance(got, AlignmentError):
+            raise got
+        f, H, stages = got
+        return f, H.copy(), list(stages)
+
+    def _features_estimate(i: int) -> tuple[_Features, np.ndarray, list[str]]:
+        """SIFT estimate on level ``i``, refined by ECC when that stays with the matches."""
+        f = _match_features(
+            levels[i], n_features=n_features, ratio=ratio, ransac_px=ransac_px,
+            min_inliers=min_inliers, min_inlier_ratio=min_inlier_ratio,
+        )
+        _check_plausible(f.H, ref_shape, obs_shape, **checks)
+        H, stages = f.H, ["features"]
+        if refine:
+            try:
+                He, rho, _ = _ecc_refine(
+                    levels, H, min(work + 1, top), work, ref_shape, max_jump=0.05,
+                    tolerant=True, **ecc_kw,
+                )
+                _check_plausible(He, ref_shape, obs_shape, **checks)
+                if rho < min_ecc:
+                    raise AlignmentError(f"ECC correlation {rho:.2f} < {min_ecc:g}")
+                # ECC must not leave the feature matches: smoothing can wash out fine
+                # texture and let it drift
+                res_f = float(np.median(np.hypot(*(map_points(H, f.src) - f.dst).T)))
+                res_e = float(np.median(np.hypot(*(map_points(He, f.src) - f.dst).T)))
+                log.debug("feature residual %.2f px, after ECC %.2f px", res_f, res_e)
+                if res_e > max(2.0 * res_f, 0.25 * shake_px, 1.0 / levels[i].scale):
+                    raise AlignmentError(
+                        f"ECC moved away from the feature matches ({res_e:.1f} px vs "
+                        f"{res_f:.1f} px)"
+                    )
+                H = He
+                stages.append("ecc")
+            except AlignmentError as err:
+                log.debug("ECC refinement rejected (%s); keeping the feature estimate", err)
+        return f, H, stages
+
+    feature_levels = list(dict.fromkeys((first_at_most(feature_side),
+                                         min(first_at_most(feature_side) + 1, top))))
+    feats: _Features | None = None
+    n_agree, n_blocks = 0, 0
+    if method in ("auto", "gradient"):
+        # features (when they hold) only seed the gradient blocks, which decide
+        init: tuple[_Features, np.ndarray, list[str]] | None = None
+        if method == "auto":
+            for i in feature_levels:
+                try:
+                    init = features_estimate(i)
+                    break
+                except AlignmentError as err:
+                    log.debug("feature alignment failed at level %d: %s", i, err)
+                    errors.append(str(err))
+        fine = min(first_at_most(gradient_side), work)
+        grad_kw = dict(
+            rotations=rotations, min_ncc=block_ncc, min_blocks=min_blocks,
+            min_agree=min_agree, min_spread=min_spread,
+            plausible=lambda M: _check_plausible(M, ref_shape, obs_shape, **checks),
+        )
+        blocks, stages = None, ["gradient"]
+        for seed in ([init, None] if init is not None else [None]):
+            try:
+                blocks = _gradient_align(
+                    levels, None if seed is None else seed[1], ref_shape, fine, **grad_kw
+                )
+            except AlignmentError as err:
+                log.debug("gradient alignment failed (seed %s): %s", seed is not None, err)
                 errors.append(str(err))
                 continue
-            H, stages = f.H, ["features"]
-            if refine:
+            if seed is not None:
+                feats, stages = seed[0], seed[2] + ["gradient"]
+            break
+        if blocks is not None:
+            H, n_blocks = blocks.H, blocks.n_agree
+            if polish:
+                # the blur-aware polish reaches the mean camera pose on a same-scene pair,
+                # where a correlation optimum sits near a mode of the blur; between captures
+                # years apart its blur model does not hold and it can wander: keep it only
+                # when it verifies and stays within the blur's reach of the blocks' estimate
                 try:
-                    He, rho, _ = _ecc_refine(
-                        levels, H, min(work + 1, top), work, ref_shape, max_jump=0.05,
-                        tolerant=True, **ecc_kw,
-                    )
-                    _check_plausible(He, ref_shape, obs_shape, **checks)
-                    if rho < min_ecc:
-                        raise AlignmentError(f"ECC correlation {rho:.2f} < {min_ecc:g}")
-                    # ECC must not leave the feature matches: smoothing can wash out fine
-                    # texture and let it drift
-                    res_f = float(np.median(np.hypot(*(map_points(H, f.src) - f.dst).T)))
-                    res_e = float(np.median(np.hypot(*(map_points(He, f.src) - f.dst).T)))
-                    log.debug("feature residual %.2f px, after ECC %.2f px", res_f, res_e)
-                    if res_e > max(2.0 * res_f, 0.25 * shake_px, 1.0 / levels[i].scale):
-                        raise AlignmentError(
-                            f"ECC moved away from the feature matches ({res_e:.1f} px vs "
-                            f"{res_f:.1f} px)"
-                        )
-                    H = He
-                    stages.append("ecc")
+                    Hp, n_p, n_fit = polish_and_verify(H, ["gradient"])
+                    reach = max(2.0 / levels[fine].scale, shake_px)
+                    moved = _max_corner_shift(Hp, H, ref_shape)
+                    if n_fit < 0.5 * n_total:
+                        log.debug("kernel polish not kept: the blur model fits in %d of %d "
+                                  "regions only", n_fit, n_total)
+                    elif moved > reach:
+                        log.debug("kernel polish moved %.1f px (> %.1f): not kept", moved, reach)
+                    else:
+                        H, n_agree = Hp, n_p
+                        stages.append("kernel")
                 except AlignmentError as err:
-                    log.debug("ECC refinement rejected (%s); keeping the feature estimate", err)
+                    log.debug("kernel polish not kept: %s", err)
+        elif method == "gradient":
+            raise AlignmentError(errors[-1])
+
+    if method == "features" or (method == "auto" and n_blocks == 0):
+        for i in feature_levels:
+            try:
+                f, H, stages = features_estimate(i)
+            except AlignmentError as err:
+                if method == "features":
+                    errors.append(str(err))
+                continue
             n_agree = 0
             if polish:
                 try:
-                    H, n_agree = polish_and_verify(H, stages)
+                    H, n_agree, _ = polish_and_verify(H, stages)
                 except AlignmentError as err:
                     log.debug("feature estimate at level %d rejected: %s", i, err)
                     errors.append(str(err))
@@ -918,7 +1294,7 @@ def coarse_align(
             feats = f
             break
 
-    if feats is None and method in ("auto", "ecc"):
+    if n_blocks == 0 and feats is None and method in ("auto", "ecc"):
         # fallback: phase correlation for the translation, then ECC coarse to fine
         try:
             H = _phase_init(levels[top])
@@ -927,16 +1303,18 @@ def coarse_align(
             _check_plausible(H, ref_shape, obs_shape, **checks)
             stages, n_agree = ["phase", "ecc"], 0
             if polish:
-                H, n_agree = polish_and_verify(H, stages)
+                H, n_agree, _ = polish_and_verify(H, stages)
             rho = _correlation(lv, H, max(1.0, blur_px * lv.scale))
             if not rho >= min_ecc:
                 raise AlignmentError(
                     f"correlation {rho:.2f} < {min_ecc:g} after alignment: images look unrelated"
                 )
         except AlignmentError as err:
-            raise AlignmentError(f"{errors[0]}; fallback: {err}" if errors else str(err)) from None
-    elif feats is None:
-        raise AlignmentError(errors[0])
+            raise AlignmentError(
+                "; fallback: ".join(dict.fromkeys(errors + [str(err)]))
+            ) from None
+    elif n_blocks == 0 and feats is None:
+        raise AlignmentError("; fallback: ".join(dict.fromkeys(errors)))
 
     overlap = _check_plausible(H, ref_shape, obs_shape, **checks)
     rho = _correlation(lv, H, max(1.0, blur_px * lv.scale))
@@ -947,5 +1325,5 @@ def coarse_align(
         H=H, method="+".join(stages),
         n_matches=feats.n_matches if feats else 0, n_inliers=feats.n_inliers if feats else 0,
         scale=scale0, residual_px=residual, ecc=rho if np.isfinite(rho) else None,
-        overlap=overlap, n_regions=n_agree,
+        overlap=overlap, n_regions=n_agree, n_blocks=n_blocks,
     )
