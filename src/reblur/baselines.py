@@ -35,7 +35,7 @@ from .estimate import estimate_motion, soft_threshold
 from .grid import PoseGrid
 from .operator import BlurOperator
 from .simulate import to_float
-from .solve import _nnls_gram
+from .solve import active_set
 from .tiled import reblur as reblur_image
 from .warp import as_box, read_window
 
@@ -500,9 +500,9 @@ def solve_signed(
     fixed ``w`` the best ``|chi_i|`` is ``max(0, s_i r_i - lam / 2)``, ``r = g - F w``) leaves
     a one-sided Huber loss: ``2 d |r_i| - d^2`` where ``s_i r_i > d = lam / 2`` and ``r_i^2``
     otherwise (``signs=None``: the usual two-sided Huber of eq. 5).  It is solved like
-    :func:`reblur.solve.active_set`: batched Lawson-Hanson over the poses (full gradient
-    by the operator's FFT adjoint), each active sub-problem solved exactly by IRLS on the
-    Huber weights with an NNLS on the Cholesky factor of the weighted Gram matrix.
+    :func:`reblur.solve.active_set` (with its ``signs``): batched Lawson-Hanson over the
+    poses, each active sub-problem solved exactly by a finite Newton method on the
+    one-sided Huber partition.
 
     Parameters
     ----------
@@ -531,114 +531,19 @@ def solve_signed(
         ``objective`` history, ``n_outer``, ``n_active``, ``time_s``.
     """
     t0 = time.perf_counter()
-    h, w_, C = op.dimsd
     m = op.valid if mask is None else np.asarray(mask, bool)
     m3 = np.broadcast_to(m[:, :, None], op.dimsd)
-    g3 = np.where(m3, np.asarray(g, dtype=float).reshape(op.dimsd), 0.0)
-    free = signs is None
-    s = np.zeros(op.dimsd) if free else np.asarray(signs, float).reshape(op.dimsd)
+    g3 = np.asarray(g, dtype=float).reshape(op.dimsd)
+    s = None if signs is None else np.asarray(signs, float).reshape(op.dimsd)
     d = lam / 2.0
-    P = op.grid.size
-    rows = max(1, 32768 // (w_ * C))
-
-    def outliers(r):
-        return ((np.abs(r) > d) if free else (s * r > d)) & m3
-
-    def objective(r, wa):
-        out = outliers(r)
-        return lam * float(wa.sum()) + float(
-            np.where(out, 2 * d * np.abs(r) - d * d, r * r)[m3].sum()
-        )
-
-    def forward(active, wa):
-        out = np.zeros(op.dimsd)
-        for k, v in zip(active, wa, strict=True):
-            if v:
-                out += v * op.column(k)
-        return out
-
-    def gram_new(active, new):
-        cols = active + new
-        G = np.zeros((len(cols), len(new)))
-        b = np.zeros(len(new))
-        for r0 in range(0, h, rows):
-            r1 = min(r0 + rows, h)
-            mk = m3[r0:r1]
-            if not mk.any():
-                continue
-            A = np.stack([op.column(k)[r0:r1][mk] for k in cols], axis=1)
-            An = A[:, len(active):]
-            G += A.T @ An
-            b += An.T @ g3[r0:r1][mk]
-        return G, b
-
-    active: list[int] = []
-    wa = np.zeros(0)
-    G0 = np.zeros((0, 0))
-    b0 = np.zeros(0)
-    hist: list[float] = []
-    n_outer = 0
-    scale = None
-    for n_outer in range(1, max_outer + 1):  # noqa: B007 (reported after the loop)
-        r = np.where(m3, g3 - forward(active, wa), 0.0)
-        out = outliers(r)
-        psi = np.where(out, 2 * d * np.sign(r), 2 * r)
-        hist.append(objective(r, wa))
-        grad = lam - op.rmatvec(psi).ravel()
-        if scale is None:
-            scale = max(float(np.abs(grad - lam).max()), 1e-300)
-        cand = grad.copy()
-        if active:
-            cand[active] = np.inf
-        small = len(hist) >= 2 and abs(hist[-2] - hist[-1]) <= tol * max(hist[-1], 1e-300)
-        kkt = float(cand.min()) / scale
-        if kkt > -1e-6 or (small and kkt > -1e-3):
-            break
-        new = [int(k) for k in np.argsort(cand)[:batch] if cand[k] < 0]
-        Gn, bn = gram_new(active, new)
-        k0 = len(active)
-        G = np.zeros((k0 + len(new),) * 2)
-        G[:k0, :k0] = G0
-        G[:, k0:] = Gn
-        G[k0:, :] = Gn.T
-        G0, b0 = G, np.concatenate([b0, bn])
-        active = active + new
-        wa = np.concatenate([wa, np.zeros(len(new))])
-        # IRLS on the active columns: weight d / |r| on the linear (change) part of the loss
-        prev = np.inf
-        for _ in range(max_irls):
-            r = np.where(m3, g3 - forward(active, wa), 0.0)
-            obj = objective(r, wa)
-            if np.isfinite(prev) and prev - obj <= 1e-10 * max(obj, 1e-300):
-                break
-            prev = obj
-            out = outliers(r)
-            G = G0.copy()
-            b = b0 - lam / 2.0
-            yy, xx, cc = np.nonzero(out)
-            for c0 in range(0, yy.size, 32768):
-                sl = slice(c0, c0 + 32768)
-                y, x, c = yy[sl], xx[sl], cc[sl]
-                om = 1.0 - d / np.abs(r[y, x, c])
-                A = np.stack([op.column(k)[y, x, c] for k in active], axis=1)
-                Aw = A * om[:, None]
-                G -= A.T @ Aw
-                b -= Aw.T @ g3[y, x, c]
-            wa = _nnls_gram(G, b)
-        keep = wa > 0
-        if not keep.all():
-            idx = np.flatnonzero(keep)
-            active = [active[i] for i in idx]
-            wa, G0, b0 = wa[idx], G0[np.ix_(idx, idx)], b0[idx]
-    wfull = np.zeros(P)
-    if active:
-        wfull[active] = wa
-    r = np.where(m3, g3 - forward(active, wa), 0.0)
-    chi = soft_threshold(r, d) if free else s * np.maximum(s * r - d, 0.0)
+    w, sinfo = active_set([op], [g3], lam=lam, masks=[m], signs=None if s is None else [s],
+                          batch=batch, max_outer=max_outer, max_irls=max_irls, tol=tol)
+    r = np.where(m3, g3 - op.matvec(w), 0.0)
+    chi = soft_threshold(r, d) if s is None else s * np.maximum(s * r - d, 0.0)
     chi[~m3] = 0.0
-    info = dict(objective=hist, n_outer=n_outer, n_active=len(active),
-                time_s=time.perf_counter() - t0)
-    return wfull.reshape(op.grid.shape), chi, info
+    info = dict(objective=sinfo["objective"], n_outer=sinfo["n_outer"],
+                n_active=sinfo["n_active"], time_s=time.perf_counter() - t0)
+    return w, chi, info
 
 
 def sign_flip_occlusion(

@@ -82,12 +82,16 @@ class _Window:
     partition only.
     """
 
-    def __init__(self, op: BlurOperator, g: np.ndarray, mask: np.ndarray):
+    def __init__(self, op: BlurOperator, g: np.ndarray, mask: np.ndarray,
+                 delta: float | None, signs: np.ndarray | None = None):
         self.op = op
+        self.delta = delta
         self.g = np.asarray(g, dtype=float).reshape(op.dimsd)
         self.m = np.asarray(mask, bool)
         self.m3 = np.broadcast_to(self.m[:, :, None], op.dimsd)
         self.gm = np.where(self.m3, self.g, 0.0)
+        # allowed polarity of the change term (one-sided Huber); None: either
+        self.s = None if signs is None else np.asarray(signs, float).reshape(op.dimsd)
         self.inl = self.m3.copy()  # inlier pixels of the current partition
         self.sgn = np.zeros(op.dimsd, np.int8)  # outlier signs (0: inlier or masked)
 
@@ -104,13 +108,34 @@ class _Window:
         r[~self.m3] = 0.0
         return r
 
-    def partition(self, r: np.ndarray, delta: float | None) -> tuple[np.ndarray, np.ndarray]:
+    def outliers(self, r: np.ndarray) -> np.ndarray | None:
+        """Pixels of ``r`` in the linear part of the loss (None: no Huber term)."""
+        if self.delta is None:
+            return None
+        if self.s is None:
+            return self.m3 & (np.abs(r) > self.delta)
+        return self.m3 & (self.s * r > self.delta)
+
+    def partition(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Inlier mask and outlier signs of the residual ``r``."""
-        if delta is None:
+        out = self.outliers(r)
+        if out is None:
             return self.m3.copy(), np.zeros(self.op.dimsd, np.int8)
-        inl = self.m3 & (np.abs(r) <= delta)
-        sgn = np.where(self.m3 & ~inl, np.sign(r), 0).astype(np.int8)
-        return inl, sgn
+        return self.m3 & ~out, np.where(out, np.sign(r), 0).astype(np.int8)
+
+    def loss(self, r: np.ndarray) -> float:
+        """Data term of the objective at residual ``r`` (valid pixels)."""
+        out = self.outliers(r)
+        if out is None:
+            return float(np.sum(r[self.m3] ** 2))
+        d = self.delta
+        return float(np.where(out, 2.0 * d * np.abs(r) - d * d, r * r)[self.m3].sum())
+
+    def psi(self, r: np.ndarray) -> np.ndarray:
+        """Derivative of the loss with respect to ``r`` (0 off the mask)."""
+        out = self.outliers(r)
+        v = 2.0 * r if out is None else np.where(out, 2.0 * self.delta * np.sign(r), 2.0 * r)
+        return np.where(self.m3, v, 0.0)
 
     def block_products(self, cols_all: list[int], cols_new: list[int]):
         """``A_all^T D A_new``, ``A_new^T D g`` and ``A_new^T s`` by row blocks.
@@ -155,13 +180,13 @@ class _Window:
                 d += Atn @ sb.astype(float)
         return G, b, d
 
-    def repartition(self, r: np.ndarray, delta: float | None, active: list[int],
+    def repartition(self, r: np.ndarray, active: list[int],
                     G: np.ndarray, b: np.ndarray, d: np.ndarray) -> int:
         """Move to the partition of ``r``, updating ``G, b, d`` in place over the pixels
         that change.  Returns their number."""
-        if delta is None:
+        if self.delta is None:
             return 0
-        inl, sgn = self.partition(r, delta)
+        inl, sgn = self.partition(r)
         changed = (inl != self.inl) | (sgn != self.sgn)
         if not changed.any():
             return 0
@@ -192,6 +217,7 @@ def active_set(
     lam: float = 0.1,
     occlusion: bool = True,
     masks: Sequence[np.ndarray] | None = None,
+    signs: Sequence[np.ndarray | None] | None = None,
     batch: int = 24,
     max_outer: int = 60,
     max_irls: int = 10,
@@ -214,6 +240,10 @@ def active_set(
         Solve eq. 5 (True) or eq. 3 (False).
     masks : sequence of (h, w) bool arrays, optional
         Pixels that enter the data term (default: ``op.valid``).
+    signs : sequence of ``op.dimsd`` arrays (or None), optional
+        Allowed polarity of the change term per pixel and band: ``+1``, ``-1`` or ``0``
+        (no change term there).  The loss is then one-sided: linear only where
+        ``signs * r > lam / 2``.  None (default): either polarity everywhere (eq. 5).
     batch : int
         Poses added to the active set per outer iteration.
     max_outer : int
@@ -243,7 +273,8 @@ def active_set(
     P = grid.size
     delta = lam / 2.0 if occlusion else None
     wins = [
-        _Window(op, g, op.valid if masks is None else masks[i])
+        _Window(op, g, op.valid if masks is None else masks[i], delta,
+                None if signs is None else signs[i])
         for i, (op, g) in enumerate(zip(ops, gs, strict=True))
     ]
     if sum(int(w.m.sum()) for w in wins) == 0:
@@ -262,7 +293,7 @@ def active_set(
         wa = np.asarray(w0).ravel()[nz].astype(float)
         res = [win.residual(active, wa) for win in wins]
         for win, r in zip(wins, res, strict=True):  # start from the warm start's partition
-            win.inl, win.sgn = win.partition(r, delta)
+            win.inl, win.sgn = win.partition(r)
         G, b, d = _gram_add(wins, [], active, G, b, d)
     # (a cold start keeps the all-inlier partition: its first step is least squares)
 
@@ -279,8 +310,8 @@ def active_set(
         if res is None:
             res = [win.residual(active, wa) for win in wins]
         for win, r in zip(wins, res, strict=True):
-            obj += float(_rho(r[win.m3], delta).sum())
-            grad -= win.op.rmatvec(_psi(r, delta)).ravel()
+            obj += win.loss(r)
+            grad -= win.op.rmatvec(win.psi(r)).ravel()
         history.append(obj)
         if grad_scale is None:
             grad_scale = max(float(np.max(np.abs(grad - lam))), 1e-300)
@@ -302,7 +333,7 @@ def active_set(
         active = active + new
         # new columns enter at weight zero: the residuals are unchanged
         wa = np.concatenate([wa, np.zeros(len(new))])
-        wa, res, steps = _huber_newton(wins, active, wa, res, G, b, d, lam, delta, max_irls)
+        wa, res, steps = _huber_newton(wins, active, wa, res, G, b, d, lam, max_irls)
         n_newton += steps
         keep = wa > 0
         if not keep.all():
@@ -372,21 +403,18 @@ def _nnls_gram(G: np.ndarray, b: np.ndarray) -> np.ndarray:
     return w
 
 
-def _psi(r: np.ndarray, delta: float | None) -> np.ndarray:
-    """Derivative of :func:`_rho`."""
-    return 2.0 * r if delta is None else 2.0 * np.clip(r, -delta, delta)
-
-
-def _line_search(wins, res, deltas, dw_sum, lam, delta, iters: int = 40) -> float:
+def _line_search(wins, res, deltas, dw_sum, lam, iters: int = 40) -> float:
     """Exact step ``t`` in [0, 1] minimising the (convex) objective along a direction.
 
-    ``phi(t) = lam * t * dw_sum + sum rho(r - t D)`` (plus constants); its derivative is
+    ``phi(t) = lam * t * dw_sum + sum loss(r - t D)`` (plus constants); its derivative is
     non-decreasing, so bisection on its sign finds the minimiser.
     """
-    pix = [(r[win.m3], D[win.m3]) for win, r, D in zip(wins, res, deltas, strict=True)]
 
     def slope(t: float) -> float:
-        return lam * dw_sum - sum(float(np.dot(_psi(r - t * D, delta), D)) for r, D in pix)
+        return lam * dw_sum - sum(
+            float(np.vdot(win.psi(r - t * D), D)) for win, r, D in zip(wins, res, deltas,
+                                                                        strict=True)
+        )
 
     if slope(1.0) <= 0.0:
         return 1.0
@@ -400,7 +428,7 @@ def _line_search(wins, res, deltas, dw_sum, lam, delta, iters: int = 40) -> floa
     return lo
 
 
-def _huber_newton(wins, active, wa, res, G, b, d, lam, delta, max_steps):
+def _huber_newton(wins, active, wa, res, G, b, d, lam, max_steps):
     """Exact Huber NNLS on the active columns: a finite Newton method on the partition.
 
     For the current partition (inliers quadratic, outliers linear with their sign) the
@@ -413,6 +441,7 @@ def _huber_newton(wins, active, wa, res, G, b, d, lam, delta, max_steps):
     """
     steps = 0
     for steps in range(1, max_steps + 1):  # noqa: B007
+        delta = wins[0].delta
         c = b - lam / 2.0 if delta is None else b + delta * d - lam / 2.0
         wq = _nnls_gram(G, c)
         dw = wq - wa
@@ -421,13 +450,13 @@ def _huber_newton(wins, active, wa, res, G, b, d, lam, delta, max_steps):
         deltas = [win.forward(active, dw) for win in wins]
         for win, D in zip(wins, deltas, strict=True):
             D[~win.m3] = 0.0
-        t = _line_search(wins, res, deltas, float(dw.sum()), lam, delta)
+        t = _line_search(wins, res, deltas, float(dw.sum()), lam)
         if t <= 0.0:
             break
         wa = np.maximum(wa + t * dw, 0.0) if t < 1.0 else wq
         res = [r - t * D for r, D in zip(res, deltas, strict=True)]
         n_changed = sum(
-            win.repartition(r, delta, active, G, b, d) for win, r in zip(wins, res, strict=True)
+            win.repartition(r, active, G, b, d) for win, r in zip(wins, res, strict=True)
         )
         if n_changed == 0 and t == 1.0:
             break
