@@ -316,6 +316,17 @@ def _verdicts(recs: list[dict]) -> list[str]:
     return out
 
 
+def _left_out(pairs: Sequence[str]) -> str:
+    """The sentence saying which development pairs a run left out, and why."""
+    rest = [p[0] for p in dev_pairs() if p[0] not in pairs]
+    if not rest:
+        return ""
+    return (f" Left out of this run: {', '.join(rest)}, for the compute budget of the "
+            "default run (the sign-flip and whole-image baselines take 1-3 min per pair); a "
+            "selection by run time, not by result (`python -m experiments.table1 --pairs all` "
+            "runs every pair).")
+
+
 def report(recs: list[dict], command: str, seconds: float, pairs: Sequence[str],
            timeout: float) -> str:
     """The markdown report (``docs/results/README.md``)."""
@@ -391,15 +402,9 @@ def report(recs: list[dict], command: str, seconds: float, pairs: Sequence[str],
         "1/255, no viewpoint change (`align=False`).",
         f"- LEVIR/WHU: {len(pairs)} of the 6 development pairs ({', '.join(pairs)}), full "
         "resolution, built as `benchmarks/quality.py` does with a 1 % / 1 deg viewpoint change "
-        "and `align=False` (same seeds). The other three (LEVIR test_7, WHU 000121, WHU "
-        "000241) are left out for the compute budget: they are the three on which reblur's "
-        "solve was slowest in `docs/benchmarks.md` (`python -m benchmarks.quality`), "
-        "minutes per pair. This is a selection by run time, not by result: on two of them "
-        "register-then-difference scored a higher JC than reblur there (see that page; "
-        "`python -m experiments.table1 --pairs all` includes them). The labels cover "
-        "buildings only, "
-        "while years-apart pairs differ everywhere (season, shadows, parallax), so absolute "
-        "JC is low for every method.",
+        "and `align=False` (same seeds)." + _left_out(pairs) + " The labels cover buildings "
+        "only, while years-apart pairs differ everywhere (season, shadows, parallax), so "
+        "absolute JC is low for every method.",
         "- GoPro: real blur, the changes (moving players) are not labelled: only the "
         "fraction of pixels flagged, lower is better only on the static floor.",
         "- The paper's three real cases (DSLR roof-top, VIRAT, phone) are not available here.",
