@@ -33,24 +33,6 @@ def _scene(rows: int, cols: int, cell: int):
     return MosaicScene(ims, cell, rows, cols, rng=0)
 
 
-class _Observed:
-    """The blurred observation of a scene, computed window by window (array-like)."""
-
-    def __init__(self, scene, path):
-        self.scene, self.path = scene, path
-        self.shape, self.dtype = scene.shape, np.dtype(np.float32)
-
-    def window(self, box):
-        from reblur.simulate import blur_along_path
-
-        g, v = blur_along_path(self.scene, self.path, box, dtype=np.float32)
-        return g.reshape(box[2], box[3]), v
-
-    def __getitem__(self, key):
-        ys, xs = key
-        return self.window((ys.start, xs.start, ys.stop - ys.start, xs.stop - xs.start))[0]
-
-
 def layouts(H: int, W: int, margin: int = MARGIN) -> dict[str, list[tuple[int, int, int, int]]]:
     lo, hy, hx = margin, H - margin - S, W - margin - S
     return {
@@ -86,12 +68,12 @@ def evaluate(scene, obs, est, boxes) -> list[float]:
 
 def run_accuracy(rows: int, cols: int, cell: int, rz: float, t: float, seed: int = 5):
     from reblur import PoseGrid, estimate_motion
-    from reblur.simulate import random_camera_path
+    from reblur.simulate import PathBlurredScene, random_camera_path
 
     scene = _scene(rows, cols, cell)
     H, W = scene.shape
     path = random_camera_path(seed, center=((W - 1) / 2, (H - 1) / 2), t_max=t, rz_max=rz)
-    obs = _Observed(scene, path)
+    obs = PathBlurredScene(scene, path)
     grids = {
         "paper (0.5 deg step)": PoseGrid.paper((H, W)),
         "sized to image (1 px at the corner)": PoseGrid.from_ranges((H, W), corner_px=1.0),
@@ -109,14 +91,14 @@ def run_accuracy(rows: int, cols: int, cell: int, rz: float, t: float, seed: int
 
 def run_timing(side: int, windows: int = 4, rz: float = 0.3, t: float = 9.0):
     from reblur import PoseGrid, estimate_motion
-    from reblur.simulate import random_camera_path
+    from reblur.simulate import PathBlurredScene, random_camera_path
 
     cell = 2048
     n = int(np.ceil(side / cell))
     scene = _scene(n, n, cell)
     H, W = scene.shape
     path = random_camera_path(5, center=((W - 1) / 2, (H - 1) / 2), t_max=t, rz_max=rz)
-    obs = _Observed(scene, path)
+    obs = PathBlurredScene(scene, path)
     grid = PoseGrid.from_ranges((H, W), corner_px=1.0)
     m = max(MARGIN, pose_margin(H, W))
     boxes = list(layouts(H, W, m).values())[2 if windows == 4 else 1]

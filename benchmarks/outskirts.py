@@ -110,14 +110,14 @@ def run(ref_path: Path, obs_path: Path, squares, **kw) -> dict:
 
 
 def main() -> str:
-    from benchmarks.large_motion import _Observed, _scene
+    from benchmarks.large_motion import _scene
     from reblur import PoseGrid
-    from reblur.simulate import random_camera_path
+    from reblur.simulate import PathBlurredScene, random_camera_path
 
     scene = _scene(3, 3, 2150)
     H, W = scene.shape
     path = random_camera_path(5, center=((W - 1) / 2, (H - 1) / 2), t_max=9.0, rz_max=0.3)
-    blurred = _Observed(scene, path)
+    blurred = PathBlurredScene(scene, path)
     squares = paste_squares(H, W)
     cases = [
         (1.0 / 255, "defaults", {}),

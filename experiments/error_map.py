@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.large_motion import S, _Observed, _scene, layouts
+from benchmarks.large_motion import S, _scene, layouts
 from experiments.common import (
     OUT,
     code_version,
@@ -101,7 +101,7 @@ def configurations(shape: tuple[int, int]) -> dict[str, dict]:
     }
 
 
-def window_error(poses, scene, obs: _Observed, box: Box, truth=None):
+def window_error(poses, scene, obs, box: Box, truth=None):
     """Reblur one window with ``poses`` and compare it with the true blurred window.
 
     Parameters
@@ -137,14 +137,14 @@ def window_error(poses, scene, obs: _Observed, box: Box, truth=None):
 def run(n: int, side: int, log=print) -> dict:
     """Build the scene, estimate with A and B, and score every lattice window."""
     from reblur import estimate_motion
-    from reblur.simulate import random_camera_path
+    from reblur.simulate import PathBlurredScene, random_camera_path
     from reblur.tiled import SparsePoses
 
     scene = _scene(ROWS, COLS, CELL)
     H, W = scene.shape
     path = random_camera_path(PATH_SEED, center=((W - 1) / 2, (H - 1) / 2), t_max=T_MAX,
                               rz_max=RZ_MAX)
-    obs = _Observed(scene, path)
+    obs = PathBlurredScene(scene, path)
     cfgs = configurations((H, W))
     for k, c in cfgs.items():
         t0 = time.perf_counter()

@@ -80,3 +80,29 @@ def test_error_map_lattice_is_regular_disjoint_and_inside():
     assert error_map.lattice((H, W), 1, 256) == [(3097, 3097, 256, 256)]
     with pytest.raises(ValueError):
         error_map.lattice((H, W), 26, 256)
+
+
+def test_reports_are_written_whole_with_the_usual_permissions(tmp_path):
+    """Generated pages and plots: atomic (no temporary file left) and readable by others
+    under a 022 umask (they were 0600, the mode of a bare temporary file)."""
+    import os
+    import stat
+
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    old = os.umask(0o022)
+    try:
+        md = common.write_text(tmp_path / "r" / "page.md", "# hello\n")
+        fig, ax = plt.subplots()
+        ax.plot([0, 1], [1, 0])
+        png = common.save_figure(fig, tmp_path / "r" / "plot.png")
+    finally:
+        os.umask(old)
+    assert md.read_text() == "# hello\n"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    for p in (md, png):
+        assert stat.S_IMODE(p.stat().st_mode) == 0o644, oct(p.stat().st_mode)
+    assert sorted(q.name for q in (tmp_path / "r").iterdir()) == ["page.md", "plot.png"]

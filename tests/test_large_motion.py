@@ -10,24 +10,10 @@ import pytest
 from conftest import levir_pairs, load_rgb
 
 from reblur import PoseGrid, estimate_motion
-from reblur.simulate import MosaicScene, blur_along_path, random_camera_path
+from reblur.simulate import MosaicScene, PathBlurredScene, random_camera_path
 from reblur.tiled import SparsePoses, reblur_tile
 
 S, MARGIN = 500, 300
-
-
-class Observed:
-    def __init__(self, scene, path):
-        self.scene, self.path = scene, path
-        self.shape, self.dtype = scene.shape, np.dtype(np.float32)
-
-    def window(self, box):
-        g, v = blur_along_path(self.scene, self.path, box, dtype=np.float32)
-        return g.reshape(box[2], box[3]), v
-
-    def __getitem__(self, key):
-        ys, xs = key
-        return self.window((ys.start, xs.start, ys.stop - ys.start, xs.stop - xs.start))[0]
 
 
 @pytest.fixture(scope="module")
@@ -38,7 +24,7 @@ def big_pair():
     assert H * W >= 40e6
     path = random_camera_path(5, center=((W - 1) / 2, (H - 1) / 2), t_max=9.0, rz_max=0.3)
     assert abs(path.extent()["rz"] - 0.3) < 1e-9
-    return scene, Observed(scene, path)
+    return scene, PathBlurredScene(scene, path)
 
 
 def _unseen_psnr(scene, obs, est):

@@ -526,3 +526,23 @@ def test_make_pair_moving_truth(levir):
     assert not np.any(pair.scene_truth & ~pair.scene_changed)
     untouched = ~pair.scene_changed
     np.testing.assert_array_equal(pair.scene[untouched], img[untouched])
+
+
+def test_path_blurred_scene_reads_windows_of_the_blur():
+    """Window reads equal the whole-image blur cropped (computed independently, at once)."""
+    from reblur.simulate import PathBlurredScene
+
+    rng = np.random.default_rng(21)
+    scene = rng.random((120, 150))
+    path = random_camera_path(2, center=(74.5, 59.5), t_max=3.0, rz_max=0.5)
+    whole, _ = blur_along_path(scene, path, (0, 0, 120, 150), dtype=np.float32)
+    whole = whole.reshape(120, 150)
+    obs = PathBlurredScene(scene, path)
+    assert obs.shape == (120, 150) and obs.dtype == np.float32
+    # (OpenCV float32 warp coordinates differ by window: about 1e-6 of the value)
+    np.testing.assert_allclose(obs[30:70, 40:110], whole[30:70, 40:110], atol=1e-5)
+    np.testing.assert_allclose(obs[:, 100:], whole[:, 100:], atol=1e-5)
+    with pytest.raises(IndexError):
+        obs[::2, :]
+    with pytest.raises(ValueError, match="gray"):
+        PathBlurredScene(rng.random((10, 10, 3)), path)

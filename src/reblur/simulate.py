@@ -38,6 +38,7 @@ __all__ = [
     "DEFAULT_VIEWPOINT",
     "CameraPath",
     "MosaicScene",
+    "PathBlurredScene",
     "SimulatedPair",
     "add_noise",
     "blur_along_path",
@@ -1083,3 +1084,49 @@ class MosaicScene:
     def __array__(self, dtype=None, copy=None):
         a = self[:, :]
         return a if dtype is None else a.astype(dtype)
+
+
+class PathBlurredScene:
+    """The blur of an image along a camera path, computed window by window on demand.
+
+    Stands in for a huge blurred observation (e.g. of a :class:`MosaicScene`) wherever
+    reblur reads windows: ``blurred[y0:y1, x0:x1]`` is :func:`blur_along_path` on that
+    window (float32, gray images), so nothing full-size is held.
+
+    Parameters
+    ----------
+    scene : array-like, (H, W)
+        Sharp image (numpy, :class:`MosaicScene`, ...).
+    path : CameraPath
+        Camera motion, in the scene's full-image coordinates.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> scene = np.random.default_rng(0).random((64, 64))
+    >>> obs = PathBlurredScene(scene, CameraPath.static((31.5, 31.5)))
+    >>> bool(np.allclose(obs[8:40, 8:40], scene[8:40, 8:40], atol=1e-6))
+    True
+    """
+
+    def __init__(self, scene, path: CameraPath):
+        if len(scene.shape) != 2:
+            raise ValueError(f"PathBlurredScene takes a gray (H, W) scene, got {scene.shape}")
+        self.scene, self.path = scene, path
+        self.shape, self.dtype = tuple(scene.shape), np.dtype(np.float32)
+
+    def window(self, box) -> tuple[np.ndarray, np.ndarray]:
+        """Blurred window ``(y0, x0, h, w)`` and its validity (every sample inside)."""
+        y0, x0, h, w = (int(v) for v in box)
+        g, v = blur_along_path(self.scene, self.path, (y0, x0, h, w), dtype=np.float32)
+        return g.reshape(h, w), v
+
+    def __getitem__(self, key):
+        ys, xs = key
+        if not (isinstance(ys, slice) and isinstance(xs, slice)) or (ys.step or 1) != 1 or (
+            xs.step or 1
+        ) != 1:
+            raise IndexError("PathBlurredScene takes two unit-step slices")
+        y0, y1, _ = ys.indices(self.shape[0])
+        x0, x1, _ = xs.indices(self.shape[1])
+        return self.window((y0, x0, y1 - y0, x1 - x0))[0]
