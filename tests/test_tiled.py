@@ -51,3 +51,25 @@ def test_tiled_reads_from_zarr_and_writes_to_zarr(levir_gray, tmp_path):
     ref, vref = reblur(img, w, grid, tile_size=1000)
     np.testing.assert_array_equal(valid, vref)
     assert np.max(np.abs(out[:] - ref)) < 1e-4  # float32 warp coordinates, see above
+
+
+def test_source_box_refuses_a_window_beyond_the_horizon():
+    """A homography whose horizon line crosses the window has no bounded source region:
+    a clear error, not a box made of NaN casts.  A plain shift gives the shifted box."""
+    import pytest
+
+    from reblur.warp import Box, source_box
+
+    dst = Box(0, 0, 100, 100)
+    b = source_box(np.array([[1.0, 0, 7], [0, 1, -3], [0, 0, 1]]), dst, pad=0)
+    assert (b.y0, b.x0, b.h, b.w) == (3, -7, 100, 100)
+    # the inverse maps w = 1 - x / 50: the line x = 50 crosses the window
+    Hi = np.array([[1.0, 0, 0], [0, 1, 0], [-1 / 50, 0, 1]])
+    with pytest.raises(ValueError, match="horizon"):
+        source_box(np.linalg.inv(Hi), dst)
+    # the same matrix, negated, is the same homography: still refused, and a negated
+    # plain shift is still accepted
+    with pytest.raises(ValueError, match="horizon"):
+        source_box(-np.linalg.inv(Hi), dst)
+    b2 = source_box(-np.array([[1.0, 0, 7], [0, 1, -3], [0, 0, 1]]), dst, pad=0)
+    assert (b2.y0, b2.x0) == (3, -7)

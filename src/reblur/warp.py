@@ -94,7 +94,18 @@ def source_box(H: np.ndarray, dst: Box, pad: int = _PAD) -> Box:
     A homography maps a rectangle to a quadrilateral (when the horizon is far outside),
     so the box of the four back-mapped corners bounds every source pixel.
     """
-    src = map_points(np.linalg.inv(H), dst.corners())
+    Hi = np.linalg.inv(H)
+    c = np.asarray(dst.corners(), dtype=float)
+    w = c @ Hi[2, :2] + Hi[2, 2]
+    # the window is convex: it stays on one side of the horizon line iff its corners do
+    if not (np.all(np.isfinite(w)) and (np.all(w > 0) or np.all(w < 0))):
+        raise ValueError(
+            "degenerate homography: part of the window maps beyond the horizon of the "
+            "reference (the alignment or the pose grid is far off)"
+        )
+    src = map_points(Hi, c)
+    if not np.all(np.isfinite(src)):
+        raise ValueError("degenerate homography: the window maps to non-finite positions")
     x0, y0 = np.floor(src.min(axis=0)).astype(int) - pad
     x1, y1 = np.ceil(src.max(axis=0)).astype(int) + pad
     return Box(int(y0), int(x0), int(y1 - y0 + 1), int(x1 - x0 + 1))
