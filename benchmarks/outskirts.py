@@ -70,10 +70,19 @@ def write_pair(d: Path, scene, blurred, squares, noise: float) -> tuple[Path, Pa
     return ref, obs
 
 
-def flag_rates(change, unknown, squares) -> dict[str, float]:
-    """False-alarm rates (centre / outer quarter) and the squares' interiors found there."""
+def flag_rates(change, unknown, squares, seams: tuple[int, ...] = ()) -> dict[str, float]:
+    """False-alarm rates (centre / outer quarter) and the squares' interiors found there.
+
+    ``seams``: rows / columns (the same values for both) of the mosaic's cell seams; a band
+    of ``GROW`` pixels on each side of them is left out of every rate.
+    """
     change = np.asarray(change, bool)
     unknown = np.asarray(unknown, bool)
+    if seams:
+        unknown = unknown.copy()
+        for v in seams:
+            unknown[max(v - GROW, 0) : v + GROW, :] = True
+            unknown[:, max(v - GROW, 0) : v + GROW] = True
     H, W = change.shape
     pasted = np.zeros((H, W), bool)
     core = np.zeros((H, W), bool)
@@ -93,7 +102,7 @@ def flag_rates(change, unknown, squares) -> dict[str, float]:
                 found_outer=float(change[core & outer].mean()))
 
 
-def run(ref_path: Path, obs_path: Path, squares, **kw) -> dict:
+def run(ref_path: Path, obs_path: Path, squares, cell: int | None = None, **kw) -> dict:
     import tifffile
     import zarr
 
@@ -104,6 +113,10 @@ def run(ref_path: Path, obs_path: Path, squares, **kw) -> dict:
     t = time.perf_counter()
     res = reblur.detect_changes(ref, obs, workers=2, keep_reblurred=False, **kw)
     out = flag_rates(res.change, res.unknown, squares)
+    if cell:
+        no_seam = flag_rates(res.change, res.unknown, squares,
+                             seams=tuple(range(cell, max(res.change.shape), cell)))
+        out.update(fa_centre_ns=no_seam["fa_centre"], fa_outer_ns=no_seam["fa_outer"])
     out.update(time_s=time.perf_counter() - t, estimate_s=res.timings["estimate"],
                grid_poses=int(res.motion.grid.size))
     return out
@@ -133,11 +146,15 @@ def main() -> str:
         f"the centre, {len(squares)} pasted squares; end to end from tiled TIFFs.  False "
         "alarms: unchanged pixels flagged (outside the squares grown by 40 px) in the central "
         "quarter and in the outer quarter of the image.  Criterion (large-image issue): outer "
-        "<= 2 x centre.",
+        "<= 2 x centre.  The mosaic's cell seams (straight steps between unrelated images "
+        f"every {scene.cell} px) are sharper than the 2x upsampled imagery around them and "
+        "than anything optics deliver: the reblur's interpolation error peaks there, so the "
+        "rates are also given without a band of 40 px on each side of the seams.",
         "",
-        "| noise | set-up | false alarms, centre | false alarms, outer quarter | squares found "
-        "(centre / outer) | time (s) | estimate (s) |",
-        "|---|---|---|---|---|---|---|",
+        "| noise | set-up | false alarms, centre | false alarms, outer quarter | same, "
+        "without the seams (centre / outer) | squares found (centre / outer) | time (s) "
+        "| estimate (s) |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for noise in sorted({c[0] for c in cases}, reverse=True):
         with tempfile.TemporaryDirectory(dir="/tmp", prefix="reblur-outskirts-") as dd:
@@ -146,10 +163,11 @@ def main() -> str:
             for nz, name, kw in cases:
                 if nz != noise:
                     continue
-                r = run(ref_p, obs_p, squares, **kw)
+                r = run(ref_p, obs_p, squares, cell=scene.cell, **kw)
                 lines.append(
                     f"| {'1/255' if noise else 'none'} | {name} | {100 * r['fa_centre']:.3f} % | "
-                    f"{100 * r['fa_outer']:.3f} % | {100 * r['found_centre']:.0f} % / "
+                    f"{100 * r['fa_outer']:.3f} % | {100 * r['fa_centre_ns']:.3f} % / "
+                    f"{100 * r['fa_outer_ns']:.3f} % | {100 * r['found_centre']:.0f} % / "
                     f"{100 * r['found_outer']:.0f} % | {r['time_s']:.1f} | "
                     f"{r['estimate_s']:.1f} |"
                 )

@@ -240,3 +240,41 @@ def test_huber_optimum_with_many_outliers(changed, one_sided):
                    bounds=[(0, None)] * grid.size, options=dict(maxiter=20000, gtol=1e-12))
     f_as = fun(w_as.ravel())[0]
     assert f_as <= ref.fun * (1 + 1e-9), (f_as, ref.fun)
+
+    # a warm start whose inactive poses already pass the KKT test (weights 1.5x too large:
+    # every inactive gradient is positive) must still be optimised, not returned as is
+    w0 = 1.5 * w_as
+    assert np.all(fun(w0.ravel())[1][~on] >= 0)
+    w_ws, _ = active_set([op], [g[:, :, None]], lam=lam, w0=w0,
+                         signs=None if s is None else [s[:, :, None]])
+    f_ws, grad_ws = fun(w_ws.ravel())
+    on_ws = w_ws.ravel() > 0
+    assert np.all(np.abs(grad_ws[on_ws]) <= 1e-6 * scale)
+    assert np.all(grad_ws[~on_ws] >= -1e-6 * scale)
+    assert f_ws <= ref.fun * (1 + 1e-9), (f_ws, ref.fun)
+
+
+def test_photometric_refit_recovers_the_offset(levir_gray, paper_grid):
+    """An observation with another gain and offset than the reference: the refit finds
+    the offset (synthetic truth), the weights carry the gain in their sum, and they fit
+    the blur as well as without the photometric change."""
+    w_true = grid_path(paper_grid, rng=11, n_poses=25)
+    clean, _ = blur_weights(levir_gray, paper_grid, w_true, BOX, dtype=np.float32)
+    a_true, b_true = 0.93, 0.035
+    obs = _embed(a_true * clean + b_true, levir_gray.shape)
+    op = BlurOperator(levir_gray, paper_grid, BOX)
+    plain = estimate_motion(levir_gray, obs, paper_grid, boxes=[BOX])
+    refit = estimate_motion(levir_gray, obs, paper_grid, boxes=[BOX], refit_photometry=True)
+    ph = refit.info["photometry"]
+    assert abs(ph["offset"][0] - b_true) <= 5e-4, ph
+    assert abs(refit.weights.sum() - a_true * w_true.sum()) <= 5e-3
+    fit_refit = op.matvec(refit.weights)[:, :, 0]
+    fit_plain = op.matvec(plain.weights)[:, :, 0]
+    truth = a_true * clean + b_true
+    assert psnr(fit_refit + b_true, truth) >= 40.0
+    assert psnr(fit_refit + b_true, truth) > psnr(fit_plain, truth) + 3.0
+    assert mass_near_truth(refit.weights, w_true) >= 0.9
+    # without a photometric difference the refit is (almost) the identity
+    same = estimate_motion(levir_gray, _embed(clean, levir_gray.shape), paper_grid,
+                           boxes=[BOX], refit_photometry=True)
+    assert abs(same.info["photometry"]["offset"][0]) <= 5e-4

@@ -412,7 +412,7 @@ def _estimate_stage(
     sp = select or SelectParams(lam=lam, windows=windows)
     if boxes is not None:
         motion = estimate_motion(reference, obs_view, grid, boxes=boxes, base=H0, lam=lam,
-                                 scale=None)
+                                 scale=None, refit_photometry=sp.refit_photometry)
         crop = CropChoice(boxes=[tuple(b) for b in motion.boxes], size=int(boxes[0][2]))
     else:
         crop, motion = select_windows(
@@ -421,6 +421,10 @@ def _estimate_stage(
         )
     if not np.any(motion.weights > 0):
         raise ValueError("motion cannot be estimated: every pose weight came out zero")
+    photo = motion.info.get("photometry")
+    if photo is not None:
+        # the estimate found view ~ F w + b on its windows, with view = (obs - offset) / gain
+        offset = offset + gain * np.asarray(photo["offset"], float)
     timings["estimate"] = time.perf_counter() - t
     report("estimate", 1.0)
 

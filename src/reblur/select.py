@@ -59,6 +59,8 @@ class SelectParams:
     #: textured: their distance apart, not their texture, then decides (roll observability)
     texture_floor: float = 0.2
     lam: float = 0.1
+    #: re-fit gain and offset on the final windows after the motion (see ``estimate_motion``)
+    refit_photometry: bool = True
     overview_side: int = 1024  #: resolution of the region-score map
     extra: dict = field(default_factory=dict)
 
@@ -309,7 +311,8 @@ def select_windows(
                 chosen = [b] + _spread_partners(cells, cover, S, unit, b, p.windows - 1, (H, W),
                                                p.texture_floor)
                 est = estimate_motion(reference, observed, grid,
-                                      boxes=[c.as_tuple() for c in chosen], base=base, lam=p.lam)
+                                      boxes=[c.as_tuple() for c in chosen], base=base, lam=p.lam,
+                                      refit_photometry=p.refit_photometry)
                 occ = _occluded_fraction(est)
                 if occ > p.max_occluded:
                     rec["reason"] = f"{occ:.0%} occluded"
@@ -336,7 +339,7 @@ def select_windows(
         chosen = [b] + _spread_partners(cells, cover, rec["size"], unit, b, p.windows - 1,
                                        (H, W), p.texture_floor)
         est = estimate_motion(reference, observed, grid, boxes=[c.as_tuple() for c in chosen],
-                              base=base, lam=p.lam)
+                              base=base, lam=p.lam, refit_photometry=p.refit_photometry)
         rec["accepted"] = True
         rec["reason"] = "largest window tried (none reached T_m)"
         crop = CropChoice(boxes=[c.as_tuple() for c in chosen], size=rec["size"] * unit, m1=m1,
@@ -404,7 +407,7 @@ def _select_spread(reference, observed, grid, base, p: SelectParams, cells, cove
         if progress:
             progress(f"{len(chosen)} spread windows of {S * unit} px")
         est = estimate_motion(reference, observed, grid, boxes=[c.as_tuple() for c in chosen],
-                              base=base, lam=p.lam)
+                              base=base, lam=p.lam, refit_photometry=p.refit_photometry)
         bad = [i for i, c in enumerate(est.chi) if _occluded_fraction_one(c) > p.max_occluded]
         for i, c in enumerate(chosen):
             tried.append(dict(box=c.as_tuple(), size=S, m=float("nan"), accepted=i not in bad,

@@ -303,6 +303,17 @@ def active_set(
     kkt = np.nan
     n_outer = 0
     n_newton = 0
+    if active:
+        # optimise the warm start's weights first: the KKT test below looks at the inactive
+        # poses only, and a warm start from other data (a coarser level, other windows, a
+        # corrected observation) would otherwise pass it unchanged
+        wa, res, n_newton = _huber_newton(wins, active, wa, res, G, b, d, lam, max_irls)
+        keep = wa > 0
+        if not keep.all():
+            idx = np.flatnonzero(keep)
+            active = [active[i] for i in idx]
+            wa, G, b, d = wa[idx], G[np.ix_(idx, idx)], b[idx], d[idx]
+
     for n_outer in range(1, max_outer + 1):  # noqa: B007 (reported after the loop)
         # residuals, Huber weights and the full gradient (one FFT adjoint per window)
         grad = np.full(P, lam)
