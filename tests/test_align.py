@@ -351,3 +351,82 @@ def test_real_unrelated_later_image_is_refused():
     for shake in (8.0, 64.0):
         with pytest.raises(AlignmentError, match="could not be verified|too few|inconsistent"):
             coarse_align(ref, obs, shake_px=shake)
+
+
+# ---------------------------------------------------------------------------- several shakes
+SHAKES = (8.0, 16.0, 32.0, 64.0)
+
+
+def _outcome(a):
+    """Comparable form of an alignment or an AlignmentError."""
+    if isinstance(a, AlignmentError):
+        return ("refused", str(a))
+    return ("aligned", a.H.tobytes(), json.dumps(a.to_dict(), sort_keys=True))
+
+
+@pytest.mark.parametrize("case", ["same_scene", "years_apart", "unrelated"])
+def test_shakes_share_work_but_not_results(case, scenes, monkeypatch):
+    """``coarse_align_shakes`` (one pyramid; features, ECC and gradient blocks memoised)
+    gives, extent by extent, exactly what separate ``coarse_align`` calls give: the same
+    homography bit for bit, diagnostics, or refusal message.  Covers the feature + ECC
+    path (a same-scene pair), the gradient blocks from rotation hypotheses (years apart,
+    the polish never fits) and a refusal (another scene); a caller editing a yielded
+    ``H`` in place must not change the later extents."""
+    if case == "same_scene":
+        ref, obs, _ = scenes["levir_test_7"]
+    elif case == "years_apart":
+        ref, obs, _ = _later_pair(0, LEVIR / "B" / "test_102.png")
+    else:
+        ref, obs, _ = _later_pair(3, WHU / "curr" / "000121.png")
+    separate = []
+    for s in SHAKES:
+        try:
+            separate.append(_outcome(coarse_align(ref, obs, shake_px=s)))
+        except AlignmentError as err:
+            separate.append(_outcome(err))
+
+    calls = {"sift": 0, "overview": 0}
+    match, ov = align_mod._match_features, align_mod._overview_k
+
+    def counting_match(*args, **kwargs):
+        calls["sift"] += 1
+        return match(*args, **kwargs)
+
+    def counting_overview(*args, **kwargs):
+        calls["overview"] += 1
+        return ov(*args, **kwargs)
+
+    monkeypatch.setattr(align_mod, "_match_features", counting_match)
+    monkeypatch.setattr(align_mod, "_overview_k", counting_overview)
+    shared = []
+    for s, a in align_mod.coarse_align_shakes(ref, obs, SHAKES):
+        shared.append((s, _outcome(a)))
+        if not isinstance(a, AlignmentError):
+            a.H[:] = np.nan  # must not reach the memo
+    assert [s for s, _ in shared] == list(SHAKES)
+    for s, (got, want) in zip(SHAKES, zip([o for _, o in shared], separate, strict=True),
+                              strict=True):
+        assert got == want, f"shake_px={s}"
+    assert calls["overview"] == 2  # each image read once
+    assert calls["sift"] <= 2  # at most the two feature levels, once each
+    if case != "unrelated":
+        assert any(o[0] == "aligned" for o in separate)
+
+
+def test_shakes_arguments():
+    rng = np.random.default_rng(0)
+    ref = rng.random((64, 64)).astype(np.float32)
+    with pytest.raises(TypeError, match="shake_px"):
+        next(align_mod.coarse_align_shakes(ref, ref, (8.0,), shake_px=4.0))
+    with pytest.raises(ValueError, match="shake_px"):
+        next(align_mod.coarse_align_shakes(ref, ref, (8.0, -1.0)))
+    with pytest.raises(ValueError, match="method"):
+        next(align_mod.coarse_align_shakes(ref, ref, (8.0,), method="nope"))
+    # a textureless image is refused at every extent, with coarse_align's message
+    flat = np.zeros((64, 64), np.float32)
+    got = list(align_mod.coarse_align_shakes(flat, ref, (8.0, 16.0), min_side=32))
+    assert [s for s, _ in got] == [8.0, 16.0]
+    for _, err in got:
+        assert isinstance(err, AlignmentError) and "textureless" in str(err)
+    with pytest.raises(AlignmentError, match="textureless"):
+        coarse_align(flat, ref, min_side=32)

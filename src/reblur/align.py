@@ -32,6 +32,10 @@ estimate is the SIFT one when it holds, else the best of a few in-plane rotation
 hypotheses searched with larger blocks on a coarse level.  The polish then runs as
 well and is kept where its blur model fits (a same-scene pair).
 
+:func:`coarse_align_shakes` tries several shake extents on one pair: the overviews, the
+pyramid, and the stages that read the extent only through the working level (features,
+their ECC refinement, gradient blocks) are computed once and shared.
+
 Coordinates follow :mod:`reblur.grid`: ``(x, y)`` = (column, row) with pixel centres on
 integers, and ``H`` maps a reference pixel to the observation pixel.  An overview made with
 the integer block factor ``k`` (``scale = 1 / k``) has pixel ``x_s`` centred on the full
@@ -40,9 +44,12 @@ resolution position ``x = k * x_s + (k - 1) / 2`` (i.e. ``(x_s + 0.5) / scale - 
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
-from dataclasses import dataclass
+from collections.abc import Callable, Hashable, Iterator, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
 
 import cv2
 import numpy as np
@@ -50,7 +57,10 @@ from scipy.optimize import nnls
 
 from .grid import map_points, translation
 
-__all__ = ["Alignment", "AlignmentError", "coarse_align", "overview", "overview_matrix"]
+__all__ = [
+    "Alignment", "AlignmentError", "coarse_align", "coarse_align_shakes", "overview",
+    "overview_matrix",
+]
 
 log = logging.getLogger(__name__)
 
@@ -1049,6 +1059,11 @@ def coarse_align(
     ValueError
         Bad arguments (shapes, dtypes, options).
 
+    See Also
+    --------
+    coarse_align_shakes : the same for several shake extents, sharing the overviews and
+        the stages that do not depend on the extent.
+
     Notes
     -----
     A correlation optimum between a sharp and a motion-blurred image lies near a *mode* of
@@ -1078,14 +1093,136 @@ def coarse_align(
     >>> bool(err < 1.0), a.method.split("+")[0]
     (True, 'features')
     """
+    params = dict(locals())  # every keyword argument, as given
+    del params["reference"], params["observed"], params["shake_px"]
+    _check_args(method=method, motion=motion, min_side=min_side, max_side=max_side,
+                shakes=(shake_px,))
+    prep = _prepare(reference, observed, max_side=max_side, min_side=min_side, nodata=nodata)
+    return _align(prep, shake_px=shake_px, **params)
+
+
+def coarse_align_shakes(
+    reference,
+    observed,
+    shakes: Sequence[float] = (8.0, 16.0, 32.0, 64.0),
+    **kwargs: Any,
+) -> Iterator[tuple[float, Alignment | AlignmentError]]:
+    """:func:`coarse_align` for several camera-shake extents, sharing what does not depend
+    on the extent.
+
+    The overviews and the pyramid are built once, and the SIFT matches, their ECC
+    refinement, the gradient blocks and the phase-correlation start are computed once for
+    each set of inputs they read (the shake extent only picks the working level, which
+    these stages may share); the kernel polish and the checks run for each extent.  Each
+    result is exactly the one a separate ``coarse_align(reference, observed,
+    shake_px=s, **kwargs)`` gives.
+
+    Parameters
+    ----------
+    reference, observed : array-like, (H, W) or (H, W, C)
+        As for :func:`coarse_align`; each is read once.
+    shakes : sequence of float
+        Shake extents (``shake_px`` of :func:`coarse_align`), tried in this order.
+    **kwargs
+        Any other keyword argument of :func:`coarse_align` (not ``shake_px``).
+
+    Yields
+    ------
+    shake_px : float
+        The extent tried.
+    result : Alignment or AlignmentError
+        Its alignment, or the error :func:`coarse_align` would raise.  Results are computed
+        lazily: stopping the iteration skips the remaining extents.
+
+    Raises
+    ------
+    ValueError
+        Bad arguments, as :func:`coarse_align` (raised on the first ``next``).
+    TypeError
+        An unknown keyword argument, or ``shake_px``.
+
+    Examples
+    --------
+    >>> import numpy as np, cv2
+    >>> from reblur.grid import pose_homography
+    >>> from reblur.warp import warp_window
+    >>> rng = np.random.default_rng(0)
+    >>> ref = cv2.GaussianBlur(rng.random((400, 400)).astype(np.float32), (0, 0), 2)
+    >>> H = pose_homography(12, -7, rz=2.0, center=(199.5, 199.5))
+    >>> obs, _ = warp_window(ref, H, (0, 0, 400, 400))
+    >>> for s, a in coarse_align_shakes(ref, obs[..., 0], (8.0, 16.0), min_side=64):
+    ...     print(s, a.method.split("+")[0])
+    8.0 features
+    16.0 features
+    """
+    defaults = dict(coarse_align.__kwdefaults__)
+    del defaults["shake_px"]
+    unknown = sorted(set(kwargs) - set(defaults))
+    if unknown:
+        raise TypeError(f"coarse_align_shakes() got unexpected keyword arguments {unknown}")
+    params = {**defaults, **kwargs}
+    shakes = tuple(shakes)
+    _check_args(method=params["method"], motion=params["motion"],
+                min_side=params["min_side"], max_side=params["max_side"], shakes=shakes)
+    try:
+        prep = _prepare(reference, observed, max_side=params["max_side"],
+                        min_side=params["min_side"], nodata=params["nodata"])
+    except AlignmentError as err:
+        for sp in shakes:
+            yield sp, AlignmentError(str(err))
+        return
+    for sp in shakes:
+        try:
+            yield sp, _align(prep, shake_px=sp, **params)
+        except AlignmentError as err:
+            yield sp, err
+
+
+def _check_args(
+    *, method: str, motion: str, min_side: int, max_side: int, shakes: tuple[float, ...]
+) -> None:
+    """Raise ValueError on bad arguments of :func:`coarse_align`."""
     if method not in _METHODS:
         raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
     if motion not in _MOTIONS:
         raise ValueError(f"motion must be one of {tuple(_MOTIONS)}, got {motion!r}")
     if min_side < 16 or max_side < min_side:
         raise ValueError(f"need 16 <= min_side <= max_side, got {min_side}, {max_side}")
-    if not shake_px >= 0:
-        raise ValueError(f"shake_px must be >= 0, got {shake_px}")
+    for shake_px in shakes:
+        if not shake_px >= 0:
+            raise ValueError(f"shake_px must be >= 0, got {shake_px}")
+
+
+@dataclass
+class _Prepared:
+    """The overviews' pyramid of one pair and the memo of the stages that do not depend
+    on the shake extent (see :func:`_align`)."""
+
+    ref_shape: tuple[int, int]
+    obs_shape: tuple[int, int]
+    scale0: float
+    levels: list[_Level]
+    memo: dict = field(default_factory=dict)
+
+    def cached(self, key: Hashable, compute: Callable[[], Any]) -> Any:
+        """``compute()`` once per ``key``; an AlignmentError it raises is re-raised (a new
+        one with the same message) on every later call."""
+        if key not in self.memo:
+            try:
+                self.memo[key] = (True, compute())
+            except AlignmentError as err:
+                self.memo[key] = (False, str(err))
+        ok, got = self.memo[key]
+        if not ok:
+            raise AlignmentError(got)
+        return got
+
+
+def _prepare(reference, observed, *, max_side: int, min_side: int,
+             nodata: float | None) -> _Prepared:
+    """Overviews of both images (each read once) and their pyramid.
+
+    Raises ValueError when they are too small, AlignmentError when one is textureless."""
     ref_shape, obs_shape = _shape2(reference), _shape2(observed)
     k = _block_factor(max(ref_shape + obs_shape), max_side)
     scale0 = 1.0 / k
@@ -1100,6 +1237,52 @@ def coarse_align(
         if _spread(a) <= tol:
             raise AlignmentError(f"images are textureless: the {name} is (nearly) constant")
     levels = _pyramid(ref0, obs0, scale0, min_side, nodata)
+    return _Prepared(ref_shape, obs_shape, scale0, levels)
+
+
+def _align(
+    prep: _Prepared,
+    *,
+    shake_px: float,
+    max_side: int,
+    min_side: int,
+    method: str,
+    nodata: float | None,
+    feature_side: int,
+    n_features: int,
+    ratio: float,
+    ransac_px: float,
+    min_inliers: int,
+    min_inlier_ratio: float,
+    refine: bool,
+    motion: str,
+    blur_px: float,
+    ecc_iterations: int,
+    polish: bool,
+    min_r2: float,
+    min_regions: float,
+    min_agree: float,
+    min_spread: float,
+    min_ecc: float,
+    max_zoom: float,
+    max_anisotropy: float,
+    min_overlap: float,
+    gradient_side: int,
+    rotations: tuple[float, ...],
+    block_ncc: float,
+    min_blocks: int,
+) -> Alignment:
+    """:func:`coarse_align` with the shake extent ``shake_px`` on a prepared pair.
+
+    The stages that read the shake extent only through the working level are memoised in
+    ``prep`` under the level indices and initial homography they read, and under every
+    other argument (so a memo entry is reused only where a fresh computation would give
+    the same result).  Results handed out are copies: a caller that edits an
+    :attr:`Alignment.H` in place cannot reach the memo.
+    """
+    # every argument but the shake extent: part of each memo key
+    fixed = repr(sorted((k, v) for k, v in locals().items() if k not in ("prep", "shake_px")))
+    ref_shape, obs_shape, scale0, levels = prep.ref_shape, prep.obs_shape, prep.scale0, prep.levels
     top = len(levels) - 1
     checks = dict(max_zoom=max_zoom, max_anisotropy=max_anisotropy, min_overlap=min_overlap)
     mot = _MOTIONS[motion]
@@ -1169,49 +1352,50 @@ def coarse_align(
 
     errors: list[str] = []
 
-    feature_cache: dict[int, tuple[_Features, np.ndarray, list[str]] | AlignmentError] = {}
-
-    def features_estimate(i: int) -> tuple[_Features, np.ndarray, list[str]]:
-        """SIFT estimate on level ``i`` (computed once), raising its AlignmentError."""
-        if i not in feature_cache:
-            try:
-                feature_cache[i] = _features_estimate(i)
-            except AlignmentError as err:
-                feature_cache[i] = err
-        got = feature_cache[i]
-        if isinstance(got, AlignmentError):
-            raise got
-        f, H, stages = got
-        return f, H.copy(), list(stages)
-
-    def _features_estimate(i: int) -> tuple[_Features, np.ndarray, list[str]]:
-        """SIFT estimate on level ``i``, refined by ECC when that stays with the matches."""
+    def matched_features(i: int) -> _Features:
+        """SIFT estimate on level ``i``; AlignmentError when it fails or is implausible."""
         f = _match_features(
             levels[i], n_features=n_features, ratio=ratio, ransac_px=ransac_px,
             min_inliers=min_inliers, min_inlier_ratio=min_inlier_ratio,
         )
         _check_plausible(f.H, ref_shape, obs_shape, **checks)
-        H, stages = f.H, ["features"]
+        return f
+
+    def feature_ecc(f: _Features) -> tuple[np.ndarray, float, float]:
+        """ECC refinement of ``f.H`` on the working level, its residual to the matches
+        before and after; AlignmentError when it fails, is implausible or correlates too
+        little."""
+        He, rho, _ = _ecc_refine(
+            levels, f.H, min(work + 1, top), work, ref_shape, max_jump=0.05,
+            tolerant=True, **ecc_kw,
+        )
+        _check_plausible(He, ref_shape, obs_shape, **checks)
+        if rho < min_ecc:
+            raise AlignmentError(f"ECC correlation {rho:.2f} < {min_ecc:g}")
+        res_f = float(np.median(np.hypot(*(map_points(f.H, f.src) - f.dst).T)))
+        res_e = float(np.median(np.hypot(*(map_points(He, f.src) - f.dst).T)))
+        return He, res_f, res_e
+
+    def features_estimate(i: int) -> tuple[_Features, np.ndarray, list[str]]:
+        """SIFT estimate on level ``i``, refined by ECC when that stays with the matches;
+        raises its AlignmentError.  Both are memoised: they read the shake extent only
+        through the working level."""
+        f = prep.cached(("features", i, fixed), functools.partial(matched_features, i))
+        H, stages = f.H.copy(), ["features"]
         if refine:
             try:
-                He, rho, _ = _ecc_refine(
-                    levels, H, min(work + 1, top), work, ref_shape, max_jump=0.05,
-                    tolerant=True, **ecc_kw,
+                He, res_f, res_e = prep.cached(
+                    ("features-ecc", i, work, fixed), functools.partial(feature_ecc, f)
                 )
-                _check_plausible(He, ref_shape, obs_shape, **checks)
-                if rho < min_ecc:
-                    raise AlignmentError(f"ECC correlation {rho:.2f} < {min_ecc:g}")
                 # ECC must not leave the feature matches: smoothing can wash out fine
                 # texture and let it drift
-                res_f = float(np.median(np.hypot(*(map_points(H, f.src) - f.dst).T)))
-                res_e = float(np.median(np.hypot(*(map_points(He, f.src) - f.dst).T)))
                 log.debug("feature residual %.2f px, after ECC %.2f px", res_f, res_e)
                 if res_e > max(2.0 * res_f, 0.25 * shake_px, 1.0 / levels[i].scale):
                     raise AlignmentError(
                         f"ECC moved away from the feature matches ({res_e:.1f} px vs "
                         f"{res_f:.1f} px)"
                     )
-                H = He
+                H = He.copy()
                 stages.append("ecc")
             except AlignmentError as err:
                 log.debug("ECC refinement rejected (%s); keeping the feature estimate", err)
@@ -1240,10 +1424,14 @@ def coarse_align(
         )
         blocks, stages = None, ["gradient"]
         for seed in ([init, None] if init is not None else [None]):
+            H0 = None if seed is None else seed[1]
             try:
-                blocks = _gradient_align(
-                    levels, None if seed is None else seed[1], ref_shape, fine, **grad_kw
+                # memoised: reads the shake extent only through ``fine`` and the seed
+                blocks = prep.cached(
+                    ("gradient", fine, None if H0 is None else H0.tobytes(), fixed),
+                    functools.partial(_gradient_align, levels, H0, ref_shape, fine, **grad_kw),
                 )
+                blocks = replace(blocks, H=blocks.H.copy())
             except AlignmentError as err:
                 log.debug("gradient alignment failed (seed %s): %s", seed is not None, err)
                 errors.append(str(err))
@@ -1296,11 +1484,16 @@ def coarse_align(
 
     if n_blocks == 0 and feats is None and method in ("auto", "ecc"):
         # fallback: phase correlation for the translation, then ECC coarse to fine
-        try:
+        def phase_ecc() -> np.ndarray:
             H = _phase_init(levels[top])
             _check_plausible(H, ref_shape, obs_shape, **checks)
-            H, rho, _ = _ecc_refine(levels, H, top, work, ref_shape, max_jump=0.25, **ecc_kw)
+            H, _, _ = _ecc_refine(levels, H, top, work, ref_shape, max_jump=0.25, **ecc_kw)
             _check_plausible(H, ref_shape, obs_shape, **checks)
+            return H
+
+        try:
+            # memoised: reads the shake extent only through the working level
+            H = prep.cached(("phase-ecc", work, fixed), phase_ecc).copy()
             stages, n_agree = ["phase", "ecc"], 0
             if polish:
                 H, n_agree, _ = polish_and_verify(H, stages)

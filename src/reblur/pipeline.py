@@ -310,16 +310,19 @@ def align_coarse(reference, observed, shakes=(8.0, 16.0, 32.0, 64.0)):
     pair the polish then fits and removes the blur bias of the correlation optimum (on the
     Fig. 6 set-up, seed 8 of ``benchmarks/quality.py``: a 10 px corner error left at
     ``shake_px=8``); between captures years apart it never fits, and the reserve is used.
+
+    The extents share one pyramid of overviews (:func:`reblur.align.coarse_align_shakes`):
+    the images are read once, and the features, their ECC refinement and the gradient
+    blocks are computed once for each working level they read; the result is the one
+    separate :func:`~reblur.align.coarse_align` calls give.
     """
-    from .align import AlignmentError, coarse_align
+    from .align import coarse_align_shakes
 
     err: Exception | None = None
     reserve = None
-    for sp in shakes:
-        try:
-            a = coarse_align(reference, observed, shake_px=sp)
-        except AlignmentError as e:
-            err = e
+    for _, a in coarse_align_shakes(reference, observed, shakes):
+        if isinstance(a, Exception):
+            err = a
             continue
         if "kernel" in a.method.split("+"):
             return a
