@@ -251,27 +251,32 @@ def _fit_gain_offset(ops, gs, w, lam, occlusion) -> tuple[np.ndarray, np.ndarray
 
 
 def _refit_photometry(ops, gs, w, info, lam, occlusion, max_outer, time_limit,
-                      max_rounds: int = 8, tol: float = 1e-4):
+                      max_rounds: int = 4, tol: float = 1e-4):
     """Find the offset ``B`` (per band) with which eq. 5 on ``g - B`` leaves no offset.
 
     The weights represent a gain (their sum) but not an offset, so a solve against an
     observation with an offset bends them to absorb part of it.  The intercept ``b`` of
     the Huber line ``g - B ~ a * F w + b`` over the inliers is the part they could not
     absorb.  ``b(B)`` falls nearly linearly as ``B`` approaches the true offset, so the
-    rounds take secant steps on it (the first a plain ``B += b``), each solving eq. 5 from
-    the weights found (warm start, cheap: the support barely moves), until ``|b| < tol``
-    (intensity units).  The gain stays in the weights (it is not identifiable apart from
-    their sum).  Returns the new weights, the merged solver info (with ``photometry``) and
-    the corrected observation windows.
+    rounds propose secant steps on it (the first a plain ``B += b``), each solving eq. 5
+    from the weights found (warm start, cheap: the support barely moves).  A round is kept
+    only if it lowers eq. 5's objective in ``(w, B)`` (so a pair where almost everything
+    changed, and the intercept means little, keeps the plain estimate); the rounds stop at
+    ``|b| < tol`` (intensity units).  The gain stays in the weights (it is not identifiable
+    apart from their sum).  Returns the weights, the merged solver info (with
+    ``photometry``) and the corrected observation windows.
     """
     C = gs[0].shape[2]
     g0 = gs
-    B = np.zeros(C)
     info = dict(info)
-    rounds = 0
+    best_obj = float(info["objective"][-1]) if info.get("objective") else np.inf
+    best = (w, np.zeros(C), gs)
+    rounds = kept = 0
     n_used = 0
-    prev = None  # (B, b) of the previous round
+    prev = None  # (B, b) of the previous kept round
+    b = np.zeros(C)
     for rounds in range(1, max_rounds + 1):  # noqa: B007 (reported below)
+        w, B, gs = best
         _, b, n_used = _fit_gain_offset(ops, gs, w, lam, occlusion)
         if np.max(np.abs(b)) < tol:
             break
@@ -283,17 +288,23 @@ def _refit_photometry(ops, gs, w, info, lam, occlusion, max_outer, time_limit,
             # a sane secant slope: b falls as B grows, by no more than the plain step
             ok = np.isfinite(slope) & (slope < -0.05) & (slope > -1.5)
             step = np.where(ok, -b / np.where(ok, slope, 1.0), b)
-        prev = (B.copy(), b)
-        B = B + step
-        gs = [g - B for g in g0]
-        w, more = active_set(ops, gs, lam=lam, occlusion=occlusion, max_outer=max_outer,
-                             time_limit=time_limit, w0=w)
-        info["objective"] = list(info.get("objective", [])) + list(more["objective"])
+        B_new = B + step
+        gs_new = [g - B_new for g in g0]
+        w_new, more = active_set(ops, gs_new, lam=lam, occlusion=occlusion,
+                                 max_outer=max_outer, time_limit=time_limit, w0=w)
         info["n_outer"] = int(info.get("n_outer", 0)) + int(more["n_outer"])
         info["time_s"] = float(info.get("time_s", 0.0)) + float(more["time_s"])
+        obj = float(more["objective"][-1])
+        if not obj < best_obj:
+            break
+        info["objective"] = list(info.get("objective", [])) + list(more["objective"])
         info.update({k: v for k, v in more.items() if k not in ("objective", "n_outer", "time_s")})
+        prev = (B, b)
+        best, best_obj = (w_new, B_new, gs_new), obj
+        kept += 1
+    w, B, gs = best
     info["photometry"] = dict(offset=B.tolist(), n_pixels=int(n_used), rounds=rounds,
-                              residual_offset=np.abs(b).tolist())
+                              kept=kept, residual_offset=np.abs(b).tolist())
     return w, info, gs
 
 
