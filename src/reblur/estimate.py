@@ -11,7 +11,7 @@ from threadpoolctl import threadpool_limits
 from .grid import PoseGrid
 from .operator import BlurOperator
 from .result import MotionEstimate
-from .robust import huber_line
+from .robust import huber_line, mad
 from .solve import active_set, fista
 from .warp import as_box, read_window
 
@@ -226,12 +226,16 @@ def _solve(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, oc
     return w, info, ops, gs
 
 
-def _fit_gain_offset(ops, gs, w, lam, occlusion) -> tuple[np.ndarray, np.ndarray, int]:
+def _fit_gain_offset(ops, gs, w, lam, occlusion):
     """Per-band Huber fit ``g ~ a * F w + b`` over the windows' inliers (valid pixels whose
-    residual the change term leaves alone, ``|r| <= lam / 2``)."""
+    residual the change term leaves alone, ``|r| <= lam / 2``).
+
+    Returns ``a, b`` and the residual scale (MAD) of the fit, per band, and the number of
+    inlier pixels.
+    """
     C = gs[0].shape[2]
     fws = [op.matvec(w) for op in ops]
-    a, b = np.ones(C), np.zeros(C)
+    a, b, scale = np.ones(C), np.zeros(C), np.full(C, np.inf)
     n_used = 0
     for c in range(C):
         xs, ys = [], []
@@ -247,7 +251,8 @@ def _fit_gain_offset(ops, gs, w, lam, occlusion) -> tuple[np.ndarray, np.ndarray
             ac, bc = huber_line(x, y)
             if ac > 0.05:  # a sane gain; otherwise keep the identity
                 a[c], b[c] = ac, bc
-    return a, b, n_used
+                scale[c] = mad(y - ac * x - bc)
+    return a, b, scale, n_used
 
 
 def _refit_photometry(ops, gs, w, info, lam, occlusion, max_outer, time_limit,
@@ -259,12 +264,14 @@ def _refit_photometry(ops, gs, w, info, lam, occlusion, max_outer, time_limit,
     the Huber line ``g - B ~ a * F w + b`` over the inliers is the part they could not
     absorb.  ``b(B)`` falls nearly linearly as ``B`` approaches the true offset, so the
     rounds propose secant steps on it (the first a plain ``B += b``), each solving eq. 5
-    from the weights found (warm start, cheap: the support barely moves).  A round is kept
-    only if it lowers eq. 5's objective in ``(w, B)`` (so a pair where almost everything
-    changed, and the intercept means little, keeps the plain estimate); the rounds stop at
-    ``|b| < tol`` (intensity units).  The gain stays in the weights (it is not identifiable
-    apart from their sum).  Returns the weights, the merged solver info (with
-    ``photometry``) and the corrected observation windows.
+    from the weights found (warm start, cheap: the support barely moves).  The rounds run
+    only while the intercept is significant against the inliers' residual scale (``|b| >=
+    scale / 2``: the biased pre-match of a well-modelled pair, not the misfit of a pair
+    where much changed) and above ``tol`` (intensity units); a round is kept only if it
+    lowers eq. 5's objective in ``(w, B)`` and they stop when a kept round did not at least
+    halve the intercept (the model does not explain it).  The gain stays in the weights
+    (it is not identifiable apart from their sum).  Returns the weights, the merged solver
+    info (with ``photometry``) and the corrected observation windows.
     """
     C = gs[0].shape[2]
     g0 = gs
@@ -277,8 +284,10 @@ def _refit_photometry(ops, gs, w, info, lam, occlusion, max_outer, time_limit,
     b = np.zeros(C)
     for rounds in range(1, max_rounds + 1):  # noqa: B007 (reported below)
         w, B, gs = best
-        _, b, n_used = _fit_gain_offset(ops, gs, w, lam, occlusion)
-        if np.max(np.abs(b)) < tol:
+        _, b, scale, n_used = _fit_gain_offset(ops, gs, w, lam, occlusion)
+        if np.all((np.abs(b) < tol) | (np.abs(b) < 0.5 * scale)):
+            break
+        if prev is not None and np.max(np.abs(b)) > 0.5 * np.max(np.abs(prev[1])):
             break
         step = b.copy()
         if prev is not None:
