@@ -81,9 +81,10 @@ vignetting differences.
 from __future__ import annotations
 
 import dataclasses
+import threading
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
@@ -754,28 +755,79 @@ def change_statistic(
     if known.shape != o.shape[:2]:
         raise ValueError(f"known has shape {known.shape}, expected {o.shape[:2]}")
     s = np.broadcast_to(np.asarray(sigma, dtype=np.float64).reshape(-1), (o.shape[2],))
-    e = np.zeros(o.shape[:2], np.float64)
     C = o.shape[2]
+    e = np.zeros(o.shape[:2], np.float64) if C > 1 else None
     ks = np.zeros(C) if edge_k is None else np.broadcast_to(
         np.asarray(edge_k, dtype=np.float64).reshape(-1), (C,))
     kc = np.zeros(C) if curv_k is None else np.broadcast_to(
         np.asarray(curv_k, dtype=np.float64).reshape(-1), (C,))
+    all_known = bool(known.all())
     for c in range(C):
-        r = o[:, :, c].astype(np.float64) - m[:, :, c]
-        var = np.full(r.shape, s[c] * s[c])
+        # in place, operation for operation as ``where(known, (o - m)^2 / var, 0)`` with
+        # ``var = s^2 + ks^2 grad2 + kc^2 lap2`` (same roundings, fewer full-size arrays)
+        mc = m[:, :, c]
+        t = o[:, :, c].astype(np.float64)
+        t -= mc
+        t *= t
+        var: Any = None
         if ks[c] > 0:
-            var = var + ks[c] * ks[c] * _grad2(m[:, :, c])
+            var = _grad2(mc)
+            var *= ks[c] * ks[c]
+            var += s[c] * s[c]
         if kc[c] > 0:
-            var = var + kc[c] * kc[c] * _lap2(m[:, :, c])
-        e += np.where(known, r * r / var, 0.0)
-    e /= o.shape[2]
+            lap = _lap2(mc)
+            lap *= kc[c] * kc[c]
+            if var is None:
+                var = lap
+                var += s[c] * s[c]
+            else:
+                var += lap
+        t /= s[c] * s[c] if var is None else var
+        if not all_known:
+            t[~known] = 0.0
+        if C == 1:
+            e = t
+        else:
+            e += t
+    if C > 1:
+        e /= C
     if smooth > 0:
         num = gaussian_zero(e, smooth, truncate)
-        den = gaussian_zero(known.astype(np.float64), smooth, truncate)
-        e = np.where(den > 1e-6, num / np.maximum(den, 1e-6), 0.0)
-    S = np.sqrt(np.maximum(e, 0.0)).astype(np.float32)
-    S[~known] = 0.0
+        den, positive = (_gaussian_ones(known.shape, smooth, truncate) if all_known
+                         else (gaussian_zero(known.astype(np.float64), smooth, truncate), False))
+        if positive:  # den > 1e-6 everywhere: the where() below would change nothing
+            e = np.divide(num, den, out=num)
+        else:
+            e = np.where(den > 1e-6, num / np.maximum(den, 1e-6), 0.0)
+    np.maximum(e, 0.0, out=e)
+    np.sqrt(e, out=e)
+    S = e.astype(np.float32)
+    if not all_known:
+        S[~known] = 0.0
     return S
+
+
+#: Cache of :func:`_gaussian_ones` (a handful of tile shapes recur over a tiled pass).
+_ONES_CACHE: dict[tuple[int, int, float, float], tuple[np.ndarray, bool]] = {}
+_ONES_LOCK = threading.Lock()
+
+
+def _gaussian_ones(shape: tuple[int, int], sigma: float,
+                   truncate: float) -> tuple[np.ndarray, bool]:
+    """``gaussian_zero(ones(shape))`` (read-only, cached by shape) and whether it exceeds
+    1e-6 everywhere.  The cached array holds the very bits a new call would return."""
+    key = (int(shape[0]), int(shape[1]), float(sigma), float(truncate))
+    with _ONES_LOCK:
+        hit = _ONES_CACHE.get(key)
+    if hit is None:
+        g = gaussian_zero(np.ones(key[:2], np.float64), sigma, truncate)
+        g.flags.writeable = False
+        hit = (g, bool(g.min() > 1e-6))
+        with _ONES_LOCK:
+            if len(_ONES_CACHE) >= 4:
+                _ONES_CACHE.pop(next(iter(_ONES_CACHE)))
+            _ONES_CACHE[key] = hit
+    return hit
 
 
 def gaussian_zero(a: np.ndarray, sigma: float, truncate: float = 4.0) -> np.ndarray:
@@ -796,16 +848,23 @@ def gaussian_zero(a: np.ndarray, sigma: float, truncate: float = 4.0) -> np.ndar
 def _grad2(a: np.ndarray) -> np.ndarray:
     """Squared gradient magnitude (per pixel, central 3x3 Sobel scaled to unit spacing)."""
     a = np.ascontiguousarray(a, dtype=np.float32)
-    gx = cv2.Sobel(a, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT) / 8.0
-    gy = cv2.Sobel(a, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REFLECT) / 8.0
-    return (gx * gx + gy * gy).astype(np.float64)
+    gx = cv2.Sobel(a, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT)
+    gy = cv2.Sobel(a, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REFLECT)
+    gx /= 8.0
+    gy /= 8.0
+    gx *= gx
+    gy *= gy
+    gx += gy
+    return gx.astype(np.float64)
 
 
 def _lap2(a: np.ndarray) -> np.ndarray:
     """Squared Laplacian (per pixel, 4-neighbour 3x3 stencil)."""
     a = np.ascontiguousarray(a, dtype=np.float32)
     lap = cv2.Laplacian(a, cv2.CV_32F, ksize=1, borderType=cv2.BORDER_REFLECT)
-    return (lap.astype(np.float64)) ** 2
+    lap = lap.astype(np.float64)
+    lap *= lap
+    return lap
 
 
 def fit_model_error(observed, matched, known, sigma, *, bins: int = 8,
@@ -972,24 +1031,124 @@ def _shape_ok(sub: np.ndarray, area: int, p: DecisionParams) -> bool:
     return area / (4.0 * r_in * r_in) <= p.max_aspect
 
 
-def _labelled(S: np.ndarray, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+class _Components(NamedTuple):
+    """Connected components of a mask (:func:`_components`).
+
+    Attributes
+    ----------
+    lab : (h, w) int32 ndarray
+        0 for the background, 1..n for the components.
+    n : int
+        Number of components.
+    stats : (n + 1, 5) int ndarray
+        Per label ``x, y, width, height, area`` (the ``cv2.CC_STAT_*`` columns): tight
+        bounding box and pixel count; row 0 (the background) is zero.
+    ys, xs, lv : (k,) ndarray
+        Row, column and label of every foreground pixel, in raster order.
+    """
+
+    lab: np.ndarray
+    n: int
+    stats: np.ndarray
+    ys: np.ndarray
+    xs: np.ndarray
+    lv: np.ndarray
+
+
+def _components(mask: np.ndarray, connectivity: int = 8) -> _Components:
+    """Connected components of a 2-D mask, labelled by OpenCV (which releases the GIL).
+
+    The same partition as ``scipy.ndimage.label`` with the full 3 x 3 (``connectivity=8``)
+    or the cross (``4``) structure; the numbering may differ, so callers never rely on it.
+    Areas and boxes come from the foreground pixels only (``cv2.findNonZero``; the
+    components are a small part of a tile): OpenCV's own statistics pass is several times
+    slower than the labelling.
+
+    Parameters
+    ----------
+    mask : (h, w) bool or uint8 ndarray
+        Foreground: non-zero pixels.
+    connectivity : {8, 4}
+
+    Returns
+    -------
+    _Components
+    """
+    m = np.ascontiguousarray(mask)
+    if m.dtype == bool:
+        m = m.view(np.uint8)
+    n, lab = cv2.connectedComponents(m, connectivity=connectivity, ltype=cv2.CV_32S)
+    n = int(n) - 1
+    stats = np.zeros((n + 1, 5), np.intp)
+    pts = cv2.findNonZero(m) if n else None
+    if pts is None:
+        e = np.zeros(0, np.intp)
+        return _Components(lab, n, stats, e, e, e)
+    pts = pts.reshape(-1, 2)
+    xs, ys = pts[:, 0].astype(np.intp), pts[:, 1].astype(np.intp)
+    lv = lab[ys, xs].astype(np.intp)
+    big = np.iinfo(np.intp).max
+    y0 = np.full(n + 1, big)
+    x0 = np.full(n + 1, big)
+    y1 = np.zeros(n + 1, np.intp)
+    x1 = np.zeros(n + 1, np.intp)
+    np.minimum.at(y0, lv, ys)
+    np.minimum.at(x0, lv, xs)
+    np.maximum.at(y1, lv, ys)
+    np.maximum.at(x1, lv, xs)
+    stats[1:, cv2.CC_STAT_LEFT] = x0[1:]
+    stats[1:, cv2.CC_STAT_TOP] = y0[1:]
+    stats[1:, cv2.CC_STAT_WIDTH] = x1[1:] - x0[1:] + 1
+    stats[1:, cv2.CC_STAT_HEIGHT] = y1[1:] - y0[1:] + 1
+    stats[:, cv2.CC_STAT_AREA] = np.bincount(lv, minlength=n + 1)
+    stats[0] = 0
+    return _Components(lab, n, stats, ys, xs, lv)
+
+
+def _bbox_slices(st: np.ndarray, lbl: int) -> tuple[slice, slice]:
+    """Bounding box of label ``lbl`` from :func:`_components` stats, as slices."""
+    x, y, w, h = (int(v) for v in st[lbl, :4])
+    return slice(y, y + h), slice(x, x + w)
+
+
+def _union_box(
+    boxes: list[tuple[int, int, int, int]], margin: int, shape: tuple[int, ...]
+) -> tuple[slice, slice]:
+    """Union of ``(y0, x0, y1, x1)`` boxes grown by ``margin``, clipped to ``shape``."""
+    y0 = max(min(b[0] for b in boxes) - margin, 0)
+    x0 = max(min(b[1] for b in boxes) - margin, 0)
+    y1 = min(max(b[2] for b in boxes) + margin, shape[0])
+    x1 = min(max(b[3] for b in boxes) + margin, shape[1])
+    return slice(y0, y1), slice(x0, x1)
+
+
+def _labelled(
+    S: np.ndarray, lab: np.ndarray, comps: _Components | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Labels and values of the labelled pixels only (candidates are a small fraction)."""
+    if comps is not None:
+        return comps.lv, S[comps.ys, comps.xs].astype(np.float64)
     sel = lab > 0
     return lab[sel], S[sel].astype(np.float64)
 
 
-def _label_max(S: np.ndarray, lab: np.ndarray, n: int) -> np.ndarray:
-    """``ndimage.maximum(S, lab, 1..n)`` over the labelled pixels only."""
-    lv, v = _labelled(S, lab)
+def _label_max(
+    S: np.ndarray, lab: np.ndarray, n: int, comps: _Components | None = None
+) -> np.ndarray:
+    """``ndimage.maximum(S, lab, 1..n)`` over the labelled pixels only (``comps``: their
+    positions and labels, from :func:`_components` of ``lab``)."""
+    lv, v = _labelled(S, lab, comps)
     out = np.full(n + 1, -np.inf)
     np.maximum.at(out, lv, v)
     return out[1:]
 
 
-def _label_median(S: np.ndarray, lab: np.ndarray, n: int) -> np.ndarray:
+def _label_median(
+    S: np.ndarray, lab: np.ndarray, n: int, comps: _Components | None = None
+) -> np.ndarray:
     """``ndimage.median(S, lab, 1..n)`` (mean of the two middle values for an even count)
     over the labelled pixels only: one sort of the candidates, not of the whole tile."""
-    lv, v = _labelled(S, lab)
+    lv, v = _labelled(S, lab, comps)
     order = np.lexsort((v, lv))
     v = v[order]
     counts = np.bincount(lv, minlength=n + 1)[1:]
@@ -1002,70 +1161,106 @@ def _label_median(S: np.ndarray, lab: np.ndarray, n: int) -> np.ndarray:
 def _decide_core(
     S: np.ndarray, known: np.ndarray, threshold: float, p: DecisionParams
 ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
-    """Region decision on an array; returns (mask, level-0 candidate mask, counts)."""
+    """Region decision on an array; returns (mask, level-0 candidate mask, counts).
+
+    Level 0 looks at the whole array; every later level only at the window holding the
+    regions passed on to it (grown by the opening's reach, so the opening, which never
+    adds pixels, gives the same result there as on the whole array), and the boundary cut
+    and the hole filling only at the window of the accepted regions.  Connected components
+    come from OpenCV with their areas and boxes (no pass over the whole array per label).
+    """
     strong = p.strong_factor * threshold
-    accepted = np.zeros(S.shape, bool)
-    pending = known.copy()
+    shape = S.shape
+    accepted = np.zeros(shape, bool)
     counts = {"accepted": 0, "small": 0, "weak": 0, "not_object": 0}
     levels = p.levels if p.region_tests else (1.0,)
     candidates = None
     kernel = _disc(p.open_radius) if p.open_radius > 0 else None
+    pending = known
+    win: tuple[slice, slice] = (slice(0, shape[0]), slice(0, shape[1]))
+    kept: list[tuple[int, int, int, int]] = []  # boxes of the accepted regions
     for li, level in enumerate(levels):
-        m = (S > threshold * level) & pending
+        Sw = S[win]
+        m = (Sw > threshold * level) & pending[win]
         if kernel is not None:
-            m = cv2.morphologyEx(m.view(np.uint8), cv2.MORPH_OPEN, kernel).astype(bool)
-        if candidates is None:
-            candidates = m
-        lab, n = ndi.label(m, structure=_EIGHT)
+            m = cv2.morphologyEx(m.view(np.uint8), cv2.MORPH_OPEN, kernel)
+        if candidates is None:  # level 0: the window is the whole array
+            candidates = m.view(bool)
+        cc = _components(m)
+        lab, n, st = cc.lab, cc.n, cc.stats
         if n == 0:
             break
-        area = np.bincount(lab.ravel(), minlength=n + 1)[1:]
-        smax = _label_max(S, lab, n)
-        keep = np.zeros(n + 1, bool)
-        nxt = np.zeros(n + 1, bool)
+        area = st[1:, cv2.CC_STAT_AREA]
+        smax = _label_max(Sw, lab, n, cc)
+        small = area < p.min_area
+        weak = ~small & (smax < strong)
+        counts["small"] += int(np.count_nonzero(small))
+        counts["weak"] += int(np.count_nonzero(weak))
         last = li == len(levels) - 1
-        for i, sl in enumerate(ndi.find_objects(lab)):
-            lbl = i + 1
-            if area[i] < p.min_area:
-                counts["small"] += 1
-                continue
-            if smax[i] < strong:
-                counts["weak"] += 1
-                continue
-            if not p.region_tests or _shape_ok(lab[sl] == lbl, int(area[i]), p):
-                keep[lbl] = True
+        oy, ox = win[0].start, win[1].start
+        nxt = None
+        passed: list[tuple[int, int, int, int]] = []
+        for i in np.flatnonzero(~(small | weak)):
+            lbl = int(i) + 1
+            sl = _bbox_slices(st, lbl)
+            sub = lab[sl] == lbl
+            full = (slice(sl[0].start + oy, sl[0].stop + oy),
+                    slice(sl[1].start + ox, sl[1].stop + ox))
+            box = (full[0].start, full[1].start, full[0].stop, full[1].stop)
+            if not p.region_tests or _shape_ok(sub, int(area[i]), p):
+                accepted[full] |= sub
+                kept.append(box)
                 counts["accepted"] += 1
             elif last:
                 counts["not_object"] += 1
             else:
-                nxt[lbl] = True
-        accepted |= keep[lab]
-        pending = nxt[lab]
-        if not pending.any():
+                if nxt is None:
+                    nxt = np.zeros(shape, bool)
+                nxt[full] |= sub
+                passed.append(box)
+        if nxt is None:
             break
+        pending = nxt
+        win = _union_box(passed, int(p.open_radius) + 1, shape)
     if candidates is None:
-        candidates = np.zeros(S.shape, bool)
-    if p.boundary_fraction > 0 and accepted.any():
+        candidates = np.zeros(shape, bool)
+    if not kept:
+        return accepted, candidates, counts
+    # from here on every accepted pixel lies in the window of the accepted regions
+    win = _union_box(kept, 0, shape)
+    if p.boundary_fraction > 0:
         # object boundary at a fixed fraction of the region's own level: the absolute
         # threshold sits far down the flank of a strong change and would bleed outwards
-        lab, n = ndi.label(accepted, structure=_EIGHT)
-        level = _label_median(S, lab, n)
+        acc = accepted[win]
+        Sw = S[win]
+        cc = _components(acc)
+        lab, n = cc.lab, cc.n
+        level = _label_median(Sw, lab, n, cc)
         cut = np.concatenate([[np.inf], np.maximum(p.boundary_fraction * level, threshold)])
-        accepted &= S >= cut[lab]
-        lab, n = ndi.label(accepted, structure=_EIGHT)
-        area = np.bincount(lab.ravel(), minlength=n + 1)
-        big = area >= p.min_area
+        acc &= Sw >= cut[lab]
+        cc = _components(acc)
+        lab, n, st = cc.lab, cc.n, cc.stats
+        big = st[:, cv2.CC_STAT_AREA] >= p.min_area
         big[0] = False
-        accepted = big[lab]
-    if p.max_hole_area > 0 and accepted.any():
-        bg, nb = ndi.label(~accepted, structure=_FOUR)
-        sizes = np.bincount(bg.ravel(), minlength=nb + 1)
-        border = np.unique(np.concatenate([bg[0], bg[-1], bg[:, 0], bg[:, -1]]))
-        fill = sizes <= p.max_hole_area
+        acc[...] = big[lab]
+        boxes = [(int(st[k, 1]), int(st[k, 0]), int(st[k, 1] + st[k, 3]),
+                  int(st[k, 0] + st[k, 2])) for k in np.flatnonzero(big)]
+        if not boxes:
+            return accepted, candidates, counts
+        win = _union_box([(b[0] + win[0].start, b[1] + win[1].start, b[2] + win[0].start,
+                           b[3] + win[1].start) for b in boxes], 0, shape)
+    if p.max_hole_area > 0:
+        # a hole (a background component clear of the array's border) lies inside the
+        # box of the accepted pixels; one pixel of margin keeps the outside connected
+        win = _union_box([(win[0].start, win[1].start, win[0].stop, win[1].stop)], 1, shape)
+        acc = accepted[win]
+        cc = _components(~acc, connectivity=4)
+        bg, st = cc.lab, cc.stats
+        fill = st[:, cv2.CC_STAT_AREA] <= p.max_hole_area
         fill[0] = False
-        fill[border] = False
-        accepted |= fill[bg]
-    accepted &= known
+        fill[np.concatenate([bg[0], bg[-1], bg[:, 0], bg[:, -1]])] = False
+        acc |= fill[bg]
+    accepted[win] &= known[win]
     return accepted, candidates, counts
 
 
@@ -1074,27 +1269,36 @@ def _region_records(
 ) -> list[dict[str, Any]]:
     """Connected regions of ``mask`` (8-conn), full-image coordinates.
 
-    With ``core=(cy0, cx0, ch, cw)`` (array coordinates) only regions whose first pixel in
-    raster order lies in the core are listed, so tiles list each region once.
+    Regions are listed in the raster order of their first pixel (as ``ndimage.label``
+    numbers them).  With ``core=(cy0, cx0, ch, cw)`` (array coordinates) only regions whose
+    first pixel in raster order lies in the core are listed, so tiles list each region once.
     """
-    lab, n = ndi.label(mask, structure=_EIGHT)
+    cc = _components(mask)
+    lab, st = cc.lab, cc.stats
+    # first pixel of every label in raster order (the foreground pixels are in raster order)
+    lbls, first = np.unique(cc.lv, return_index=True)
+    order = np.argsort(first, kind="stable")
     out = []
-    for i, sl in enumerate(ndi.find_objects(lab)):
-        sub = lab[sl] == i + 1
-        yy, xx = np.nonzero(sub)
-        ay, ax = int(yy[0] + sl[0].start), int(xx[0] + sl[1].start)
+    for lbl, k in zip(lbls[order].tolist(), first[order].tolist(), strict=True):
+        ay, ax = int(cc.ys[k]), int(cc.xs[k])
         if core is not None:
             cy0, cx0, ch, cw = core
             if not (cy0 <= ay < cy0 + ch and cx0 <= ax < cx0 + cw):
                 continue
+        sl = _bbox_slices(st, lbl)
+        sub = lab[sl] == lbl
+        area = int(st[lbl, cv2.CC_STAT_AREA])
+        # centroid as the mean of the pixel indices: exact integer sums over the box
+        sy = int(np.arange(sub.shape[0]) @ np.count_nonzero(sub, axis=1))
+        sx = int(np.arange(sub.shape[1]) @ np.count_nonzero(sub, axis=0))
         vals = S[sl][sub]
         out.append(
             {
-                "area": int(sub.sum()),
+                "area": area,
                 "bbox": [sl[0].start + y0, sl[1].start + x0, sl[0].stop + y0, sl[1].stop + x0],
                 "centroid": [
-                    float(yy.mean() + sl[0].start + y0),
-                    float(xx.mean() + sl[1].start + x0),
+                    float(np.float64(sy) / area + sl[0].start + y0),
+                    float(np.float64(sx) / area + sl[1].start + x0),
                 ],
                 "mean_stat": float(vals.mean()),
                 "max_stat": float(vals.max()),
@@ -1103,6 +1307,39 @@ def _region_records(
     for k, r in enumerate(out, 1):
         r["label"] = k
     return out
+
+
+def _clear_of(
+    mask: np.ndarray, band: list[tuple[slice, slice]], core: tuple[slice, slice]
+) -> bool:
+    """No 8-connected component of ``mask`` has pixels both in ``core`` and in ``band``.
+
+    Parameters
+    ----------
+    mask : (h, w) bool ndarray
+    band : list of (slice, slice)
+        Strips of the array (the tile edges that are not image borders).
+    core : (slice, slice)
+        The tile's core.
+    """
+    if not band:
+        return True
+    cc = _components(mask)
+    lab, n, st = cc.lab, cc.n, cc.stats
+    if n == 0:
+        return True
+    touch = np.zeros(n + 1, bool)
+    for sl in band:
+        touch[lab[sl].ravel()] = True
+    touch[0] = False
+    cy, cx = core
+    for lbl in np.flatnonzero(touch):
+        ys, xs = _bbox_slices(st, int(lbl))
+        ya, yb = max(ys.start, cy.start), min(ys.stop, cy.stop)
+        xa, xb = max(xs.start, cx.start), min(xs.stop, cx.stop)
+        if ya < yb and xa < xb and np.any(lab[ya:yb, xa:xb] == lbl):
+            return False
+    return True
 
 
 def _prepare(observed, reblurred, unknown):
@@ -1213,28 +1450,16 @@ def decide_tile(
     ly, lx = cy0 - by0, cx0 - bx0
     # completeness: regions reaching the core must stay clear of non-border tile edges
     m = p.local_radius
-    band = np.zeros((bh, bw), bool)
-    top = by0 <= 0
-    left = bx0 <= 0
-    bottom = shape is not None and by0 + bh >= shape[0]
-    right = shape is not None and bx0 + bw >= shape[1]
-    if not top:
-        band[:m] = True
-    if not bottom:
-        band[bh - m :] = True
-    if not left:
-        band[:, :m] = True
-    if not right:
-        band[:, bw - m :] = True
-    complete = True
-    for cm in (cand, mask | cand):
-        lab, n = ndi.label(cm, structure=_EIGHT)
-        if n:
-            in_core = np.unique(lab[ly : ly + ch, lx : lx + cw])
-            in_band = np.unique(lab[band])
-            if np.intersect1d(in_core[in_core > 0], in_band[in_band > 0]).size:
-                complete = False
-                break
+    band_slices = []
+    if not by0 <= 0:  # top
+        band_slices.append((slice(0, m), slice(None)))
+    if not (shape is not None and by0 + bh >= shape[0]):  # bottom
+        band_slices.append((slice(bh - m, None), slice(None)))
+    if not bx0 <= 0:  # left
+        band_slices.append((slice(None), slice(0, m)))
+    if not (shape is not None and bx0 + bw >= shape[1]):  # right
+        band_slices.append((slice(None), slice(bw - m, None)))
+    complete = _clear_of(mask | cand, band_slices, (slice(ly, ly + ch), slice(lx, lx + cw)))
     info = {
         "complete": complete,
         "threshold": float(threshold),
