@@ -15,6 +15,7 @@ from skimage.morphology import convex_hull_image
 
 from reblur.decide import (
     DecisionParams,
+    _boxes,
     _clear_of,
     _components,
     _decide_core,
@@ -233,11 +234,14 @@ def test_components_match_ndimage(connectivity):
         assert np.unique(pairs[1]).size == n_ref
         # boxes and areas against find_objects / bincount
         area = np.bincount(ref.ravel(), minlength=n_ref + 1)
+        boxes = _boxes(cc, np.arange(1, cc.n + 1))
+        some = _boxes(cc, np.arange(1, cc.n + 1)[::3])
+        assert cc.area[0] == 0
         for i, sl in enumerate(ndi.find_objects(ref)):
             lbl = int(pairs[1][pairs[0] == i + 1][0])
-            x, y, w, h, a = cc.stats[lbl]
-            assert (y, x, y + h, x + w) == (sl[0].start, sl[1].start, sl[0].stop, sl[1].stop)
-            assert a == area[i + 1]
+            assert boxes[lbl] == sl
+            assert some.get(lbl, sl) == sl
+            assert cc.area[lbl] == area[i + 1]
         ys, xs = np.nonzero(m)
         np.testing.assert_array_equal(cc.ys, ys)
         np.testing.assert_array_equal(cc.xs, xs)

@@ -1040,16 +1040,15 @@ class _Components(NamedTuple):
         0 for the background, 1..n for the components.
     n : int
         Number of components.
-    stats : (n + 1, 5) int ndarray
-        Per label ``x, y, width, height, area`` (the ``cv2.CC_STAT_*`` columns): tight
-        bounding box and pixel count; row 0 (the background) is zero.
-    ys, xs, lv : (k,) ndarray
+    area : (n + 1,) int ndarray
+        Pixel count per label (``area[0]``: 0).
+    ys, xs, lv : (k,) int ndarray
         Row, column and label of every foreground pixel, in raster order.
     """
 
     lab: np.ndarray
     n: int
-    stats: np.ndarray
+    area: np.ndarray
     ys: np.ndarray
     xs: np.ndarray
     lv: np.ndarray
@@ -1060,9 +1059,9 @@ def _components(mask: np.ndarray, connectivity: int = 8) -> _Components:
 
     The same partition as ``scipy.ndimage.label`` with the full 3 x 3 (``connectivity=8``)
     or the cross (``4``) structure; the numbering may differ, so callers never rely on it.
-    Areas and boxes come from the foreground pixels only (``cv2.findNonZero``; the
-    components are a small part of a tile): OpenCV's own statistics pass is several times
-    slower than the labelling.
+    Areas (and boxes, :func:`_boxes`) come from the foreground pixels only
+    (``cv2.findNonZero``; the components are a small part of a tile): OpenCV's own
+    statistics pass is several times slower than the labelling.
 
     Parameters
     ----------
@@ -1079,36 +1078,38 @@ def _components(mask: np.ndarray, connectivity: int = 8) -> _Components:
         m = m.view(np.uint8)
     n, lab = cv2.connectedComponents(m, connectivity=connectivity, ltype=cv2.CV_32S)
     n = int(n) - 1
-    stats = np.zeros((n + 1, 5), np.intp)
     pts = cv2.findNonZero(m) if n else None
     if pts is None:
-        e = np.zeros(0, np.intp)
-        return _Components(lab, n, stats, e, e, e)
+        e = np.zeros(0, np.int32)
+        return _Components(lab, n, np.zeros(n + 1, np.intp), e, e, e)
     pts = pts.reshape(-1, 2)
-    xs, ys = pts[:, 0].astype(np.intp), pts[:, 1].astype(np.intp)
-    lv = lab[ys, xs].astype(np.intp)
-    big = np.iinfo(np.intp).max
-    y0 = np.full(n + 1, big)
-    x0 = np.full(n + 1, big)
-    y1 = np.zeros(n + 1, np.intp)
-    x1 = np.zeros(n + 1, np.intp)
+    xs, ys = pts[:, 0], pts[:, 1]
+    lv = lab[ys, xs]
+    area = np.bincount(lv, minlength=n + 1)
+    area[0] = 0
+    return _Components(lab, n, area, ys, xs, lv)
+
+
+def _boxes(cc: _Components, labels) -> dict[int, tuple[slice, slice]]:
+    """Tight bounding boxes (as slices) of some labels of ``cc``, from their pixels only."""
+    labels = np.asarray(labels, np.intp).reshape(-1)
+    if labels.size == 0:
+        return {}
+    sel = np.zeros(cc.n + 1, bool)
+    sel[labels] = True
+    pick = sel[cc.lv]
+    lv, ys, xs = cc.lv[pick], cc.ys[pick], cc.xs[pick]
+    big = np.iinfo(np.int32).max
+    y0 = np.full(cc.n + 1, big, np.int32)
+    x0 = np.full(cc.n + 1, big, np.int32)
+    y1 = np.zeros(cc.n + 1, np.int32)
+    x1 = np.zeros(cc.n + 1, np.int32)
     np.minimum.at(y0, lv, ys)
     np.minimum.at(x0, lv, xs)
     np.maximum.at(y1, lv, ys)
     np.maximum.at(x1, lv, xs)
-    stats[1:, cv2.CC_STAT_LEFT] = x0[1:]
-    stats[1:, cv2.CC_STAT_TOP] = y0[1:]
-    stats[1:, cv2.CC_STAT_WIDTH] = x1[1:] - x0[1:] + 1
-    stats[1:, cv2.CC_STAT_HEIGHT] = y1[1:] - y0[1:] + 1
-    stats[:, cv2.CC_STAT_AREA] = np.bincount(lv, minlength=n + 1)
-    stats[0] = 0
-    return _Components(lab, n, stats, ys, xs, lv)
-
-
-def _bbox_slices(st: np.ndarray, lbl: int) -> tuple[slice, slice]:
-    """Bounding box of label ``lbl`` from :func:`_components` stats, as slices."""
-    x, y, w, h = (int(v) for v in st[lbl, :4])
-    return slice(y, y + h), slice(x, x + w)
+    return {int(k): (slice(int(y0[k]), int(y1[k]) + 1), slice(int(x0[k]), int(x1[k]) + 1))
+            for k in labels}
 
 
 def _union_box(
@@ -1187,10 +1188,10 @@ def _decide_core(
         if candidates is None:  # level 0: the window is the whole array
             candidates = m.view(bool)
         cc = _components(m)
-        lab, n, st = cc.lab, cc.n, cc.stats
+        lab, n = cc.lab, cc.n
         if n == 0:
             break
-        area = st[1:, cv2.CC_STAT_AREA]
+        area = cc.area[1:]
         smax = _label_max(Sw, lab, n, cc)
         small = area < p.min_area
         weak = ~small & (smax < strong)
@@ -1200,9 +1201,11 @@ def _decide_core(
         oy, ox = win[0].start, win[1].start
         nxt = None
         passed: list[tuple[int, int, int, int]] = []
-        for i in np.flatnonzero(~(small | weak)):
+        tested = np.flatnonzero(~(small | weak))
+        boxes = _boxes(cc, tested + 1)
+        for i in tested:
             lbl = int(i) + 1
-            sl = _bbox_slices(st, lbl)
+            sl = boxes[lbl]
             sub = lab[sl] == lbl
             full = (slice(sl[0].start + oy, sl[0].stop + oy),
                     slice(sl[1].start + ox, sl[1].stop + ox))
@@ -1239,24 +1242,22 @@ def _decide_core(
         cut = np.concatenate([[np.inf], np.maximum(p.boundary_fraction * level, threshold)])
         acc &= Sw >= cut[lab]
         cc = _components(acc)
-        lab, n, st = cc.lab, cc.n, cc.stats
-        big = st[:, cv2.CC_STAT_AREA] >= p.min_area
+        big = cc.area >= p.min_area
         big[0] = False
-        acc[...] = big[lab]
-        boxes = [(int(st[k, 1]), int(st[k, 0]), int(st[k, 1] + st[k, 3]),
-                  int(st[k, 0] + st[k, 2])) for k in np.flatnonzero(big)]
-        if not boxes:
+        acc[...] = big[cc.lab]
+        if not big.any():
             return accepted, candidates, counts
-        win = _union_box([(b[0] + win[0].start, b[1] + win[1].start, b[2] + win[0].start,
-                           b[3] + win[1].start) for b in boxes], 0, shape)
+        win = _union_box([(b[0].start + win[0].start, b[1].start + win[1].start,
+                           b[0].stop + win[0].start, b[1].stop + win[1].start)
+                          for b in _boxes(cc, np.flatnonzero(big)).values()], 0, shape)
     if p.max_hole_area > 0:
         # a hole (a background component clear of the array's border) lies inside the
         # box of the accepted pixels; one pixel of margin keeps the outside connected
         win = _union_box([(win[0].start, win[1].start, win[0].stop, win[1].stop)], 1, shape)
         acc = accepted[win]
         cc = _components(~acc, connectivity=4)
-        bg, st = cc.lab, cc.stats
-        fill = st[:, cv2.CC_STAT_AREA] <= p.max_hole_area
+        bg = cc.lab
+        fill = cc.area <= p.max_hole_area
         fill[0] = False
         fill[np.concatenate([bg[0], bg[-1], bg[:, 0], bg[:, -1]])] = False
         acc |= fill[bg]
@@ -1274,10 +1275,11 @@ def _region_records(
     first pixel in raster order lies in the core are listed, so tiles list each region once.
     """
     cc = _components(mask)
-    lab, st = cc.lab, cc.stats
+    lab = cc.lab
     # first pixel of every label in raster order (the foreground pixels are in raster order)
     lbls, first = np.unique(cc.lv, return_index=True)
     order = np.argsort(first, kind="stable")
+    boxes = _boxes(cc, lbls)
     out = []
     for lbl, k in zip(lbls[order].tolist(), first[order].tolist(), strict=True):
         ay, ax = int(cc.ys[k]), int(cc.xs[k])
@@ -1285,9 +1287,9 @@ def _region_records(
             cy0, cx0, ch, cw = core
             if not (cy0 <= ay < cy0 + ch and cx0 <= ax < cx0 + cw):
                 continue
-        sl = _bbox_slices(st, lbl)
+        sl = boxes[lbl]
         sub = lab[sl] == lbl
-        area = int(st[lbl, cv2.CC_STAT_AREA])
+        area = int(cc.area[lbl])
         # centroid as the mean of the pixel indices: exact integer sums over the box
         sy = int(np.arange(sub.shape[0]) @ np.count_nonzero(sub, axis=1))
         sx = int(np.arange(sub.shape[1]) @ np.count_nonzero(sub, axis=0))
@@ -1325,7 +1327,7 @@ def _clear_of(
     if not band:
         return True
     cc = _components(mask)
-    lab, n, st = cc.lab, cc.n, cc.stats
+    lab, n = cc.lab, cc.n
     if n == 0:
         return True
     touch = np.zeros(n + 1, bool)
@@ -1333,8 +1335,7 @@ def _clear_of(
         touch[lab[sl].ravel()] = True
     touch[0] = False
     cy, cx = core
-    for lbl in np.flatnonzero(touch):
-        ys, xs = _bbox_slices(st, int(lbl))
+    for lbl, (ys, xs) in _boxes(cc, np.flatnonzero(touch)).items():
         ya, yb = max(ys.start, cy.start), min(ys.stop, cy.stop)
         xa, xb = max(xs.start, cx.start), min(xs.stop, cx.stop)
         if ya < yb and xa < xb and np.any(lab[ya:yb, xa:xb] == lbl):

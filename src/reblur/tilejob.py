@@ -107,8 +107,12 @@ def load_tile(poses: SparsePoses, reference, observed, box, *, s_ref: float, s_o
     """
     box = as_box(box)
     reb, valid = reblur_tile(poses, reference, box)
-    reb = reb / np.float32(s_ref) * np.asarray(gain, np.float32) + np.asarray(offset, np.float32)
-    obs = read_window(observed, box, np.float32) / np.float32(s_obs)
+    # in place: the same float32 operations as ``reb / s_ref * gain + offset``
+    reb /= np.float32(s_ref)
+    reb *= np.asarray(gain, np.float32)
+    reb += np.asarray(offset, np.float32)
+    obs = read_window(observed, box, np.float32)
+    obs /= np.float32(s_obs)
     return obs, reb, ~valid
 
 
