@@ -912,19 +912,26 @@ def fit_model_error(observed, matched, known, sigma, *, bins: int = 8,
     for o, m, k in zip(observed, matched, known, strict=True):
         o, m = _channels(_float(o)), _channels(_float(m))
         # pixels whose 3x3 stencil is known: the values at unknown pixels are arbitrary
-        k = ndi.binary_erosion(np.asarray(k, bool), np.ones((3, 3), bool), border_value=1)
+        k = np.asarray(k, bool)
+        if k.all():  # the erosion (border value 1) keeps every pixel: no masked copies
+            k = None
+        else:
+            k = ndi.binary_erosion(k, np.ones((3, 3), bool), border_value=1)
         for c in range(C):
-            acc[c][0].append(((o[:, :, c].astype(np.float64) - m[:, :, c]) ** 2)[k])
-            acc[c][1].append(_grad2(m[:, :, c])[k])
-            acc[c][2].append(_lap2(m[:, :, c])[k])
+            for j, v in enumerate((((o[:, :, c].astype(np.float64) - m[:, :, c]) ** 2),
+                                   _grad2(m[:, :, c]), _lap2(m[:, :, c]))):
+                acc[c][j].append(v.ravel() if k is None else v[k])
     ek, ck = np.zeros(C), np.zeros(C)
     for c in range(C):
-        r2, g2, l2 = (np.concatenate(a) if a else np.zeros(0) for a in acc[c])
-        if r2.size < 20 * bins * bins:
+        n = sum(a.size for a in acc[c][0])
+        if n < 20 * bins * bins:
             continue
-        if r2.size > max_samples:
-            pick = rng.choice(r2.size, max_samples, replace=False)
-            r2, g2, l2 = r2[pick], g2[pick], l2[pick]
+        if n > max_samples:
+            # the sample drawn from the (never built) concatenation of the tiles
+            pick = rng.choice(n, max_samples, replace=False)
+            r2, g2, l2 = (_take_concatenated(a, pick) for a in acc[c])
+        else:
+            r2, g2, l2 = (np.concatenate(a) for a in acc[c])
         qg = np.searchsorted(np.quantile(g2, np.linspace(0, 1, bins + 1)[1:-1]), g2, "right")
         ql = np.searchsorted(np.quantile(l2, np.linspace(0, 1, bins + 1)[1:-1]), l2, "right")
         cell = qg * bins + ql
@@ -946,6 +953,17 @@ def fit_model_error(observed, matched, known, sigma, *, bins: int = 8,
         ek[c] = min(np.sqrt(max(a, 0.0)), k_max)
         ck[c] = min(np.sqrt(max(b, 0.0)), c_max)
     return ek, ck
+
+
+def _take_concatenated(pieces: list[np.ndarray], idx: np.ndarray) -> np.ndarray:
+    """``np.concatenate(pieces)[idx]`` without building the concatenation."""
+    offsets = np.cumsum([0] + [a.size for a in pieces])
+    out = np.empty(idx.size, np.result_type(*pieces))
+    which = np.searchsorted(offsets, idx, side="right") - 1
+    for t, a in enumerate(pieces):
+        sel = which == t
+        out[sel] = a[idx[sel] - offsets[t]]
+    return out
 
 
 def estimate_threshold(

@@ -1,8 +1,9 @@
-"""The region passes of the decision (OpenCV components, windows) against ndimage references.
+"""The fast paths of the decision against the previous implementations.
 
-The references below are the previous ``scipy.ndimage`` implementations (labelling the
-whole array at every step); the fast versions must give bit-identical masks, counts,
-region records, completeness flags and statistics on random seeded inputs.
+The references below are the previous code: ``scipy.ndimage`` labelling of the whole array
+at every step of the region passes, full-size temporaries in the statistic, concatenated
+samples in the model-error fit.  The fast versions must give bit-identical masks, counts,
+region records, completeness flags, statistics and fits on random seeded inputs.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from reblur.decide import (
     _label_median,
     _region_records,
     change_statistic,
+    fit_model_error,
     gaussian_zero,
 )
 
@@ -170,6 +172,57 @@ def _ref_statistic(observed, matched, known, sigma, smooth, truncate, edge_k, cu
     S = np.sqrt(np.maximum(e, 0.0)).astype(np.float32)
     S[~known] = 0.0
     return S
+
+
+def _ref_fit_model_error(observed, matched, known, sigma, bins=8, max_samples=400_000,
+                         k_max=0.5, c_max=0.5, rng=0):
+    from scipy.optimize import nnls
+
+    rng = np.random.default_rng(rng)
+    s = np.asarray(sigma, dtype=np.float64).reshape(-1)
+    C = s.size
+    acc = [[[], [], []] for _ in range(C)]
+    for o, m, k in zip(observed, matched, known, strict=True):
+        o = o if o.ndim == 3 else o[:, :, None]
+        m = m if m.ndim == 3 else m[:, :, None]
+        k = ndi.binary_erosion(np.asarray(k, bool), np.ones((3, 3), bool), border_value=1)
+        for c in range(C):
+            mc = np.ascontiguousarray(m[:, :, c], dtype=np.float32)
+            gx = cv2.Sobel(mc, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT) / 8.0
+            gy = cv2.Sobel(mc, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REFLECT) / 8.0
+            lap = cv2.Laplacian(mc, cv2.CV_32F, ksize=1, borderType=cv2.BORDER_REFLECT)
+            acc[c][0].append(((o[:, :, c].astype(np.float64) - m[:, :, c]) ** 2)[k])
+            acc[c][1].append((gx * gx + gy * gy).astype(np.float64)[k])
+            acc[c][2].append((lap.astype(np.float64) ** 2)[k])
+    ek, ck = np.zeros(C), np.zeros(C)
+    for c in range(C):
+        r2, g2, l2 = (np.concatenate(a) if a else np.zeros(0) for a in acc[c])
+        if r2.size < 20 * bins * bins:
+            continue
+        if r2.size > max_samples:
+            pick = rng.choice(r2.size, max_samples, replace=False)
+            r2, g2, l2 = r2[pick], g2[pick], l2[pick]
+        qg = np.searchsorted(np.quantile(g2, np.linspace(0, 1, bins + 1)[1:-1]), g2, "right")
+        ql = np.searchsorted(np.quantile(l2, np.linspace(0, 1, bins + 1)[1:-1]), l2, "right")
+        cell = qg * bins + ql
+        rows, rhs, wts = [], [], []
+        for b in np.unique(cell):
+            sel = cell == b
+            n = int(sel.sum())
+            if n < 20:
+                continue
+            rows.append([g2[sel].mean(), l2[sel].mean()])
+            rhs.append(float(np.median(r2[sel])) / 0.455 - s[c] ** 2)
+            wts.append(np.sqrt(n))
+        if len(rows) < 2:
+            continue
+        A = np.asarray(rows) * np.asarray(wts)[:, None]
+        scale = np.maximum(A.max(axis=0), 1e-300)
+        coef, _ = nnls(A / scale, np.asarray(rhs) * np.asarray(wts))
+        a, b = coef / scale
+        ek[c] = min(np.sqrt(max(a, 0.0)), k_max)
+        ck[c] = min(np.sqrt(max(b, 0.0)), c_max)
+    return ek, ck
 
 
 # --------------------------------------------------------------------------- inputs
@@ -353,3 +406,27 @@ def test_change_statistic_matches_reference(bands):
         again = change_statistic(oo, mm, known, sigma, smooth=smooth, truncate=4.0,
                                  edge_k=edge_k, curv_k=curv_k)
         np.testing.assert_array_equal(again, ref)
+
+
+@pytest.mark.parametrize("bands", [1, 3])
+def test_fit_model_error_matches_reference(bands):
+    rng = np.random.default_rng(40 + bands)
+    tiles = []
+    for k in range(5):
+        shape = (int(rng.integers(40, 120)), int(rng.integers(40, 120)))
+        m = ndi.gaussian_filter(rng.random(shape + (bands,)), (1.0, 1.0, 0)).astype(np.float32)
+        gx = np.gradient(m, axis=1)
+        o = (m + 0.3 * gx + 0.01 * rng.standard_normal(m.shape)).astype(np.float32)
+        known = np.ones(shape, bool) if k % 2 else ~_blobs(rng, shape, 0.15, 3.0)
+        tiles.append((o, m, known))
+    o, m, kn = (list(t) for t in zip(*tiles, strict=True))
+    sigma = np.full(bands, 0.01)
+    n = sum(int(k.sum()) for k in kn)
+    fits = set()
+    for max_samples in (n * 2, n // 3, 5000):  # all pixels; a sample across the tiles
+        got = fit_model_error(o, m, kn, sigma, max_samples=max_samples, rng=9)
+        ref = _ref_fit_model_error(o, m, kn, sigma, max_samples=max_samples, rng=9)
+        np.testing.assert_array_equal(got[0], ref[0])
+        np.testing.assert_array_equal(got[1], ref[1])
+        fits.add(tuple(np.concatenate(got)))
+    assert len(fits) == 3 and all(f[0] > 0 for f in fits)
