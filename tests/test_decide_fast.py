@@ -430,3 +430,39 @@ def test_fit_model_error_matches_reference(bands):
         np.testing.assert_array_equal(got[1], ref[1])
         fits.add(tuple(np.concatenate(got)))
     assert len(fits) == 3 and all(f[0] > 0 for f in fits)
+
+
+def test_stop_incomplete_gives_up_exactly_on_incomplete_tiles():
+    from reblur.decide import Photometry, decide_tile
+
+    ph = Photometry(gain=np.ones(1), offset=np.zeros(1), sigma=np.ones(1),
+                    image_shape=(2000, 2000))
+    rng = np.random.default_rng(8)
+    outcomes = []
+    for _ in range(12):
+        shape = (int(rng.integers(150, 230)), int(rng.integers(150, 230)))
+        obs = (np.abs(ndi.gaussian_filter(rng.standard_normal(shape), 1.5)) * 2.0)
+        for _ in range(3):  # squares, some across the tile's edge band
+            y, x = rng.integers(0, shape[0] - 20), rng.integers(0, shape[1] - 20)
+            r = int(rng.integers(8, 20))
+            obs[y : y + 2 * r, x : x + 2 * r] += rng.uniform(2.0, 6.0)
+        obs = obs.astype(np.float32)
+        reb = np.zeros_like(obs)
+        unknown = _blobs(rng, shape, 0.05, 4.0) if rng.random() < 0.5 else None
+        box = (500, 600, *shape)
+        halo = int(rng.integers(20, 45))
+        core = (500 + halo, 600 + halo, shape[0] - 2 * halo, shape[1] - 2 * halo)
+        kw = dict(threshold=float(rng.uniform(0.9, 1.5)), photometry=ph, box=box, core=core)
+        mask, info = decide_tile(obs, reb, unknown, **kw)
+        smask, sinfo = decide_tile(obs, reb, unknown, stop_incomplete=True, **kw)
+        if info["complete"]:
+            np.testing.assert_array_equal(smask, mask)
+            assert sinfo == info
+        elif smask is not None:  # only the final mask | candidates test found it
+            np.testing.assert_array_equal(smask, mask)
+            assert sinfo == info
+        else:
+            assert sinfo["complete"] is False
+            assert sinfo["n_unknown"] == info["n_unknown"]
+        outcomes.append((info["complete"], smask is None))
+    assert (True, False) in outcomes and (False, True) in outcomes

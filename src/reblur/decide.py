@@ -82,7 +82,7 @@ from __future__ import annotations
 
 import dataclasses
 import threading
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any, NamedTuple
 
@@ -1178,9 +1178,13 @@ def _label_median(
 
 
 def _decide_core(
-    S: np.ndarray, known: np.ndarray, threshold: float, p: DecisionParams
-) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
+    S: np.ndarray, known: np.ndarray, threshold: float, p: DecisionParams,
+    stop: Callable[[_Components], bool] | None = None,
+) -> tuple[np.ndarray | None, np.ndarray, dict[str, int]]:
     """Region decision on an array; returns (mask, level-0 candidate mask, counts).
+
+    ``stop``, called with the components of the level-0 candidates, may end the decision
+    there: the mask is then None (and the counts cover nothing).
 
     Level 0 looks at the whole array; every later level only at the window holding the
     regions passed on to it (grown by the opening's reach, so the opening, which never
@@ -1206,6 +1210,8 @@ def _decide_core(
         if candidates is None:  # level 0: the window is the whole array
             candidates = m.view(bool)
         cc = _components(m)
+        if li == 0 and stop is not None and stop(cc):
+            return None, candidates, counts
         lab, n = cc.lab, cc.n
         if n == 0:
             break
@@ -1330,21 +1336,26 @@ def _region_records(
 
 
 def _clear_of(
-    mask: np.ndarray, band: list[tuple[slice, slice]], core: tuple[slice, slice]
+    mask: np.ndarray | None, band: list[tuple[slice, slice]], core: tuple[slice, slice],
+    cc: _Components | None = None,
 ) -> bool:
     """No 8-connected component of ``mask`` has pixels both in ``core`` and in ``band``.
 
     Parameters
     ----------
-    mask : (h, w) bool ndarray
+    mask : (h, w) bool ndarray or None
+        None when its components ``cc`` are given.
     band : list of (slice, slice)
         Strips of the array (the tile edges that are not image borders).
     core : (slice, slice)
         The tile's core.
+    cc : _Components, optional
+        The 8-connected components of ``mask``, if already known.
     """
     if not band:
         return True
-    cc = _components(mask)
+    if cc is None:
+        cc = _components(mask)
     lab, n = cc.lab, cc.n
     if n == 0:
         return True
@@ -1413,7 +1424,8 @@ def decide_tile(
     core=None,
     params: DecisionParams | None = None,
     image_shape: tuple[int, int] | None = None,
-) -> tuple[np.ndarray, dict[str, Any]]:
+    stop_incomplete: bool = False,
+) -> tuple[np.ndarray | None, dict[str, Any]]:
     """Decide change on one padded tile and return its core.
 
     Parameters
@@ -1436,10 +1448,15 @@ def decide_tile(
     image_shape : (int, int), optional
         Full image size (default ``photometry.image_shape``): tile edges on the image
         border need no halo.
+    stop_incomplete : bool
+        Give up as soon as the tile is known to be incomplete (a level-0 candidate region
+        joins the core to the edge band), for a caller that re-runs such tiles with a
+        larger halo anyway: ``mask`` is then None and ``info`` holds ``complete`` (False),
+        ``threshold``, ``strong_threshold`` and ``n_unknown`` only.
 
     Returns
     -------
-    mask : (core h, core w) bool ndarray
+    mask : (core h, core w) bool ndarray or None
     info : dict
         ``complete`` (True when the result is guaranteed equal to the whole-image call:
         no candidate region reaching the core comes within ``params.local_radius`` of a
@@ -1465,27 +1482,40 @@ def decide_tile(
     matched = photometry.apply(r, (by0, bx0, bh, bw))
     S = change_statistic(o, matched, known, photometry.sigma, smooth=p.smooth, truncate=p.truncate,
                          edge_k=photometry.edge_k, curv_k=photometry.curv_k)
-    mask, cand, counts = _decide_core(S, known, float(threshold), p)
     ly, lx = cy0 - by0, cx0 - bx0
     # completeness: regions reaching the core must stay clear of non-border tile edges
     m = p.local_radius
-    band_slices = []
+    band = []
     if not by0 <= 0:  # top
-        band_slices.append((slice(0, m), slice(None)))
+        band.append((slice(0, m), slice(None)))
     if not (shape is not None and by0 + bh >= shape[0]):  # bottom
-        band_slices.append((slice(bh - m, None), slice(None)))
+        band.append((slice(bh - m, None), slice(None)))
     if not bx0 <= 0:  # left
-        band_slices.append((slice(None), slice(0, m)))
+        band.append((slice(None), slice(0, m)))
     if not (shape is not None and bx0 + bw >= shape[1]):  # right
-        band_slices.append((slice(None), slice(bw - m, None)))
-    complete = _clear_of(mask | cand, band_slices, (slice(ly, ly + ch), slice(lx, lx + cw)))
+        band.append((slice(None), slice(bw - m, None)))
+    core_sl = (slice(ly, ly + ch), slice(lx, lx + cw))
+    n_unknown = int(np.count_nonzero(~known[core_sl]))
+
+    def stop(cc: _Components) -> bool:
+        # a candidate region joining the core to the band makes the tile incomplete
+        # (the final test below looks at mask | cand, a superset of the candidates)
+        return not _clear_of(None, band, core_sl, cc)
+
+    mask, cand, counts = _decide_core(S, known, float(threshold), p,
+                                      stop=stop if stop_incomplete else None)
+    if mask is None:
+        return None, {"complete": False, "threshold": float(threshold),
+                      "strong_threshold": float(p.strong_factor * threshold),
+                      "n_unknown": n_unknown}
+    complete = _clear_of(mask | cand, band, core_sl)
     info = {
         "complete": complete,
         "threshold": float(threshold),
         "strong_threshold": float(p.strong_factor * threshold),
         "counts": counts,
         "regions": _region_records(mask, S, by0, bx0, core=(ly, lx, ch, cw)),
-        "n_unknown": int(np.count_nonzero(~known[ly : ly + ch, lx : lx + cw])),
+        "n_unknown": n_unknown,
     }
     return mask[ly : ly + ch, lx : lx + cw].copy(), info
 

@@ -149,13 +149,15 @@ def run_tile(
     core = tuple(int(v) for v in core)
     halo = int(job.halo)
     for attempt in range(_ATTEMPTS):
+        last = attempt == _ATTEMPTS - 1
         obs, reb, unk = load_tile(job.poses, reference, observed, padded, s_ref=job.s_ref,
                                   s_obs=job.s_obs, gain=gain, offset=offset)
+        # an attempt that will be re-run stops as soon as it is known to be incomplete
         mask, info = decide_tile(
             obs, reb, unk, threshold=job.threshold, photometry=job.photometry, box=padded,
-            core=core, params=job.params, image_shape=(H, W),
+            core=core, params=job.params, image_shape=(H, W), stop_incomplete=not last,
         )
-        if info["complete"] or attempt == _ATTEMPTS - 1:
+        if info["complete"] or last:
             break
         halo *= 2
         padded = pad_box(core, halo, (H, W))
