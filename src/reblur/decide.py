@@ -807,9 +807,11 @@ def change_statistic(
     return S
 
 
-#: Cache of :func:`_gaussian_ones` (a handful of tile shapes recur over a tiled pass).
+#: Cache of :func:`_gaussian_ones`, least recently used first (a handful of tile shapes
+#: recur over a tiled pass: interior, edge and corner tiles, and their re-runs).
 _ONES_CACHE: dict[tuple[int, int, float, float], tuple[np.ndarray, bool]] = {}
 _ONES_LOCK = threading.Lock()
+_ONES_MAX = 6
 
 
 def _gaussian_ones(shape: tuple[int, int], sigma: float,
@@ -818,15 +820,17 @@ def _gaussian_ones(shape: tuple[int, int], sigma: float,
     1e-6 everywhere.  The cached array holds the very bits a new call would return."""
     key = (int(shape[0]), int(shape[1]), float(sigma), float(truncate))
     with _ONES_LOCK:
-        hit = _ONES_CACHE.get(key)
+        hit = _ONES_CACHE.pop(key, None)
+        if hit is not None:
+            _ONES_CACHE[key] = hit  # most recently used: last
     if hit is None:
         g = gaussian_zero(np.ones(key[:2], np.float64), sigma, truncate)
         g.flags.writeable = False
         hit = (g, bool(g.min() > 1e-6))
         with _ONES_LOCK:
-            if len(_ONES_CACHE) >= 4:
-                _ONES_CACHE.pop(next(iter(_ONES_CACHE)))
             _ONES_CACHE[key] = hit
+            while len(_ONES_CACHE) > _ONES_MAX:
+                _ONES_CACHE.pop(next(iter(_ONES_CACHE)))
     return hit
 
 
