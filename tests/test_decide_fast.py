@@ -295,6 +295,9 @@ def test_components_match_ndimage(connectivity):
             assert boxes[lbl] == sl
             assert some.get(lbl, sl) == sl
             assert cc.area[lbl] == area[i + 1]
+        dense = _components(m, connectivity, pixels=False)  # areas from the label image
+        np.testing.assert_array_equal(dense.lab, cc.lab)
+        np.testing.assert_array_equal(dense.area, cc.area)
         ys, xs = np.nonzero(m)
         np.testing.assert_array_equal(cc.ys, ys)
         np.testing.assert_array_equal(cc.xs, xs)

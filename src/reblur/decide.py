@@ -1076,7 +1076,7 @@ class _Components(NamedTuple):
     lv: np.ndarray
 
 
-def _components(mask: np.ndarray, connectivity: int = 8) -> _Components:
+def _components(mask: np.ndarray, connectivity: int = 8, pixels: bool = True) -> _Components:
     """Connected components of a 2-D mask, labelled by OpenCV (which releases the GIL).
 
     The same partition as ``scipy.ndimage.label`` with the full 3 x 3 (``connectivity=8``)
@@ -1090,6 +1090,10 @@ def _components(mask: np.ndarray, connectivity: int = 8) -> _Components:
     mask : (h, w) bool or uint8 ndarray
         Foreground: non-zero pixels.
     connectivity : {8, 4}
+    pixels : bool
+        Also list the foreground pixels (``ys``, ``xs``, ``lv``); False for a dense
+        foreground (e.g. the background of a mask), whose areas come from a count over the
+        whole label image instead.
 
     Returns
     -------
@@ -1100,6 +1104,11 @@ def _components(mask: np.ndarray, connectivity: int = 8) -> _Components:
         m = m.view(np.uint8)
     n, lab = cv2.connectedComponents(m, connectivity=connectivity, ltype=cv2.CV_32S)
     n = int(n) - 1
+    if not pixels:
+        e = np.zeros(0, np.int32)
+        area = np.bincount(lab.ravel(), minlength=n + 1)
+        area[0] = 0
+        return _Components(lab, n, area, e, e, e)
     pts = cv2.findNonZero(m) if n else None
     if pts is None:
         e = np.zeros(0, np.int32)
@@ -1283,7 +1292,7 @@ def _decide_core(
         # box of the accepted pixels; one pixel of margin keeps the outside connected
         win = _union_box([(win[0].start, win[1].start, win[0].stop, win[1].stop)], 1, shape)
         acc = accepted[win]
-        cc = _components(~acc, connectivity=4)
+        cc = _components(~acc, connectivity=4, pixels=False)
         bg = cc.lab
         fill = cc.area <= p.max_hole_area
         fill[0] = False
