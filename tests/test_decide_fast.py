@@ -435,20 +435,25 @@ def test_fit_model_error_matches_reference(bands):
     assert len(fits) == 3 and all(f[0] > 0 for f in fits)
 
 
-def test_stop_incomplete_gives_up_exactly_on_incomplete_tiles():
+def test_tile_completeness_and_stop_incomplete():
     from reblur.decide import Photometry, decide_tile
 
     ph = Photometry(gain=np.ones(1), offset=np.zeros(1), sigma=np.ones(1),
                     image_shape=(2000, 2000))
     rng = np.random.default_rng(8)
     outcomes = []
-    for _ in range(12):
+    holes = set()
+    for _ in range(16):
         shape = (int(rng.integers(150, 230)), int(rng.integers(150, 230)))
         obs = (np.abs(ndi.gaussian_filter(rng.standard_normal(shape), 1.5)) * 2.0)
         for _ in range(3):  # squares, some across the tile's edge band
             y, x = rng.integers(0, shape[0] - 20), rng.integers(0, shape[1] - 20)
             r = int(rng.integers(8, 20))
             obs[y : y + 2 * r, x : x + 2 * r] += rng.uniform(2.0, 6.0)
+        if rng.random() < 0.6:  # a square ring: its hole is filled, outside the candidates
+            y, x = rng.integers(0, shape[0] - 60), rng.integers(0, shape[1] - 60)
+            obs[y : y + 56, x : x + 56] += 5.0
+            obs[y + 12 : y + 44, x + 12 : x + 44] -= 5.0
         obs = obs.astype(np.float32)
         reb = np.zeros_like(obs)
         unknown = _blobs(rng, shape, 0.05, 4.0) if rng.random() < 0.5 else None
@@ -458,6 +463,17 @@ def test_stop_incomplete_gives_up_exactly_on_incomplete_tiles():
         kw = dict(threshold=float(rng.uniform(0.9, 1.5)), photometry=ph, box=box, core=core)
         mask, info = decide_tile(obs, reb, unknown, **kw)
         smask, sinfo = decide_tile(obs, reb, unknown, stop_incomplete=True, **kw)
+        # completeness against the reference: two labellings, candidates and mask | cand
+        known = np.ones(shape, bool) if unknown is None else ~unknown
+        p = DecisionParams()
+        S = change_statistic(obs, reb, known, [1.0])
+        rmask, rcand, _ = _ref_decide_core(S, known, kw["threshold"], p)
+        band = np.zeros(shape, bool)
+        m = p.local_radius
+        band[:m] = band[-m:] = band[:, :m] = band[:, -m:] = True
+        core_sl = (slice(halo, shape[0] - halo), slice(halo, shape[1] - halo))
+        assert info["complete"] == _ref_complete((rcand, rmask | rcand), band, core_sl)
+        holes.add(bool(np.any(rmask & ~rcand)))
         if info["complete"]:
             np.testing.assert_array_equal(smask, mask)
             assert sinfo == info
@@ -469,3 +485,4 @@ def test_stop_incomplete_gives_up_exactly_on_incomplete_tiles():
             assert sinfo["n_unknown"] == info["n_unknown"]
         outcomes.append((info["complete"], smask is None))
     assert (True, False) in outcomes and (False, True) in outcomes
+    assert holes == {True, False}  # both ways of the final test

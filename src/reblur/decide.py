@@ -1510,18 +1510,24 @@ def decide_tile(
     core_sl = (slice(ly, ly + ch), slice(lx, lx + cw))
     n_unknown = int(np.count_nonzero(~known[core_sl]))
 
-    def stop(cc: _Components) -> bool:
-        # a candidate region joining the core to the band makes the tile incomplete
-        # (the final test below looks at mask | cand, a superset of the candidates)
-        return not _clear_of(None, band, core_sl, cc)
+    cand_clear = [True]
 
-    mask, cand, counts = _decide_core(S, known, float(threshold), p,
-                                      stop=stop if stop_incomplete else None)
+    def level0(cc: _Components) -> bool:
+        # the test on the level-0 candidates, from their components: a candidate region
+        # joining the core to the band makes the tile incomplete (mask | cand, tested
+        # below, is a superset of the candidates)
+        cand_clear[0] = _clear_of(None, band, core_sl, cc)
+        return stop_incomplete and not cand_clear[0]
+
+    mask, cand, counts = _decide_core(S, known, float(threshold), p, stop=level0)
     if mask is None:
         return None, {"complete": False, "threshold": float(threshold),
                       "strong_threshold": float(p.strong_factor * threshold),
                       "n_unknown": n_unknown}
-    complete = _clear_of(mask | cand, band, core_sl)
+    if np.any(mask & ~cand):  # filled holes: mask | cand has components of its own
+        complete = _clear_of(mask | cand, band, core_sl)
+    else:  # mask | cand == cand: the test is the one on the candidates
+        complete = cand_clear[0]
     info = {
         "complete": complete,
         "threshold": float(threshold),
