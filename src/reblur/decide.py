@@ -106,8 +106,6 @@ __all__ = [
     "tile_boxes",
 ]
 
-_EIGHT = np.ones((3, 3), bool)
-_FOUR = ndi.generate_binary_structure(2, 1)
 _MAD = 1.4826  # MAD -> standard deviation for a Gaussian
 
 
