@@ -388,8 +388,12 @@ def test_completeness_matches_reference():
     assert outcomes == {True, False}
 
 
+@pytest.mark.parametrize("band_elements", [1 << 16, 1000])  # one band; 8-row bands
 @pytest.mark.parametrize("bands", [1, 3])
-def test_change_statistic_matches_reference(bands):
+def test_change_statistic_matches_reference(bands, band_elements, monkeypatch):
+    import reblur.decide
+
+    monkeypatch.setattr(reblur.decide, "_STAT_BAND", band_elements)
     rng = np.random.default_rng(21 + bands)
     shape = (90, 117)
     for k in range(6):

@@ -760,33 +760,43 @@ def change_statistic(
     kc = np.zeros(C) if curv_k is None else np.broadcast_to(
         np.asarray(curv_k, dtype=np.float64).reshape(-1), (C,))
     all_known = bool(known.all())
+    h, w = known.shape
+    # every per-pixel step runs over bands of rows that stay in cache, operation for
+    # operation as ``where(known, (o - m)^2 / var, 0)`` with
+    # ``var = s^2 + ks^2 grad2 + kc^2 lap2`` on whole arrays (the same roundings)
+    bands = [slice(y, min(y + max(1, _STAT_BAND // w), h))
+             for y in range(0, h, max(1, _STAT_BAND // w))]
+    e = np.zeros((h, w), np.float64) if C > 1 else np.empty((h, w), np.float64)
     for c in range(C):
-        # in place, operation for operation as ``where(known, (o - m)^2 / var, 0)`` with
-        # ``var = s^2 + ks^2 grad2 + kc^2 lap2`` (same roundings, fewer full-size arrays)
         mc = m[:, :, c]
-        t = o[:, :, c].astype(np.float64)
-        t -= mc
-        t *= t
-        var: Any = None
-        if ks[c] > 0:
-            var = _grad2(mc)
-            var *= ks[c] * ks[c]
-            var += s[c] * s[c]
-        if kc[c] > 0:
-            lap = _lap2(mc)
-            lap *= kc[c] * kc[c]
-            if var is None:
-                var = lap
-                var += s[c] * s[c]
+        g32 = _grad2_f32(mc) if ks[c] > 0 else None
+        l32 = _laplacian_f32(mc) if kc[c] > 0 else None
+        s2 = s[c] * s[c]
+        for sl in bands:
+            t = o[sl, :, c].astype(np.float64)
+            t -= mc[sl]
+            t *= t
+            var: Any = None
+            if g32 is not None:
+                var = g32[sl].astype(np.float64)
+                var *= ks[c] * ks[c]
+                var += s2
+            if l32 is not None:
+                lap = l32[sl].astype(np.float64)
+                lap *= lap
+                lap *= kc[c] * kc[c]
+                if var is None:
+                    var = lap
+                    var += s2
+                else:
+                    var += lap
+            t /= s2 if var is None else var
+            if not all_known:
+                t[~known[sl]] = 0.0
+            if C == 1:
+                e[sl] = t
             else:
-                var += lap
-        t /= s[c] * s[c] if var is None else var
-        if not all_known:
-            t[~known] = 0.0
-        if C == 1:
-            e = t
-        else:
-            e += t
+                e[sl] += t
     if C > 1:
         e /= C
     if smooth > 0:
@@ -794,15 +804,24 @@ def change_statistic(
         den, positive = (_gaussian_ones(known.shape, smooth, truncate) if all_known
                          else (gaussian_zero(known.astype(np.float64), smooth, truncate), False))
         if positive:  # den > 1e-6 everywhere: the where() below would change nothing
-            e = np.divide(num, den, out=num)
+            for sl in bands:
+                np.divide(num[sl], den[sl], out=num[sl])
+            e = num
         else:
             e = np.where(den > 1e-6, num / np.maximum(den, 1e-6), 0.0)
-    np.maximum(e, 0.0, out=e)
-    np.sqrt(e, out=e)
-    S = e.astype(np.float32)
+    S = np.empty((h, w), np.float32)
+    for sl in bands:
+        v = e[sl]
+        np.maximum(v, 0.0, out=v)
+        np.sqrt(v, out=v)
+        S[sl] = v
     if not all_known:
         S[~known] = 0.0
     return S
+
+
+#: Elements of one band of rows of the statistic's per-pixel steps (512 KB of float64).
+_STAT_BAND = 1 << 16
 
 
 #: Cache of :func:`_gaussian_ones`, least recently used first (a handful of tile shapes
@@ -847,8 +866,8 @@ def gaussian_zero(a: np.ndarray, sigma: float, truncate: float = 4.0) -> np.ndar
     return cv2.sepFilter2D(a, cv2.CV_64F, k, k, borderType=cv2.BORDER_CONSTANT)
 
 
-def _grad2(a: np.ndarray) -> np.ndarray:
-    """Squared gradient magnitude (per pixel, central 3x3 Sobel scaled to unit spacing)."""
+def _grad2_f32(a: np.ndarray) -> np.ndarray:
+    """Squared gradient magnitude in float32 (central 3x3 Sobel scaled to unit spacing)."""
     a = np.ascontiguousarray(a, dtype=np.float32)
     gx = cv2.Sobel(a, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT)
     gy = cv2.Sobel(a, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REFLECT)
@@ -857,14 +876,23 @@ def _grad2(a: np.ndarray) -> np.ndarray:
     gx *= gx
     gy *= gy
     gx += gy
-    return gx.astype(np.float64)
+    return gx
+
+
+def _grad2(a: np.ndarray) -> np.ndarray:
+    """Squared gradient magnitude (per pixel, central 3x3 Sobel scaled to unit spacing)."""
+    return _grad2_f32(a).astype(np.float64)
+
+
+def _laplacian_f32(a: np.ndarray) -> np.ndarray:
+    """Laplacian in float32 (4-neighbour 3x3 stencil)."""
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    return cv2.Laplacian(a, cv2.CV_32F, ksize=1, borderType=cv2.BORDER_REFLECT)
 
 
 def _lap2(a: np.ndarray) -> np.ndarray:
     """Squared Laplacian (per pixel, 4-neighbour 3x3 stencil)."""
-    a = np.ascontiguousarray(a, dtype=np.float32)
-    lap = cv2.Laplacian(a, cv2.CV_32F, ksize=1, borderType=cv2.BORDER_REFLECT)
-    lap = lap.astype(np.float64)
+    lap = _laplacian_f32(a).astype(np.float64)
     lap *= lap
     return lap
 
