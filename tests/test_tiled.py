@@ -73,3 +73,59 @@ def test_source_box_refuses_a_window_beyond_the_horizon():
         source_box(-np.linalg.inv(Hi), dst)
     b2 = source_box(-np.array([[1.0, 0, 7], [0, 1, -3], [0, 0, 1]]), dst, pad=0)
     assert (b2.y0, b2.x0) == (3, -7)
+
+
+def _reblur_tile_whole(poses, reference, box):
+    """The shifted-copy sums over the whole tile at once (the previous reblur_tile)."""
+    from reblur.grid import translation
+    from reblur.tiled import _shared_source
+    from reblur.warp import as_box, warp_window
+
+    box = as_box(box)
+    C = reference.shape[2] if reference.ndim == 3 else 1
+    out = np.zeros((box.h, box.w, C), np.float32)
+    valid = np.ones((box.h, box.w), bool)
+    warps = []
+    for b, tw in poses.groups.items():
+        if not poses.integer:
+            warps += [(translation(tx, ty) @ poses.base_h[b], box, v) for tx, ty, v in tw]
+            continue
+        tx, ty = tw[:, 0].astype(int), tw[:, 1].astype(int)
+        ext = box.grow(int(ty.max()), int(-ty.min()), int(tx.max()), int(-tx.min()))
+        warps.append((poses.base_h[b], ext, (tx, ty, tw[:, 2])))
+    source = _shared_source(reference, [(H, dst) for H, dst, _ in warps], np.float32)
+    tmp = np.empty_like(out)
+    for H, dst, what in warps:
+        img, ok = warp_window(reference, H, dst, dtype=np.float32, source=source)
+        if not poses.integer:
+            out += np.asarray(what, np.float32) * img
+            valid &= ok
+            continue
+        tx, ty, wv = what
+        for sx, sy, v in zip(tx, ty, wv, strict=True):
+            oy, ox = ty.max() - sy, tx.max() - sx
+            np.multiply(img[oy : oy + box.h, ox : ox + box.w], np.float32(v), out=tmp)
+            out += tmp
+            valid &= ok[oy : oy + box.h, ox : ox + box.w]
+    return out, valid
+
+
+def test_banded_sums_equal_whole_tile_sums(levir_rgb, monkeypatch):
+    import reblur.tiled as tiled
+
+    img = levir_rgb[:300, :400].astype(np.float32)
+    grid = PoseGrid((300, 400), tx=np.arange(-5, 6), ty=np.arange(-5, 6), rz=[-1.0, 0.0, 1.5])
+    w = grid_path(grid, rng=3, n_poses=20)
+    poses = tiled.SparsePoses(w, grid)
+    assert poses.integer and poses.n_poses > len(poses.groups)
+    boxes = [(0, 0, 300, 400), (0, 0, 97, 130), (120, 150, 101, 77), (250, 330, 50, 70)]
+    for band in (1 << 17, 3 * 130, 1000):  # one band, and bands with a remainder
+        monkeypatch.setattr(tiled, "_BAND_ELEMENTS", band)
+        for box in boxes:
+            for ref in (img, img[:, :, 1]):
+                out, valid = tiled.reblur_tile(poses, ref, box)
+                eout, evalid = _reblur_tile_whole(poses, ref, box)
+                np.testing.assert_array_equal(out, eout)
+                np.testing.assert_array_equal(valid, evalid)
+                if box[0] == 0:
+                    assert not valid.all()  # the border: the partial-validity path

@@ -81,9 +81,10 @@ vignetting differences.
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator, Sequence
+import threading
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
@@ -105,8 +106,6 @@ __all__ = [
     "tile_boxes",
 ]
 
-_EIGHT = np.ones((3, 3), bool)
-_FOUR = ndi.generate_binary_structure(2, 1)
 _MAD = 1.4826  # MAD -> standard deviation for a Gaussian
 
 
@@ -754,28 +753,102 @@ def change_statistic(
     if known.shape != o.shape[:2]:
         raise ValueError(f"known has shape {known.shape}, expected {o.shape[:2]}")
     s = np.broadcast_to(np.asarray(sigma, dtype=np.float64).reshape(-1), (o.shape[2],))
-    e = np.zeros(o.shape[:2], np.float64)
     C = o.shape[2]
+    e = np.zeros(o.shape[:2], np.float64) if C > 1 else None
     ks = np.zeros(C) if edge_k is None else np.broadcast_to(
         np.asarray(edge_k, dtype=np.float64).reshape(-1), (C,))
     kc = np.zeros(C) if curv_k is None else np.broadcast_to(
         np.asarray(curv_k, dtype=np.float64).reshape(-1), (C,))
+    all_known = bool(known.all())
+    h, w = known.shape
+    # every per-pixel step runs over bands of rows that stay in cache, operation for
+    # operation as ``where(known, (o - m)^2 / var, 0)`` with
+    # ``var = s^2 + ks^2 grad2 + kc^2 lap2`` on whole arrays (the same roundings)
+    bands = [slice(y, min(y + max(1, _STAT_BAND // w), h))
+             for y in range(0, h, max(1, _STAT_BAND // w))]
+    e = np.zeros((h, w), np.float64) if C > 1 else np.empty((h, w), np.float64)
     for c in range(C):
-        r = o[:, :, c].astype(np.float64) - m[:, :, c]
-        var = np.full(r.shape, s[c] * s[c])
-        if ks[c] > 0:
-            var = var + ks[c] * ks[c] * _grad2(m[:, :, c])
-        if kc[c] > 0:
-            var = var + kc[c] * kc[c] * _lap2(m[:, :, c])
-        e += np.where(known, r * r / var, 0.0)
-    e /= o.shape[2]
+        mc = m[:, :, c]
+        g32 = _grad2_f32(mc) if ks[c] > 0 else None
+        l32 = _laplacian_f32(mc) if kc[c] > 0 else None
+        s2 = s[c] * s[c]
+        for sl in bands:
+            t = o[sl, :, c].astype(np.float64)
+            t -= mc[sl]
+            t *= t
+            var: Any = None
+            if g32 is not None:
+                var = g32[sl].astype(np.float64)
+                var *= ks[c] * ks[c]
+                var += s2
+            if l32 is not None:
+                lap = l32[sl].astype(np.float64)
+                lap *= lap
+                lap *= kc[c] * kc[c]
+                if var is None:
+                    var = lap
+                    var += s2
+                else:
+                    var += lap
+            t /= s2 if var is None else var
+            if not all_known:
+                t[~known[sl]] = 0.0
+            if C == 1:
+                e[sl] = t
+            else:
+                e[sl] += t
+    if C > 1:
+        e /= C
     if smooth > 0:
         num = gaussian_zero(e, smooth, truncate)
-        den = gaussian_zero(known.astype(np.float64), smooth, truncate)
-        e = np.where(den > 1e-6, num / np.maximum(den, 1e-6), 0.0)
-    S = np.sqrt(np.maximum(e, 0.0)).astype(np.float32)
-    S[~known] = 0.0
+        den, positive = (_gaussian_ones(known.shape, smooth, truncate) if all_known
+                         else (gaussian_zero(known.astype(np.float64), smooth, truncate), False))
+        if positive:  # den > 1e-6 everywhere: the where() below would change nothing
+            for sl in bands:
+                np.divide(num[sl], den[sl], out=num[sl])
+            e = num
+        else:
+            e = np.where(den > 1e-6, num / np.maximum(den, 1e-6), 0.0)
+    S = np.empty((h, w), np.float32)
+    for sl in bands:
+        v = e[sl]
+        np.maximum(v, 0.0, out=v)
+        np.sqrt(v, out=v)
+        S[sl] = v
+    if not all_known:
+        S[~known] = 0.0
     return S
+
+
+#: Elements of one band of rows of the statistic's per-pixel steps (512 KB of float64).
+_STAT_BAND = 1 << 16
+
+
+#: Cache of :func:`_gaussian_ones`, least recently used first (a handful of tile shapes
+#: recur over a tiled pass: interior, edge and corner tiles, and their re-runs).
+_ONES_CACHE: dict[tuple[int, int, float, float], tuple[np.ndarray, bool]] = {}
+_ONES_LOCK = threading.Lock()
+_ONES_MAX = 6
+
+
+def _gaussian_ones(shape: tuple[int, int], sigma: float,
+                   truncate: float) -> tuple[np.ndarray, bool]:
+    """``gaussian_zero(ones(shape))`` (read-only, cached by shape) and whether it exceeds
+    1e-6 everywhere.  The cached array holds the very bits a new call would return."""
+    key = (int(shape[0]), int(shape[1]), float(sigma), float(truncate))
+    with _ONES_LOCK:
+        hit = _ONES_CACHE.pop(key, None)
+        if hit is not None:
+            _ONES_CACHE[key] = hit  # most recently used: last
+    if hit is None:
+        g = gaussian_zero(np.ones(key[:2], np.float64), sigma, truncate)
+        g.flags.writeable = False
+        hit = (g, bool(g.min() > 1e-6))
+        with _ONES_LOCK:
+            _ONES_CACHE[key] = hit
+            while len(_ONES_CACHE) > _ONES_MAX:
+                _ONES_CACHE.pop(next(iter(_ONES_CACHE)))
+    return hit
 
 
 def gaussian_zero(a: np.ndarray, sigma: float, truncate: float = 4.0) -> np.ndarray:
@@ -793,19 +866,35 @@ def gaussian_zero(a: np.ndarray, sigma: float, truncate: float = 4.0) -> np.ndar
     return cv2.sepFilter2D(a, cv2.CV_64F, k, k, borderType=cv2.BORDER_CONSTANT)
 
 
+def _grad2_f32(a: np.ndarray) -> np.ndarray:
+    """Squared gradient magnitude in float32 (central 3x3 Sobel scaled to unit spacing)."""
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    gx = cv2.Sobel(a, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT)
+    gy = cv2.Sobel(a, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REFLECT)
+    gx /= 8.0
+    gy /= 8.0
+    gx *= gx
+    gy *= gy
+    gx += gy
+    return gx
+
+
 def _grad2(a: np.ndarray) -> np.ndarray:
     """Squared gradient magnitude (per pixel, central 3x3 Sobel scaled to unit spacing)."""
+    return _grad2_f32(a).astype(np.float64)
+
+
+def _laplacian_f32(a: np.ndarray) -> np.ndarray:
+    """Laplacian in float32 (4-neighbour 3x3 stencil)."""
     a = np.ascontiguousarray(a, dtype=np.float32)
-    gx = cv2.Sobel(a, cv2.CV_32F, 1, 0, ksize=3, borderType=cv2.BORDER_REFLECT) / 8.0
-    gy = cv2.Sobel(a, cv2.CV_32F, 0, 1, ksize=3, borderType=cv2.BORDER_REFLECT) / 8.0
-    return (gx * gx + gy * gy).astype(np.float64)
+    return cv2.Laplacian(a, cv2.CV_32F, ksize=1, borderType=cv2.BORDER_REFLECT)
 
 
 def _lap2(a: np.ndarray) -> np.ndarray:
     """Squared Laplacian (per pixel, 4-neighbour 3x3 stencil)."""
-    a = np.ascontiguousarray(a, dtype=np.float32)
-    lap = cv2.Laplacian(a, cv2.CV_32F, ksize=1, borderType=cv2.BORDER_REFLECT)
-    return (lap.astype(np.float64)) ** 2
+    lap = _laplacian_f32(a).astype(np.float64)
+    lap *= lap
+    return lap
 
 
 def fit_model_error(observed, matched, known, sigma, *, bins: int = 8,
@@ -853,19 +942,26 @@ def fit_model_error(observed, matched, known, sigma, *, bins: int = 8,
     for o, m, k in zip(observed, matched, known, strict=True):
         o, m = _channels(_float(o)), _channels(_float(m))
         # pixels whose 3x3 stencil is known: the values at unknown pixels are arbitrary
-        k = ndi.binary_erosion(np.asarray(k, bool), np.ones((3, 3), bool), border_value=1)
+        k = np.asarray(k, bool)
+        if k.all():  # the erosion (border value 1) keeps every pixel: no masked copies
+            k = None
+        else:
+            k = ndi.binary_erosion(k, np.ones((3, 3), bool), border_value=1)
         for c in range(C):
-            acc[c][0].append(((o[:, :, c].astype(np.float64) - m[:, :, c]) ** 2)[k])
-            acc[c][1].append(_grad2(m[:, :, c])[k])
-            acc[c][2].append(_lap2(m[:, :, c])[k])
+            for j, v in enumerate((((o[:, :, c].astype(np.float64) - m[:, :, c]) ** 2),
+                                   _grad2(m[:, :, c]), _lap2(m[:, :, c]))):
+                acc[c][j].append(v.ravel() if k is None else v[k])
     ek, ck = np.zeros(C), np.zeros(C)
     for c in range(C):
-        r2, g2, l2 = (np.concatenate(a) if a else np.zeros(0) for a in acc[c])
-        if r2.size < 20 * bins * bins:
+        n = sum(a.size for a in acc[c][0])
+        if n < 20 * bins * bins:
             continue
-        if r2.size > max_samples:
-            pick = rng.choice(r2.size, max_samples, replace=False)
-            r2, g2, l2 = r2[pick], g2[pick], l2[pick]
+        if n > max_samples:
+            # the sample drawn from the (never built) concatenation of the tiles
+            pick = rng.choice(n, max_samples, replace=False)
+            r2, g2, l2 = (_take_concatenated(a, pick) for a in acc[c])
+        else:
+            r2, g2, l2 = (np.concatenate(a) for a in acc[c])
         qg = np.searchsorted(np.quantile(g2, np.linspace(0, 1, bins + 1)[1:-1]), g2, "right")
         ql = np.searchsorted(np.quantile(l2, np.linspace(0, 1, bins + 1)[1:-1]), l2, "right")
         cell = qg * bins + ql
@@ -887,6 +983,17 @@ def fit_model_error(observed, matched, known, sigma, *, bins: int = 8,
         ek[c] = min(np.sqrt(max(a, 0.0)), k_max)
         ck[c] = min(np.sqrt(max(b, 0.0)), c_max)
     return ek, ck
+
+
+def _take_concatenated(pieces: list[np.ndarray], idx: np.ndarray) -> np.ndarray:
+    """``np.concatenate(pieces)[idx]`` without building the concatenation."""
+    offsets = np.cumsum([0] + [a.size for a in pieces])
+    out = np.empty(idx.size, np.result_type(*pieces))
+    which = np.searchsorted(offsets, idx, side="right") - 1
+    for t, a in enumerate(pieces):
+        sel = which == t
+        out[sel] = a[idx[sel] - offsets[t]]
+    return out
 
 
 def estimate_threshold(
@@ -972,24 +1079,134 @@ def _shape_ok(sub: np.ndarray, area: int, p: DecisionParams) -> bool:
     return area / (4.0 * r_in * r_in) <= p.max_aspect
 
 
-def _labelled(S: np.ndarray, lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+class _Components(NamedTuple):
+    """Connected components of a mask (:func:`_components`).
+
+    Attributes
+    ----------
+    lab : (h, w) int32 ndarray
+        0 for the background, 1..n for the components.
+    n : int
+        Number of components.
+    area : (n + 1,) int ndarray
+        Pixel count per label (``area[0]``: 0).
+    ys, xs, lv : (k,) int ndarray
+        Row, column and label of every foreground pixel, in raster order.
+    """
+
+    lab: np.ndarray
+    n: int
+    area: np.ndarray
+    ys: np.ndarray
+    xs: np.ndarray
+    lv: np.ndarray
+
+
+def _components(mask: np.ndarray, connectivity: int = 8, pixels: bool = True) -> _Components:
+    """Connected components of a 2-D mask, labelled by OpenCV (which releases the GIL).
+
+    The same partition as ``scipy.ndimage.label`` with the full 3 x 3 (``connectivity=8``)
+    or the cross (``4``) structure; the numbering may differ, so callers never rely on it.
+    Areas (and boxes, :func:`_boxes`) come from the foreground pixels only
+    (``cv2.findNonZero``; the components are a small part of a tile): OpenCV's own
+    statistics pass is several times slower than the labelling.
+
+    Parameters
+    ----------
+    mask : (h, w) bool or uint8 ndarray
+        Foreground: non-zero pixels.
+    connectivity : {8, 4}
+    pixels : bool
+        Also list the foreground pixels (``ys``, ``xs``, ``lv``); False for a dense
+        foreground (e.g. the background of a mask), whose areas come from a count over the
+        whole label image instead.
+
+    Returns
+    -------
+    _Components
+    """
+    m = np.ascontiguousarray(mask)
+    if m.dtype == bool:
+        m = m.view(np.uint8)
+    n, lab = cv2.connectedComponents(m, connectivity=connectivity, ltype=cv2.CV_32S)
+    n = int(n) - 1
+    if not pixels:
+        e = np.zeros(0, np.int32)
+        area = np.bincount(lab.ravel(), minlength=n + 1)
+        area[0] = 0
+        return _Components(lab, n, area, e, e, e)
+    pts = cv2.findNonZero(m) if n else None
+    if pts is None:
+        e = np.zeros(0, np.int32)
+        return _Components(lab, n, np.zeros(n + 1, np.intp), e, e, e)
+    pts = pts.reshape(-1, 2)
+    xs, ys = pts[:, 0], pts[:, 1]
+    lv = lab[ys, xs]
+    area = np.bincount(lv, minlength=n + 1)
+    area[0] = 0
+    return _Components(lab, n, area, ys, xs, lv)
+
+
+def _boxes(cc: _Components, labels) -> dict[int, tuple[slice, slice]]:
+    """Tight bounding boxes (as slices) of some labels of ``cc``, from their pixels only."""
+    labels = np.asarray(labels, np.intp).reshape(-1)
+    if labels.size == 0:
+        return {}
+    sel = np.zeros(cc.n + 1, bool)
+    sel[labels] = True
+    pick = sel[cc.lv]
+    lv, ys, xs = cc.lv[pick], cc.ys[pick], cc.xs[pick]
+    big = np.iinfo(np.int32).max
+    y0 = np.full(cc.n + 1, big, np.int32)
+    x0 = np.full(cc.n + 1, big, np.int32)
+    y1 = np.zeros(cc.n + 1, np.int32)
+    x1 = np.zeros(cc.n + 1, np.int32)
+    np.minimum.at(y0, lv, ys)
+    np.minimum.at(x0, lv, xs)
+    np.maximum.at(y1, lv, ys)
+    np.maximum.at(x1, lv, xs)
+    return {int(k): (slice(int(y0[k]), int(y1[k]) + 1), slice(int(x0[k]), int(x1[k]) + 1))
+            for k in labels}
+
+
+def _union_box(
+    boxes: list[tuple[int, int, int, int]], margin: int, shape: tuple[int, ...]
+) -> tuple[slice, slice]:
+    """Union of ``(y0, x0, y1, x1)`` boxes grown by ``margin``, clipped to ``shape``."""
+    y0 = max(min(b[0] for b in boxes) - margin, 0)
+    x0 = max(min(b[1] for b in boxes) - margin, 0)
+    y1 = min(max(b[2] for b in boxes) + margin, shape[0])
+    x1 = min(max(b[3] for b in boxes) + margin, shape[1])
+    return slice(y0, y1), slice(x0, x1)
+
+
+def _labelled(
+    S: np.ndarray, lab: np.ndarray, comps: _Components | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Labels and values of the labelled pixels only (candidates are a small fraction)."""
+    if comps is not None:
+        return comps.lv, S[comps.ys, comps.xs].astype(np.float64)
     sel = lab > 0
     return lab[sel], S[sel].astype(np.float64)
 
 
-def _label_max(S: np.ndarray, lab: np.ndarray, n: int) -> np.ndarray:
-    """``ndimage.maximum(S, lab, 1..n)`` over the labelled pixels only."""
-    lv, v = _labelled(S, lab)
+def _label_max(
+    S: np.ndarray, lab: np.ndarray, n: int, comps: _Components | None = None
+) -> np.ndarray:
+    """``ndimage.maximum(S, lab, 1..n)`` over the labelled pixels only (``comps``: their
+    positions and labels, from :func:`_components` of ``lab``)."""
+    lv, v = _labelled(S, lab, comps)
     out = np.full(n + 1, -np.inf)
     np.maximum.at(out, lv, v)
     return out[1:]
 
 
-def _label_median(S: np.ndarray, lab: np.ndarray, n: int) -> np.ndarray:
+def _label_median(
+    S: np.ndarray, lab: np.ndarray, n: int, comps: _Components | None = None
+) -> np.ndarray:
     """``ndimage.median(S, lab, 1..n)`` (mean of the two middle values for an even count)
     over the labelled pixels only: one sort of the candidates, not of the whole tile."""
-    lv, v = _labelled(S, lab)
+    lv, v = _labelled(S, lab, comps)
     order = np.lexsort((v, lv))
     v = v[order]
     counts = np.bincount(lv, minlength=n + 1)[1:]
@@ -1000,72 +1217,114 @@ def _label_median(S: np.ndarray, lab: np.ndarray, n: int) -> np.ndarray:
 
 
 def _decide_core(
-    S: np.ndarray, known: np.ndarray, threshold: float, p: DecisionParams
-) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
-    """Region decision on an array; returns (mask, level-0 candidate mask, counts)."""
+    S: np.ndarray, known: np.ndarray, threshold: float, p: DecisionParams,
+    stop: Callable[[_Components], bool] | None = None,
+) -> tuple[np.ndarray | None, np.ndarray, dict[str, int]]:
+    """Region decision on an array; returns (mask, level-0 candidate mask, counts).
+
+    ``stop``, called with the components of the level-0 candidates, may end the decision
+    there: the mask is then None (and the counts cover nothing).
+
+    Level 0 looks at the whole array; every later level only at the window holding the
+    regions passed on to it (grown by the opening's reach, so the opening, which never
+    adds pixels, gives the same result there as on the whole array), and the boundary cut
+    and the hole filling only at the window of the accepted regions.  Connected components
+    come from OpenCV with their areas and boxes (no pass over the whole array per label).
+    """
     strong = p.strong_factor * threshold
-    accepted = np.zeros(S.shape, bool)
-    pending = known.copy()
+    shape = S.shape
+    accepted = np.zeros(shape, bool)
     counts = {"accepted": 0, "small": 0, "weak": 0, "not_object": 0}
     levels = p.levels if p.region_tests else (1.0,)
     candidates = None
     kernel = _disc(p.open_radius) if p.open_radius > 0 else None
+    pending = known
+    win: tuple[slice, slice] = (slice(0, shape[0]), slice(0, shape[1]))
+    kept: list[tuple[int, int, int, int]] = []  # boxes of the accepted regions
     for li, level in enumerate(levels):
-        m = (S > threshold * level) & pending
+        Sw = S[win]
+        m = (Sw > threshold * level) & pending[win]
         if kernel is not None:
-            m = cv2.morphologyEx(m.view(np.uint8), cv2.MORPH_OPEN, kernel).astype(bool)
-        if candidates is None:
-            candidates = m
-        lab, n = ndi.label(m, structure=_EIGHT)
+            m = cv2.morphologyEx(m.view(np.uint8), cv2.MORPH_OPEN, kernel)
+        if candidates is None:  # level 0: the window is the whole array
+            candidates = m.view(bool)
+        cc = _components(m)
+        if li == 0 and stop is not None and stop(cc):
+            return None, candidates, counts
+        lab, n = cc.lab, cc.n
         if n == 0:
             break
-        area = np.bincount(lab.ravel(), minlength=n + 1)[1:]
-        smax = _label_max(S, lab, n)
-        keep = np.zeros(n + 1, bool)
-        nxt = np.zeros(n + 1, bool)
+        area = cc.area[1:]
+        smax = _label_max(Sw, lab, n, cc)
+        small = area < p.min_area
+        weak = ~small & (smax < strong)
+        counts["small"] += int(np.count_nonzero(small))
+        counts["weak"] += int(np.count_nonzero(weak))
         last = li == len(levels) - 1
-        for i, sl in enumerate(ndi.find_objects(lab)):
-            lbl = i + 1
-            if area[i] < p.min_area:
-                counts["small"] += 1
-                continue
-            if smax[i] < strong:
-                counts["weak"] += 1
-                continue
-            if not p.region_tests or _shape_ok(lab[sl] == lbl, int(area[i]), p):
-                keep[lbl] = True
+        oy, ox = win[0].start, win[1].start
+        nxt = None
+        passed: list[tuple[int, int, int, int]] = []
+        tested = np.flatnonzero(~(small | weak))
+        boxes = _boxes(cc, tested + 1)
+        for i in tested:
+            lbl = int(i) + 1
+            sl = boxes[lbl]
+            sub = lab[sl] == lbl
+            full = (slice(sl[0].start + oy, sl[0].stop + oy),
+                    slice(sl[1].start + ox, sl[1].stop + ox))
+            box = (full[0].start, full[1].start, full[0].stop, full[1].stop)
+            if not p.region_tests or _shape_ok(sub, int(area[i]), p):
+                accepted[full] |= sub
+                kept.append(box)
                 counts["accepted"] += 1
             elif last:
                 counts["not_object"] += 1
             else:
-                nxt[lbl] = True
-        accepted |= keep[lab]
-        pending = nxt[lab]
-        if not pending.any():
+                if nxt is None:
+                    nxt = np.zeros(shape, bool)
+                nxt[full] |= sub
+                passed.append(box)
+        if nxt is None:
             break
+        pending = nxt
+        win = _union_box(passed, int(p.open_radius) + 1, shape)
     if candidates is None:
-        candidates = np.zeros(S.shape, bool)
-    if p.boundary_fraction > 0 and accepted.any():
+        candidates = np.zeros(shape, bool)
+    if not kept:
+        return accepted, candidates, counts
+    # from here on every accepted pixel lies in the window of the accepted regions
+    win = _union_box(kept, 0, shape)
+    if p.boundary_fraction > 0:
         # object boundary at a fixed fraction of the region's own level: the absolute
         # threshold sits far down the flank of a strong change and would bleed outwards
-        lab, n = ndi.label(accepted, structure=_EIGHT)
-        level = _label_median(S, lab, n)
+        acc = accepted[win]
+        Sw = S[win]
+        cc = _components(acc)
+        lab, n = cc.lab, cc.n
+        level = _label_median(Sw, lab, n, cc)
         cut = np.concatenate([[np.inf], np.maximum(p.boundary_fraction * level, threshold)])
-        accepted &= S >= cut[lab]
-        lab, n = ndi.label(accepted, structure=_EIGHT)
-        area = np.bincount(lab.ravel(), minlength=n + 1)
-        big = area >= p.min_area
+        acc &= Sw >= cut[lab]
+        cc = _components(acc)
+        big = cc.area >= p.min_area
         big[0] = False
-        accepted = big[lab]
-    if p.max_hole_area > 0 and accepted.any():
-        bg, nb = ndi.label(~accepted, structure=_FOUR)
-        sizes = np.bincount(bg.ravel(), minlength=nb + 1)
-        border = np.unique(np.concatenate([bg[0], bg[-1], bg[:, 0], bg[:, -1]]))
-        fill = sizes <= p.max_hole_area
+        acc[...] = big[cc.lab]
+        if not big.any():
+            return accepted, candidates, counts
+        win = _union_box([(b[0].start + win[0].start, b[1].start + win[1].start,
+                           b[0].stop + win[0].start, b[1].stop + win[1].start)
+                          for b in _boxes(cc, np.flatnonzero(big)).values()], 0, shape)
+    if p.max_hole_area > 0:
+        # a hole (a background component clear of the array's border) lies inside the
+        # box of the accepted pixels; one pixel of margin keeps the outside connected
+        win = _union_box([(win[0].start, win[1].start, win[0].stop, win[1].stop)], 1, shape)
+        acc = accepted[win]
+        cc = _components(~acc, connectivity=4, pixels=False)
+        bg = cc.lab
+        fill = cc.area <= p.max_hole_area
         fill[0] = False
-        fill[border] = False
-        accepted |= fill[bg]
-    accepted &= known
+        fill[np.concatenate([bg[0], bg[-1], bg[:, 0], bg[:, -1]])] = False
+        acc |= fill[bg]
+    accepted[win] &= known[win]
     return accepted, candidates, counts
 
 
@@ -1074,27 +1333,37 @@ def _region_records(
 ) -> list[dict[str, Any]]:
     """Connected regions of ``mask`` (8-conn), full-image coordinates.
 
-    With ``core=(cy0, cx0, ch, cw)`` (array coordinates) only regions whose first pixel in
-    raster order lies in the core are listed, so tiles list each region once.
+    Regions are listed in the raster order of their first pixel (as ``ndimage.label``
+    numbers them).  With ``core=(cy0, cx0, ch, cw)`` (array coordinates) only regions whose
+    first pixel in raster order lies in the core are listed, so tiles list each region once.
     """
-    lab, n = ndi.label(mask, structure=_EIGHT)
+    cc = _components(mask)
+    lab = cc.lab
+    # first pixel of every label in raster order (the foreground pixels are in raster order)
+    lbls, first = np.unique(cc.lv, return_index=True)
+    order = np.argsort(first, kind="stable")
+    boxes = _boxes(cc, lbls)
     out = []
-    for i, sl in enumerate(ndi.find_objects(lab)):
-        sub = lab[sl] == i + 1
-        yy, xx = np.nonzero(sub)
-        ay, ax = int(yy[0] + sl[0].start), int(xx[0] + sl[1].start)
+    for lbl, k in zip(lbls[order].tolist(), first[order].tolist(), strict=True):
+        ay, ax = int(cc.ys[k]), int(cc.xs[k])
         if core is not None:
             cy0, cx0, ch, cw = core
             if not (cy0 <= ay < cy0 + ch and cx0 <= ax < cx0 + cw):
                 continue
+        sl = boxes[lbl]
+        sub = lab[sl] == lbl
+        area = int(cc.area[lbl])
+        # centroid as the mean of the pixel indices: exact integer sums over the box
+        sy = int(np.arange(sub.shape[0]) @ np.count_nonzero(sub, axis=1))
+        sx = int(np.arange(sub.shape[1]) @ np.count_nonzero(sub, axis=0))
         vals = S[sl][sub]
         out.append(
             {
-                "area": int(sub.sum()),
+                "area": area,
                 "bbox": [sl[0].start + y0, sl[1].start + x0, sl[0].stop + y0, sl[1].stop + x0],
                 "centroid": [
-                    float(yy.mean() + sl[0].start + y0),
-                    float(xx.mean() + sl[1].start + x0),
+                    float(np.float64(sy) / area + sl[0].start + y0),
+                    float(np.float64(sx) / area + sl[1].start + x0),
                 ],
                 "mean_stat": float(vals.mean()),
                 "max_stat": float(vals.max()),
@@ -1103,6 +1372,43 @@ def _region_records(
     for k, r in enumerate(out, 1):
         r["label"] = k
     return out
+
+
+def _clear_of(
+    mask: np.ndarray | None, band: list[tuple[slice, slice]], core: tuple[slice, slice],
+    cc: _Components | None = None,
+) -> bool:
+    """No 8-connected component of ``mask`` has pixels both in ``core`` and in ``band``.
+
+    Parameters
+    ----------
+    mask : (h, w) bool ndarray or None
+        None when its components ``cc`` are given.
+    band : list of (slice, slice)
+        Strips of the array (the tile edges that are not image borders).
+    core : (slice, slice)
+        The tile's core.
+    cc : _Components, optional
+        The 8-connected components of ``mask``, if already known.
+    """
+    if not band:
+        return True
+    if cc is None:
+        cc = _components(mask)
+    lab, n = cc.lab, cc.n
+    if n == 0:
+        return True
+    touch = np.zeros(n + 1, bool)
+    for sl in band:
+        touch[lab[sl].ravel()] = True
+    touch[0] = False
+    cy, cx = core
+    for lbl, (ys, xs) in _boxes(cc, np.flatnonzero(touch)).items():
+        ya, yb = max(ys.start, cy.start), min(ys.stop, cy.stop)
+        xa, xb = max(xs.start, cx.start), min(xs.stop, cx.stop)
+        if ya < yb and xa < xb and np.any(lab[ya:yb, xa:xb] == lbl):
+            return False
+    return True
 
 
 def _prepare(observed, reblurred, unknown):
@@ -1157,7 +1463,8 @@ def decide_tile(
     core=None,
     params: DecisionParams | None = None,
     image_shape: tuple[int, int] | None = None,
-) -> tuple[np.ndarray, dict[str, Any]]:
+    stop_incomplete: bool = False,
+) -> tuple[np.ndarray | None, dict[str, Any]]:
     """Decide change on one padded tile and return its core.
 
     Parameters
@@ -1180,10 +1487,15 @@ def decide_tile(
     image_shape : (int, int), optional
         Full image size (default ``photometry.image_shape``): tile edges on the image
         border need no halo.
+    stop_incomplete : bool
+        Give up as soon as the tile is known to be incomplete (a level-0 candidate region
+        joins the core to the edge band), for a caller that re-runs such tiles with a
+        larger halo anyway: ``mask`` is then None and ``info`` holds ``complete`` (False),
+        ``threshold``, ``strong_threshold`` and ``n_unknown`` only.
 
     Returns
     -------
-    mask : (core h, core w) bool ndarray
+    mask : (core h, core w) bool ndarray or None
     info : dict
         ``complete`` (True when the result is guaranteed equal to the whole-image call:
         no candidate region reaching the core comes within ``params.local_radius`` of a
@@ -1209,39 +1521,46 @@ def decide_tile(
     matched = photometry.apply(r, (by0, bx0, bh, bw))
     S = change_statistic(o, matched, known, photometry.sigma, smooth=p.smooth, truncate=p.truncate,
                          edge_k=photometry.edge_k, curv_k=photometry.curv_k)
-    mask, cand, counts = _decide_core(S, known, float(threshold), p)
     ly, lx = cy0 - by0, cx0 - bx0
     # completeness: regions reaching the core must stay clear of non-border tile edges
     m = p.local_radius
-    band = np.zeros((bh, bw), bool)
-    top = by0 <= 0
-    left = bx0 <= 0
-    bottom = shape is not None and by0 + bh >= shape[0]
-    right = shape is not None and bx0 + bw >= shape[1]
-    if not top:
-        band[:m] = True
-    if not bottom:
-        band[bh - m :] = True
-    if not left:
-        band[:, :m] = True
-    if not right:
-        band[:, bw - m :] = True
-    complete = True
-    for cm in (cand, mask | cand):
-        lab, n = ndi.label(cm, structure=_EIGHT)
-        if n:
-            in_core = np.unique(lab[ly : ly + ch, lx : lx + cw])
-            in_band = np.unique(lab[band])
-            if np.intersect1d(in_core[in_core > 0], in_band[in_band > 0]).size:
-                complete = False
-                break
+    band = []
+    if not by0 <= 0:  # top
+        band.append((slice(0, m), slice(None)))
+    if not (shape is not None and by0 + bh >= shape[0]):  # bottom
+        band.append((slice(bh - m, None), slice(None)))
+    if not bx0 <= 0:  # left
+        band.append((slice(None), slice(0, m)))
+    if not (shape is not None and bx0 + bw >= shape[1]):  # right
+        band.append((slice(None), slice(bw - m, None)))
+    core_sl = (slice(ly, ly + ch), slice(lx, lx + cw))
+    n_unknown = int(np.count_nonzero(~known[core_sl]))
+
+    cand_clear = [True]
+
+    def level0(cc: _Components) -> bool:
+        # the test on the level-0 candidates, from their components: a candidate region
+        # joining the core to the band makes the tile incomplete (mask | cand, tested
+        # below, is a superset of the candidates)
+        cand_clear[0] = _clear_of(None, band, core_sl, cc)
+        return stop_incomplete and not cand_clear[0]
+
+    mask, cand, counts = _decide_core(S, known, float(threshold), p, stop=level0)
+    if mask is None:
+        return None, {"complete": False, "threshold": float(threshold),
+                      "strong_threshold": float(p.strong_factor * threshold),
+                      "n_unknown": n_unknown}
+    if np.any(mask & ~cand):  # filled holes: mask | cand has components of its own
+        complete = _clear_of(mask | cand, band, core_sl)
+    else:  # mask | cand == cand: the test is the one on the candidates
+        complete = cand_clear[0]
     info = {
         "complete": complete,
         "threshold": float(threshold),
         "strong_threshold": float(p.strong_factor * threshold),
         "counts": counts,
         "regions": _region_records(mask, S, by0, bx0, core=(ly, lx, ch, cw)),
-        "n_unknown": int(np.count_nonzero(~known[ly : ly + ch, lx : lx + cw])),
+        "n_unknown": n_unknown,
     }
     return mask[ly : ly + ch, lx : lx + cw].copy(), info
 

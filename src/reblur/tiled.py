@@ -81,7 +81,10 @@ def reblur_tile(poses: SparsePoses, reference, box, *, dtype=np.float32):
                        int(-tx.min()))
         warps.append((Hb, ext, (tx, ty, tw[:, 2])))
     source = _shared_source(reference, [(H, dst) for H, dst, _ in warps], dtype)
-    tmp = np.empty_like(out)
+    # the shifted copies are summed over bands of rows that stay in cache (the same
+    # products and sums, pixel by pixel, in the same order as over the whole tile)
+    rows = max(1, _BAND_ELEMENTS // (box.w * C))
+    tmp = np.empty((min(rows, box.h), box.w, C), dtype)
     for H, dst, what in warps:
         img, ok = warp_window(reference, H, dst, dtype=dtype, source=source)
         if not poses.integer:
@@ -89,15 +92,23 @@ def reblur_tile(poses: SparsePoses, reference, box, *, dtype=np.float32):
             valid &= ok
             continue
         tx, ty, wv = what
-        tymax, txmax = ty.max(), tx.max()
+        tymax, txmax = int(ty.max()), int(tx.max())
+        shifts = [(tymax - int(sy), txmax - int(sx), np.asarray(v, dtype))
+                  for sx, sy, v in zip(tx, ty, wv, strict=True)]
         all_ok = bool(ok.all())
-        for sx, sy, v in zip(tx, ty, wv, strict=True):
-            oy, ox = tymax - sy, txmax - sx
-            np.multiply(img[oy : oy + box.h, ox : ox + box.w], np.asarray(v, dtype), out=tmp)
-            out += tmp
-            if not all_ok:
-                valid &= ok[oy : oy + box.h, ox : ox + box.w]
+        for y in range(0, box.h, rows):
+            n = min(rows, box.h - y)
+            o, t = out[y : y + n], tmp[:n]
+            for oy, ox, v in shifts:
+                np.multiply(img[oy + y : oy + y + n, ox : ox + box.w], v, out=t)
+                o += t
+                if not all_ok:
+                    valid[y : y + n] &= ok[oy + y : oy + y + n, ox : ox + box.w]
     return out, valid
+
+
+#: Elements of one band of rows of the shifted-copy sums (512 KB of float32).
+_BAND_ELEMENTS = 1 << 17
 
 
 def _shared_source(reference, warps, dtype) -> tuple[np.ndarray, Box] | None:

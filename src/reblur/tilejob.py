@@ -107,8 +107,12 @@ def load_tile(poses: SparsePoses, reference, observed, box, *, s_ref: float, s_o
     """
     box = as_box(box)
     reb, valid = reblur_tile(poses, reference, box)
-    reb = reb / np.float32(s_ref) * np.asarray(gain, np.float32) + np.asarray(offset, np.float32)
-    obs = read_window(observed, box, np.float32) / np.float32(s_obs)
+    # in place: the same float32 operations as ``reb / s_ref * gain + offset``
+    reb /= np.float32(s_ref)
+    reb *= np.asarray(gain, np.float32)
+    reb += np.asarray(offset, np.float32)
+    obs = read_window(observed, box, np.float32)
+    obs /= np.float32(s_obs)
     return obs, reb, ~valid
 
 
@@ -145,13 +149,15 @@ def run_tile(
     core = tuple(int(v) for v in core)
     halo = int(job.halo)
     for attempt in range(_ATTEMPTS):
+        last = attempt == _ATTEMPTS - 1
         obs, reb, unk = load_tile(job.poses, reference, observed, padded, s_ref=job.s_ref,
                                   s_obs=job.s_obs, gain=gain, offset=offset)
+        # an attempt that will be re-run stops as soon as it is known to be incomplete
         mask, info = decide_tile(
             obs, reb, unk, threshold=job.threshold, photometry=job.photometry, box=padded,
-            core=core, params=job.params, image_shape=(H, W),
+            core=core, params=job.params, image_shape=(H, W), stop_incomplete=not last,
         )
-        if info["complete"] or attempt == _ATTEMPTS - 1:
+        if info["complete"] or last:
             break
         halo *= 2
         padded = pad_box(core, halo, (H, W))
