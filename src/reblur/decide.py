@@ -94,6 +94,8 @@ import scipy.sparse.linalg as spla
 from skimage.filters import threshold_otsu
 from skimage.morphology import convex_hull_image
 
+from .robust import MAD_TO_SIGMA, huber_line, mad
+
 __all__ = [
     "Photometry",
     "fit_photometry",
@@ -106,7 +108,7 @@ __all__ = [
     "tile_boxes",
 ]
 
-_MAD = 1.4826  # MAD -> standard deviation for a Gaussian
+_MAD = MAD_TO_SIGMA
 
 
 # --------------------------------------------------------------------------- helpers
@@ -131,10 +133,6 @@ def _box(box) -> tuple[int, int, int, int]:
     return y0, x0, h, w
 
 
-def _mad(x: np.ndarray) -> float:
-    return float(_MAD * np.median(np.abs(x - np.median(x)))) if x.size else float("nan")
-
-
 def _robust_scale(r: np.ndarray, k: float = 3.5, n_iter: int = 5) -> float:
     """Standard deviation of the inliers: MAD, re-estimated on ``|r - med| < k * scale``.
 
@@ -157,39 +155,6 @@ def _robust_scale(r: np.ndarray, k: float = 3.5, n_iter: int = 5) -> float:
             break
         s = s_new
     return s
-
-
-def _robust_line(
-    x: np.ndarray, y: np.ndarray, start: tuple[float, float] | None = None, n_iter: int = 20
-) -> tuple[float, float]:
-    """Huber IRLS fit ``y ~ gain * x + offset`` (scale re-estimated by MAD each step).
-
-    Huber's loss is convex, so the fit is unique and stable even when the two captures are
-    weakly correlated, and its bounded influence keeps a minority of changed pixels from
-    biasing it.  (A redescending Tukey fit was tried: on the development pairs it locks onto
-    the dominant unchanged class and flags more of the neighbouring, unlabelled changes.)
-    """
-    x = x.astype(np.float64, copy=False)
-    y = y.astype(np.float64, copy=False)
-    if x.size < 2 or np.ptp(x) == 0:
-        return 1.0, float(np.median(y - x)) if y.size else 0.0
-    A = np.stack([x, np.ones_like(x)], axis=1)
-    if start is None:
-        p = np.linalg.lstsq(A, y, rcond=None)[0]
-    else:
-        p = np.asarray(start, dtype=np.float64)
-    for _ in range(n_iter):
-        r = y - A @ p
-        s = _mad(r)
-        if not s > 0:
-            break
-        sw = np.sqrt(np.minimum(1.0, 1.345 * s / np.maximum(np.abs(r), 1e-12)))
-        p_new = np.linalg.lstsq(A * sw[:, None], y * sw, rcond=None)[0]
-        done = np.allclose(p_new, p, rtol=0, atol=1e-6)
-        p = p_new
-        if done:
-            break
-    return float(p[0]), float(p[1])
 
 
 def _grid_coords(f: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -431,7 +396,7 @@ def _fit_field(
         ),
         shape=(n, 2 * N),
     )
-    sx = max(_mad(x), 1e-3)
+    sx = max(mad(x), 1e-3)
     diffs = []
     eye_y, eye_x = sp.identity(ny), sp.identity(nx)
     if ny >= 3:
@@ -452,7 +417,7 @@ def _fit_field(
     p = prior.copy()
     for _ in range(n_iter):
         r = y - A @ p
-        s = _mad(r)
+        s = mad(r)
         if not s > 0:
             break
         w = np.minimum(1.0, 1.345 * s / np.maximum(np.abs(r), 1e-12))
@@ -560,7 +525,7 @@ def fit_photometry(
     offset = np.empty(C)
     sigma = np.empty(C)
     for c in range(C):
-        gain[c], offset[c] = _robust_line(reb[:, c], obs[:, c])
+        gain[c], offset[c] = huber_line(reb[:, c], obs[:, c])
         sigma[c] = _robust_scale(obs[:, c] - gain[c] * reb[:, c] - offset[c])
     info: dict[str, Any] = {"n_samples": int(obs.shape[0]), "method": "Huber IRLS"}
     fg = fo = None
@@ -1042,10 +1007,10 @@ def estimate_threshold(
     if method not in ("auto", "otsu", "mad"):
         raise ValueError(f"method must be 'auto', 'otsu' or 'mad', got {method!r}")
     med = float(np.median(x))
-    mad = _mad(x)
-    bound = med + float(k) * mad
+    spread = mad(x)
+    bound = med + float(k) * spread
     info: dict[str, Any] = {
-        "method": method, "n": int(x.size), "median": med, "mad": mad, "k": float(k),
+        "method": method, "n": int(x.size), "median": med, "mad": spread, "k": float(k),
         "mad_bound": bound, "q99": float(np.quantile(x, 0.99)),
     }
     lo, hi = float(x.min()), float(np.quantile(x, 0.999))
