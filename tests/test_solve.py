@@ -146,6 +146,8 @@ def test_estimate_motion_validation(levir_gray):
         estimate_motion(levir_gray, np.zeros((1000, 1024)), grid)
     with pytest.raises(ValueError, match="covered"):
         estimate_motion(levir_gray, levir_gray, grid, boxes=[(0, 0, 8, 8)])
+    with pytest.raises(ValueError, match="refit_photometry"):
+        estimate_motion(levir_gray, levir_gray, grid, solver="fista", refit_photometry=True)
 
 
 def test_uint8_input_is_scaled(levir_gray, paper_grid):

@@ -154,6 +154,8 @@ def estimate_motion(
     only_rz = len(grid.tz) == len(grid.rx) == len(grid.ry) == 1
     if coarse_to_fine == "auto":
         coarse_to_fine = only_rz and grid.n_bases > max_bases and solver == "active-set"
+    if refit_photometry and solver != "active-set":
+        raise ValueError("refit_photometry needs solver='active-set'")
     if coarse_to_fine and not only_rz:
         raise ValueError("coarse_to_fine refines the roll axis only: use a grid varying rz alone")
     levels = []
@@ -268,8 +270,8 @@ def _refit_photometry(ops, gs, w, info, lam, occlusion, max_outer, time_limit,
     only while the intercept is significant against the inliers' residual scale (``|b| >=
     scale / 2``: the biased pre-match of a well-modelled pair, not the misfit of a pair
     where much changed) and above ``tol`` (intensity units); a round is kept only if it
-    lowers eq. 5's objective in ``(w, B)`` and they stop when a kept round did not at least
-    halve the intercept (the model does not explain it).  The gain stays in the weights
+    lowers eq. 5's objective in ``(w, B)`` and they stop when a kept round left more than
+    0.8 of the intercept (the model does not explain it).  The gain stays in the weights
     (it is not identifiable apart from their sum).  Returns the weights, the merged solver
     info (with ``photometry``) and the corrected observation windows.
     """
@@ -287,7 +289,7 @@ def _refit_photometry(ops, gs, w, info, lam, occlusion, max_outer, time_limit,
         _, b, scale, n_used = _fit_gain_offset(ops, gs, w, lam, occlusion)
         if np.all((np.abs(b) < tol) | (np.abs(b) < 0.5 * scale)):
             break
-        if prev is not None and np.max(np.abs(b)) > 0.5 * np.max(np.abs(prev[1])):
+        if prev is not None and np.max(np.abs(b)) > 0.8 * np.max(np.abs(prev[1])):
             break
         step = b.copy()
         if prev is not None:
@@ -313,7 +315,7 @@ def _refit_photometry(ops, gs, w, info, lam, occlusion, max_outer, time_limit,
         kept += 1
     w, B, gs = best
     info["photometry"] = dict(offset=B.tolist(), n_pixels=int(n_used), rounds=rounds,
-                              kept=kept, residual_offset=np.abs(b).tolist())
+                              kept=kept, last_intercept=np.abs(b).tolist())
     return w, info, gs
 
 
