@@ -59,7 +59,8 @@ class SelectParams:
     #: textured: their distance apart, not their texture, then decides (roll observability)
     texture_floor: float = 0.2
     lam: float = 0.1
-    #: re-fit gain and offset on the final windows after the motion (see ``estimate_motion``)
+    #: remove the photometric offset on the final windows after the motion
+    #: (``estimate_motion(refit_photometry=True)``)
     refit_photometry: bool = True
     overview_side: int = 1024  #: resolution of the region-score map
     extra: dict = field(default_factory=dict)
