@@ -108,8 +108,6 @@ __all__ = [
     "tile_boxes",
 ]
 
-_MAD = MAD_TO_SIGMA
-
 
 # --------------------------------------------------------------------------- helpers
 def _channels(a: np.ndarray) -> np.ndarray:
@@ -145,12 +143,12 @@ def _robust_scale(r: np.ndarray, k: float = 3.5, n_iter: int = 5) -> float:
         return float("nan")
     med = float(np.median(r))
     d = np.abs(r - med)
-    s = _MAD * float(np.median(d))
+    s = MAD_TO_SIGMA * float(np.median(d))
     for _ in range(n_iter):
         keep = d < k * s
         if not keep.any():
             break
-        s_new = _MAD * float(np.median(d[keep]))
+        s_new = MAD_TO_SIGMA * float(np.median(d[keep]))
         if s_new == s:
             break
         s = s_new
@@ -719,7 +717,6 @@ def change_statistic(
         raise ValueError(f"known has shape {known.shape}, expected {o.shape[:2]}")
     s = np.broadcast_to(np.asarray(sigma, dtype=np.float64).reshape(-1), (o.shape[2],))
     C = o.shape[2]
-    e = np.zeros(o.shape[:2], np.float64) if C > 1 else None
     ks = np.zeros(C) if edge_k is None else np.broadcast_to(
         np.asarray(edge_k, dtype=np.float64).reshape(-1), (C,))
     kc = np.zeros(C) if curv_k is None else np.broadcast_to(
