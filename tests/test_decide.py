@@ -287,10 +287,19 @@ def test_estimate_threshold():
     # overlapping classes: Otsu (lower) is used; well separated: the MAD bound
     overlap = np.concatenate([rng.gamma(2.0, 0.5, 50_000), 3 + rng.gamma(2.0, 1.0, 20_000)])
     t_o, info_o = estimate_threshold(overlap)
-    assert t_o == info_o["otsu"] < info_o["mad_bound"]
+    assert t_o == info_o["otsu"] < info_o["mad_bound"] and info_o["broad"]
     separated = np.concatenate([noise, 20 + rng.standard_normal(2_000)])
     t_s, info_s = estimate_threshold([separated[:10_000], separated[10_000:]])
     assert t_s == info_s["mad_bound"] < info_s["otsu"] < 20
+    # a bulk as narrow as noise and nothing else (a large image whose sample holds no
+    # change): Otsu splits the noise itself, the z-bound is kept
+    chi = np.sqrt(rng.chisquare(20, 200_000) / 20)
+    t_n, info_n = estimate_threshold(chi)
+    med = np.median(chi)
+    bound = med + 4 * 1.4826 * np.median(np.abs(chi - med))
+    assert info_n["otsu"] < bound and not info_n["broad"]
+    assert t_n == pytest.approx(bound, rel=1e-9) and info_n["chosen"] == "mad"
+    assert np.mean(chi > t_n) < 0.01 < np.mean(chi > info_n["otsu"])
     t_c, info_c = estimate_threshold(np.full(10, 2.0))
     assert t_c > 2.0 and "note" in info_c
     with pytest.raises(ValueError, match="finite"):

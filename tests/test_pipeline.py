@@ -120,3 +120,25 @@ def test_band_mismatch_and_nan_are_refused():
     b[3, 3, 0] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         reblur.detect_changes(a, b)
+
+
+def test_sample_windows_cover_the_image_in_both_directions():
+    """Pass 1's sample: a lattice of tiles over the whole image, never a line of them."""
+    from reblur.pipeline import sample_windows
+
+    w = sample_windows((31623, 31623), 64, 512)
+    assert len(w) == 64
+    ys = sorted({b[0] for b in w})
+    xs = sorted({b[1] for b in w})
+    assert len(ys) == len(xs) == 8
+    assert ys[0] == xs[0] == 0 and ys[-1] == xs[-1] == 61 * 512  # first and last tile rows
+    assert all(y % 512 == 0 and x % 512 == 0 and h == 512 and ww == 512 or
+               y + h == 31623 or x + ww == 31623 for y, x, h, ww in w)
+    # elongated: more columns than rows
+    e = sample_windows((2048, 32768), 64, 512)
+    assert len({b[0] for b in e}) == 2 and len({b[1] for b in e}) == 32
+    # small image: every tile, the whole image exactly once
+    m = np.zeros((1000, 700), int)
+    for y, x, h, ww in sample_windows((1000, 700), 64, 512):
+        m[y : y + h, x : x + ww] += 1
+    assert np.all(m == 1)

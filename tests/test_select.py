@@ -105,3 +105,40 @@ def test_spread_partner_goes_far_when_textured_enough():
         cells[:, 10:] = right
         (b,) = _spread_partners(cells, cover, 3, 100, first, 1, (1000, 2000), floor=0.2)
         assert (b.x0 >= 1000) == expect_right, (right, b)
+
+
+def _coverage_slow(ref_shape, obs_shape, base, grid, unit):
+    """Every base pose, every cell corner (the definition, no shortcut)."""
+    from reblur.grid import map_points
+
+    ny, nx = obs_shape[0] // unit, obs_shape[1] // unit
+    margin = max(max(abs(v) for v in grid.tx), max(abs(v) for v in grid.ty)) + 2
+    ys, xs = np.mgrid[0:ny, 0:nx]
+    cover = np.ones((ny, nx), bool)
+    for b in range(grid.n_bases):
+        Hi = np.linalg.inv(grid.base_homography(b) @ base)
+        for dy in (0, unit - 1):
+            for dx in (0, unit - 1):
+                pts = np.stack([xs.ravel() * unit + dx, ys.ravel() * unit + dy], 1)
+                q = map_points(Hi, pts.astype(float))
+                ok = ((q[:, 0] >= margin) & (q[:, 0] <= ref_shape[1] - 1 - margin)
+                      & (q[:, 1] >= margin) & (q[:, 1] <= ref_shape[0] - 1 - margin))
+                cover &= ok.reshape(ny, nx)
+    return cover
+
+
+def test_coverage_cells_match_the_definition_on_a_fine_grid():
+    """The shortcut (every few base poses, then every pose along the limit) gives the
+    definition's cells, on a grid of ~800 roll angles and a rotated, shifted base."""
+    from reblur.grid import pose_homography
+    from reblur.select import _coverage_cells
+
+    shape = (9000, 12000)
+    grid = PoseGrid.from_ranges(shape, t_max=12, rz_max=3.0, corner_px=1.0)
+    assert grid.n_bases > 500
+    for base in (np.eye(3), pose_homography(150.0, -90.0, 0.0, 0.0, 0.0, 1.5,
+                                            center=grid.center)):
+        fast = _coverage_cells(shape, shape, base, grid, 100)
+        slow = _coverage_slow(shape, shape, base, grid, 100)
+        assert 0.3 < slow.mean() < 0.99
+        assert np.array_equal(fast, slow)
