@@ -129,3 +129,32 @@ def test_banded_sums_equal_whole_tile_sums(levir_rgb, monkeypatch):
                 np.testing.assert_array_equal(valid, evalid)
                 if box[0] == 0:
                     assert not valid.all()  # the border: the partial-validity path
+
+
+def test_grow_tile_equals_loading_the_larger_window(levir_gray):
+    """A re-run with a larger halo reuses the smaller window and loads only the ring: the
+    same observation and unknown mask as loading the larger window directly, and the
+    reblurred reference within OpenCV's window-dependent rounding."""
+    from reblur.tiled import SparsePoses
+    from reblur.tilejob import grow_tile, load_tile
+
+    ref = levir_gray[:600, :640]
+    rng = np.random.default_rng(3)
+    obs = (ref.astype(np.float32) + rng.normal(0, 2, ref.shape)).clip(0, 255).astype(np.uint8)
+    grid = PoseGrid((600, 640), tx=np.arange(-4, 5), ty=np.arange(-4, 5),
+                    rz=[-1.5, 0.0, 1.0])
+    poses = SparsePoses(grid_path(grid, rng=4, n_poses=10), grid, np.eye(3))
+    kw = dict(s_ref=255.0, s_obs=255.0, gain=np.array([0.9], np.float32),
+              offset=np.array([0.02], np.float32))
+    small, large = (200, 220, 150, 170), (130, 0, 330, 400)  # the ring touches a border
+    grown = grow_tile(poses, ref, obs, small, load_tile(poses, ref, obs, small, **kw), large,
+                      **kw)
+    direct = load_tile(poses, ref, obs, large, **kw)
+    np.testing.assert_array_equal(grown[0], direct[0])
+    np.testing.assert_array_equal(grown[2], direct[2])
+    assert grown[2].any() and not grown[2].all()
+    assert np.max(np.abs(grown[1] - direct[1])) < 1e-5
+    import pytest
+
+    with pytest.raises(ValueError, match="contain"):
+        grow_tile(poses, ref, obs, large, direct, small, **kw)

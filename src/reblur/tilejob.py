@@ -23,7 +23,7 @@ from .decide import DecisionParams, Photometry, decide_tile
 from .tiled import SparsePoses, reblur_tile
 from .warp import as_box, read_window
 
-__all__ = ["TileJob", "load_tile", "run_tile", "pad_box"]
+__all__ = ["TileJob", "grow_tile", "load_tile", "run_tile", "pad_box"]
 
 #: Tries per tile: the first halo, then doubled up to three times (8x the first halo).
 _ATTEMPTS = 4
@@ -116,6 +116,45 @@ def load_tile(poses: SparsePoses, reference, observed, box, *, s_ref: float, s_o
     return obs, reb, ~valid
 
 
+def grow_tile(poses: SparsePoses, reference, observed, box, loaded, larger, *, s_ref: float,
+              s_obs: float, gain: np.ndarray, offset: np.ndarray) -> tuple[np.ndarray, ...]:
+    """:func:`load_tile` on ``larger``, reusing what was loaded on ``box`` inside it.
+
+    Only the ring ``larger - box`` is read and reblurred (as four strips).  The observation
+    and the unknown mask are exactly those of a direct call; the reblurred reference too,
+    up to the rounding of OpenCV's single-precision warp coordinates, which depend on the
+    window a warp is built for (~1e-6 of the intensity; see :mod:`reblur.tiled`).
+
+    Parameters
+    ----------
+    box, larger : (y0, x0, h, w)
+        The loaded window and a window containing it.
+    loaded : (obs, reb, unknown)
+        :func:`load_tile` on ``box``.
+    """
+    y0, x0, h, w = (int(v) for v in box)
+    Y0, X0, Hh, Ww = (int(v) for v in larger)
+    if y0 < Y0 or x0 < X0 or y0 + h > Y0 + Hh or x0 + w > X0 + Ww:
+        raise ValueError(f"{tuple(larger)} does not contain {tuple(box)}")
+    obs, reb, unk = loaded
+    C = obs.shape[2]
+    out = (np.empty((Hh, Ww, C), obs.dtype), np.empty((Hh, Ww, C), reb.dtype),
+           np.empty((Hh, Ww), bool))
+    ly, lx = y0 - Y0, x0 - X0
+    for big, small in zip(out, loaded, strict=True):
+        big[ly : ly + h, lx : lx + w] = small
+    strips = [(Y0, X0, ly, Ww), (y0 + h, X0, Y0 + Hh - y0 - h, Ww),
+              (y0, X0, h, lx), (y0, x0 + w, h, X0 + Ww - x0 - w)]
+    for sy, sx, sh, sw in strips:
+        if sh <= 0 or sw <= 0:
+            continue
+        part = load_tile(poses, reference, observed, (sy, sx, sh, sw), s_ref=s_ref, s_obs=s_obs,
+                         gain=gain, offset=offset)
+        for big, small in zip(out, part, strict=True):
+            big[sy - Y0 : sy - Y0 + sh, sx - X0 : sx - X0 + sw] = small
+    return out
+
+
 def run_tile(
     job: TileJob, reference, observed, padded: Sequence[int], core: Sequence[int]
 ) -> dict[str, Any]:
@@ -123,8 +162,9 @@ def run_tile(
 
     The padded tile is reblurred (reading only the reference window its poses touch),
     pre-matched, decided by :func:`reblur.decide.decide_tile`, re-run with a twice larger
-    halo (at most three times) when a region reaches the halo's edge, and its core written
-    into the job's outputs.
+    halo (at most three times) when a region reaches the halo's edge (reading and
+    reblurring only the ring the halo adds, :func:`grow_tile`), and its core written into
+    the job's outputs.
 
     Parameters
     ----------
@@ -148,10 +188,17 @@ def run_tile(
     padded = tuple(int(v) for v in padded)
     core = tuple(int(v) for v in core)
     halo = int(job.halo)
+    loaded, prev = None, padded
     for attempt in range(_ATTEMPTS):
         last = attempt == _ATTEMPTS - 1
-        obs, reb, unk = load_tile(job.poses, reference, observed, padded, s_ref=job.s_ref,
-                                  s_obs=job.s_obs, gain=gain, offset=offset)
+        if loaded is None:
+            loaded = load_tile(job.poses, reference, observed, padded, s_ref=job.s_ref,
+                               s_obs=job.s_obs, gain=gain, offset=offset)
+        else:  # a re-run reads and reblurs only the ring the larger halo adds
+            loaded = grow_tile(job.poses, reference, observed, prev, loaded, padded,
+                               s_ref=job.s_ref, s_obs=job.s_obs, gain=gain, offset=offset)
+        obs, reb, unk = loaded
+        prev = padded
         # an attempt that will be re-run stops as soon as it is known to be incomplete
         mask, info = decide_tile(
             obs, reb, unk, threshold=job.threshold, photometry=job.photometry, box=padded,
