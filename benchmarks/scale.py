@@ -223,7 +223,8 @@ def detect_case(d: Path, mode: str, tile: int = 1024) -> dict:
                     poses=int(np.count_nonzero(res.motion.weights)),
                     grid_poses=int(res.motion.grid.size), flagged=flagged, false_alarm=false,
                     false_alarm_no_seams=false_ns,
-                    seconds=res.decision.get("seconds"),
+                    seconds=res.decision.get("seconds"), threshold=float(res.threshold),
+                    threshold_rule=res.decision.get("threshold_info", {}).get("chosen"),
                     incomplete=res.decision.get("incomplete_tiles"),
                     load=os.getloadavg()[0], **rs.summary())
     finally:

@@ -156,6 +156,8 @@ def sample_windows(shape: tuple[int, int], n: int, side: int) -> list[tuple[int,
     -------
     list of (y0, x0, h, w)
     """
+    if n < 1 or side < 1:
+        raise ValueError(f"need at least one sample window of at least 1 px, got {n}, {side}")
     H, W = (int(v) for v in shape)
     ny, nx = -(-H // side), -(-W // side)
     r = int(np.clip(round(np.sqrt(n * ny / nx)), 1, ny))
