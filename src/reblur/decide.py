@@ -845,22 +845,10 @@ def _grad2_f32(a: np.ndarray) -> np.ndarray:
     return gx
 
 
-def _grad2(a: np.ndarray) -> np.ndarray:
-    """Squared gradient magnitude (per pixel, central 3x3 Sobel scaled to unit spacing)."""
-    return _grad2_f32(a).astype(np.float64)
-
-
 def _laplacian_f32(a: np.ndarray) -> np.ndarray:
     """Laplacian in float32 (4-neighbour 3x3 stencil)."""
     a = np.ascontiguousarray(a, dtype=np.float32)
     return cv2.Laplacian(a, cv2.CV_32F, ksize=1, borderType=cv2.BORDER_REFLECT)
-
-
-def _lap2(a: np.ndarray) -> np.ndarray:
-    """Squared Laplacian (per pixel, 4-neighbour 3x3 stencil)."""
-    lap = _laplacian_f32(a).astype(np.float64)
-    lap *= lap
-    return lap
 
 
 def fit_model_error(observed, matched, known, sigma, *, bins: int = 8,
@@ -904,7 +892,10 @@ def fit_model_error(observed, matched, known, sigma, *, bins: int = 8,
     rng = np.random.default_rng(rng)
     s = np.asarray(sigma, dtype=np.float64).reshape(-1)
     C = s.size
-    acc: list[list[list[np.ndarray]]] = [[[], [], []] for _ in range(C)]
+    # per band: observed, matched, |grad m|^2 and lap m at the usable pixels, in their own
+    # (single) precision; the float64 products are formed on the sample only (the same
+    # values, element by element, as on whole tiles: a float32 -> float64 cast is exact)
+    acc: list[list[list[np.ndarray]]] = [[[], [], [], []] for _ in range(C)]
     for o, m, k in zip(observed, matched, known, strict=True):
         o, m = _channels(_float(o)), _channels(_float(m))
         # pixels whose 3x3 stencil is known: the values at unknown pixels are arbitrary
@@ -914,8 +905,8 @@ def fit_model_error(observed, matched, known, sigma, *, bins: int = 8,
         else:
             k = ndi.binary_erosion(k, np.ones((3, 3), bool), border_value=1)
         for c in range(C):
-            for j, v in enumerate((((o[:, :, c].astype(np.float64) - m[:, :, c]) ** 2),
-                                   _grad2(m[:, :, c]), _lap2(m[:, :, c]))):
+            for j, v in enumerate((o[:, :, c], m[:, :, c], _grad2_f32(m[:, :, c]),
+                                   _laplacian_f32(m[:, :, c]))):
                 acc[c][j].append(v.ravel() if k is None else v[k])
     ek, ck = np.zeros(C), np.zeros(C)
     for c in range(C):
@@ -925,9 +916,13 @@ def fit_model_error(observed, matched, known, sigma, *, bins: int = 8,
         if n > max_samples:
             # the sample drawn from the (never built) concatenation of the tiles
             pick = rng.choice(n, max_samples, replace=False)
-            r2, g2, l2 = (_take_concatenated(a, pick) for a in acc[c])
+            ov, mv, g2, lp = (_take_concatenated(a, pick) for a in acc[c])
         else:
-            r2, g2, l2 = (np.concatenate(a) for a in acc[c])
+            ov, mv, g2, lp = (np.concatenate(a) for a in acc[c])
+        r2 = (ov.astype(np.float64) - mv) ** 2
+        g2 = g2.astype(np.float64)
+        l2 = lp.astype(np.float64)
+        l2 *= l2
         qg = np.searchsorted(np.quantile(g2, np.linspace(0, 1, bins + 1)[1:-1]), g2, "right")
         ql = np.searchsorted(np.quantile(l2, np.linspace(0, 1, bins + 1)[1:-1]), l2, "right")
         cell = qg * bins + ql
@@ -1007,10 +1002,12 @@ def estimate_threshold(
         With no finite sample or an unknown method.
     """
     if isinstance(stat_samples, (list, tuple)):
-        x = np.concatenate([np.asarray(a, dtype=np.float64).ravel() for a in stat_samples])
+        x = np.concatenate([np.asarray(a).ravel() for a in stat_samples], dtype=np.float64)
     else:
         x = np.asarray(stat_samples, dtype=np.float64).ravel()
-    x = x[np.isfinite(x)]
+    finite = np.isfinite(x)
+    if not finite.all():
+        x = x[finite]
     if x.size == 0:
         raise ValueError("estimate_threshold needs at least one finite statistic value")
     if method not in ("auto", "otsu", "mad"):
@@ -1018,7 +1015,10 @@ def estimate_threshold(
     if not broad >= 0:
         raise ValueError(f"broad must be >= 0, got {broad}")
     med = float(np.median(x))
-    spread = mad(x)
+    dev = x - med  # robust.mad(x), its median computed once
+    np.abs(dev, out=dev)
+    spread = float(MAD_TO_SIGMA * np.median(dev, overwrite_input=True))
+    del dev
     bound = med + float(k) * spread
     info: dict[str, Any] = {
         "method": method, "n": int(x.size), "median": med, "mad": spread, "k": float(k),
