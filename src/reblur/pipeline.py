@@ -142,6 +142,10 @@ class Decided:
     regions: list[dict[str, Any]] = field(default_factory=list)
 
 
+#: Long side (px) above which the default spread windows add one near the centre.
+CENTRE_WINDOW_SIDE = 16384
+
+
 def sample_windows(shape: tuple[int, int], n: int, side: int) -> list[tuple[int, int, int, int]]:
     """Up to ``n`` windows of the ``side``-px tiling of an image, on a lattice over it.
 
@@ -426,7 +430,7 @@ def _estimate_stage(
     t = time.perf_counter()
     large = max(Ho, Wo) > large_side
     if windows is None:
-        windows = 5 if large else 2
+        windows = (5 if max(Ho, Wo) > CENTRE_WINDOW_SIDE else 4) if large else 2
     if grid is None:
         if rz_step is None:
             grid = PoseGrid.from_ranges((Ho, Wo), t_max=t_max, rz_max=rz_max, corner_px=1.0)
@@ -525,15 +529,16 @@ def detect_changes(
         estimation windows do not see the rest of the image.
     windows : int, optional
         Windows estimated jointly (1 = the paper's Algorithm 1, single growing crop).
-        Default: 2 up to ``large_side``, 5 above, spread around the principal point: a
-        small roll about a distant centre is only observable from windows far apart
-        (``benchmarks/large_motion.py``: on 41.6 MP, unseen windows reach 23-38 dB from one
-        central window with the paper's grid, 49-63 dB from two corners and 58-68 dB from
-        four with the sized grid).  The spread placement puts four near the corners and
-        the fifth near the centre, whose blur (the translations alone) the corners
-        constrain only indirectly: on the 1 Gpx pair of ``benchmarks/motion_check.py``
-        the centre reblurs at 57.2 dB with it, 52.8 dB without, the rest 54-65 dB
-        (50-65 dB without).
+        Default: 2 up to ``large_side``, 4 above, 5 above ``CENTRE_WINDOW_SIDE`` (16384
+        px), spread around the principal point: a small roll about a distant centre is only
+        observable from windows far apart (``benchmarks/large_motion.py``: on 41.6 MP,
+        unseen windows reach 23-38 dB from one central window with the paper's grid, 49-63
+        dB from two corners and 58-68 dB from four with the sized grid).  The spread
+        placement puts four near the corners and the fifth near the centre, whose blur
+        (the translations alone) the corners constrain only indirectly at these sizes
+        (``benchmarks/motion_check.py``, centre window against the true blur, 5 windows /
+        4: 53.9 / 50.9 dB at 400 MP, 57.2 / 52.8 dB at 1 Gpx; at 100 MP four suffice,
+        57.2 dB).
     large_side : int
         Long side (pixels) above which the large-image defaults apply.
     select : SelectParams, optional
