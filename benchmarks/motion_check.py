@@ -1,6 +1,6 @@
 """Is the motion right across a cost-curve pair?  Reblur accuracy on windows of the image.
 
-``python -m benchmarks.motion_check [--side 31623] [--dir DIR]``
+``python -m benchmarks.motion_check [--side 31623] [--dir DIR] [--windows K]``
 
 Generates the pair of :func:`benchmarks.pipeline.make_big` (the cost curve's synthetic
 mosaic, as tiled TIFFs; kept in ``--dir`` if given, so a second run skips the generation),
@@ -39,7 +39,7 @@ def windows(side: int) -> dict[str, tuple[int, int, int, int]]:
     }
 
 
-def check(d: Path, side: int) -> list[str]:
+def check(d: Path, side: int, n_windows: int | None = None) -> list[str]:
     import cv2
     import tifffile
     import zarr
@@ -65,7 +65,7 @@ def check(d: Path, side: int) -> list[str]:
     obs = zarr.open(tifffile.imread(d / "obs.tif", aszarr=True), mode="r")
     t = time.perf_counter()
     e = _estimate_stage(ref, obs, grid=None, t_max=12, rz_max=3.0, rz_step=None, lam=0.1,
-                        align=True, refine=True, windows=None, large_side=2500, select=None,
+                        align=True, refine=True, windows=n_windows, large_side=2500, select=None,
                         boxes=None)
     dt = time.perf_counter() - t
     poses = SparsePoses(e.motion.weights, e.grid, e.base)
@@ -86,13 +86,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--side", type=int, default=31623)
     ap.add_argument("--dir", type=Path, default=None)
+    ap.add_argument("--windows", type=int, default=None,
+                    help="estimation windows (default: the pipeline's default for the size)")
     a = ap.parse_args()
     if a.dir is not None:
         a.dir.mkdir(parents=True, exist_ok=True)
-        print("\n".join(check(a.dir, a.side)))
+        print("\n".join(check(a.dir, a.side, a.windows)))
         return
     with tempfile.TemporaryDirectory(dir="/tmp", prefix="reblur-motion-") as dd:
-        print("\n".join(check(Path(dd), a.side)))
+        print("\n".join(check(Path(dd), a.side, a.windows)))
 
 
 if __name__ == "__main__":
