@@ -27,10 +27,10 @@ as a stream of tiles:
    noise, and Otsu is the lower, adaptive split.  Where the bulk is as narrow as noise
    makes it (``S`` averages ~``4 pi smooth^2`` squared z-scores: a relative spread of
    ~0.1-0.2) it is the unchanged class, and Otsu would cut through it: with no change in the
-   sample (a gigapixel image sampled on 1.7 % of its area) it fell at median + 1.4 MAD, above
-   a third of the pixels, and 2.9 % of an unchanged image came out as change despite the
-   hysteresis below.  When the changes are well separated, Otsu lands midway between the
-   classes and the robust bound keeps faint changes.  ``threshold=`` overrides it.
+   sample (a gigapixel image sampled on 1.7 % of its area) it fell just above the median,
+   and 2.9 % of an unchanged image came out as change despite the hysteresis below.  When
+   the changes are well separated, Otsu lands midway between the classes and the robust
+   bound keeps faint changes.  ``threshold=`` overrides it.
 4. **Regions** (local up to the extent of a change region).  A component tree over the
    levels ``threshold * levels``: at each level ``S > level`` is opened with a disc of
    ``open_radius`` (removes the thin bands that parallax and residual mis-registration leave

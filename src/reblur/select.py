@@ -203,7 +203,7 @@ def _coverage_cells(ref_shape, obs_shape, base, grid: PoseGrid, unit: int) -> np
     the farthest points of a near-affine displacement, grown by a quarter and a pixel) is
     covered, a cell that one of them maps outside is not, and only the cells left in
     between, a band along the limit, are mapped by every base.  The result is the
-    definition's; at 1 Gpx (2343 roll angles) it takes 1 s instead of 13 s.
+    definition's, without mapping every cell by each of the thousands of angles.
     """
     ny, nx = obs_shape[0] // unit, obs_shape[1] // unit
     Hr, Wr = ref_shape[:2]
