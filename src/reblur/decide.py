@@ -26,7 +26,7 @@ as a stream of tiles:
    apart the "unchanged" class is a continuum of real appearance changes, far wider than
    noise, and Otsu is the lower, adaptive split.  Where the bulk is as narrow as noise
    makes it (``S`` averages ~``4 pi smooth^2`` squared z-scores: a relative spread of
-   ~0.1-0.2) it is the unchanged class, and Otsu would cut through it: with no change in the
+   ~0.1) it is the unchanged class, and Otsu would cut through it: with no change in the
    sample (a gigapixel image sampled on 1.7 % of its area) it fell just above the median,
    and 2.9 % of an unchanged image came out as change despite the hysteresis below.  When
    the changes are well separated, Otsu lands midway between the classes and the robust
@@ -976,8 +976,8 @@ def estimate_threshold(
         bulk is broad (``MAD >= broad * median``).  When changed and unchanged pixels
         overlap (real pairs years apart: a continuum of appearance changes, the bulk 0.5-0.9
         median wide on the LEVIR / WHU pairs of ``benchmarks/quality.py``) Otsu is the lower
-        one and splits the two classes.  A bulk as narrow as noise leaves it (0.1-0.2
-        median wide on unchanged synthetic and real imagery) is the unchanged class itself:
+        one and splits the two classes.  A bulk as narrow as noise leaves it (0.07-0.10
+        median wide on the Fig. 6 set-up there) is the unchanged class itself:
         Otsu would cut through it, most visibly when the sample holds no change at all.
         When the changes are well separated from the noise Otsu falls midway between the
         classes and would drop faint changes: the z-bound again.
