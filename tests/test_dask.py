@@ -8,6 +8,7 @@ image, with inputs in memory and as tiled TIFF files.
 
 from __future__ import annotations
 
+import os
 import pickle
 import subprocess
 import sys
@@ -205,3 +206,49 @@ def test_cli_large_inputs_keep_masks_on_disk(pair, tmp_path, monkeypatch):
     np.testing.assert_array_equal(plain[1], large[1])
     assert (plain[0] > 0).any()
     assert not list(out.glob(".reblur-work-*"))
+
+
+_MALLOC_PROBE = """
+import ctypes, sys
+import numpy as np
+from reblur.tilejob import tune_worker_malloc
+
+class Info(ctypes.Structure):  # glibc's struct mallinfo2
+    _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks",
+                "hblkhd", "usmblks", "fsmblks", "uordblks", "fordblks", "keepcost")]
+
+libc = ctypes.CDLL("libc.so.6")
+libc.mallinfo2.restype = Info
+
+def mmapped_by_an_8mb_array():
+    a = np.ones(1 << 20)  # freed at once: lets glibc's dynamic threshold adapt, if it may
+    del a
+    before = libc.mallinfo2().hblks
+    a = np.ones(1 << 20)  # 8 MiB: more than the free lists of a fresh process hold
+    return libc.mallinfo2().hblks - before
+
+first = mmapped_by_an_8mb_array()
+tuned = tune_worker_malloc()
+print(first, tuned, tune_worker_malloc(), mmapped_by_an_8mb_array())
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc only")
+def test_worker_malloc_tuning_keeps_array_temporaries_on_the_heap():
+    """A distributed nanny's MALLOC_TRIM_THRESHOLD_ freezes glibc's mmap threshold at
+    128 KB: an 8 MiB array is mmapped (counted by mallinfo2's hblks) even after one was
+    freed, where glibc's default would have raised the threshold.  After
+    tune_worker_malloc it comes from the heap; without the variable, or with a chosen
+    MALLOC_MMAP_THRESHOLD_, nothing is changed."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+    nanny = dict(env, MALLOC_TRIM_THRESHOLD_="65536")
+    out = subprocess.run([sys.executable, "-c", _MALLOC_PROBE], env=nanny, check=True,
+                         capture_output=True, text=True).stdout.split()
+    assert out == ["1", "True", "False", "0"]
+    out = subprocess.run([sys.executable, "-c", _MALLOC_PROBE], env=env, check=True,
+                         capture_output=True, text=True).stdout.split()
+    assert out == ["0", "False", "False", "0"]  # glibc's default adapts by itself
+    chosen = dict(nanny, MALLOC_MMAP_THRESHOLD_="131072")
+    out = subprocess.run([sys.executable, "-c", _MALLOC_PROBE], env=chosen, check=True,
+                         capture_output=True, text=True).stdout.split()
+    assert out == ["1", "False", "False", "1"]

@@ -55,7 +55,7 @@ import numpy as np
 
 from .decide import DecisionParams, Photometry
 from .tiled import SparsePoses
-from .tilejob import TileJob, pad_box, run_tile
+from .tilejob import TileJob, pad_box, run_tile, tune_worker_malloc
 
 __all__ = [
     "NUMPY_MAX_PIXELS",
@@ -558,6 +558,12 @@ def _compute(graph, kind: str, scheduler, workers: int,
     return [r for r in out.ravel()]
 
 
+def _on_worker(fn: Callable, *args, **kwargs):
+    """``fn(*args, **kwargs)`` on a worker, after :func:`reblur.tilejob.tune_worker_malloc`."""
+    tune_worker_malloc()
+    return fn(*args, **kwargs)
+
+
 def run_once(fn: Callable, *args, scheduler=None, **kwargs):
     """Run ``fn(*args, **kwargs)`` once: on one worker of a distributed cluster, else here.
 
@@ -568,7 +574,9 @@ def run_once(fn: Callable, *args, scheduler=None, **kwargs):
     if scheduler is None or scheduler_kind(scheduler) != "distributed":
         return fn(*args, **kwargs)
     with _client(scheduler) as client:
-        fut = client.submit(fn, *args, pure=False, **kwargs)
+        # the task keeps fn's name (dashboards, task streams), not the wrapper's
+        key = f"{getattr(fn, '__name__', 'run_once')}-{uuid.uuid4().hex}"
+        fut = client.submit(_on_worker, fn, *args, key=key, pure=False, **kwargs)
         try:
             return fut.result()
         finally:

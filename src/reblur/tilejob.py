@@ -10,7 +10,9 @@ ships it once per worker.
 
 from __future__ import annotations
 
+import ctypes
 import os
+import sys
 import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -23,13 +25,51 @@ from .decide import DecisionParams, Photometry, decide_tile
 from .tiled import SparsePoses, reblur_tile
 from .warp import as_box, read_window
 
-__all__ = ["TileJob", "grow_tile", "load_tile", "run_tile", "pad_box"]
+__all__ = ["TileJob", "grow_tile", "load_tile", "run_tile", "pad_box", "tune_worker_malloc"]
 
 #: Tries per tile: the first halo, then doubled up to three times (8x the first halo).
 _ATTEMPTS = 4
 
 #: Serialises in-process writes into outputs whose chunks straddle tiles.
 _WRITE_LOCK = threading.Lock()
+
+#: Largest allocation glibc serves from the heap after :func:`tune_worker_malloc` (its own
+#: upper bound for the dynamic threshold).
+_MMAP_THRESHOLD = 32 * 2**20
+_MALLOC_TUNED: list[bool] = []
+
+
+def tune_worker_malloc() -> bool:
+    """Let glibc reuse heap memory for array temporaries in a Dask worker (once per process).
+
+    A ``distributed`` nanny starts its workers with ``MALLOC_TRIM_THRESHOLD_=65536`` (to
+    return freed memory to the system).  Setting any such variable also freezes glibc's
+    mmap threshold at 128 KB, so every numpy temporary above it is a fresh ``mmap`` whose
+    pages fault in on first touch: the estimate's and the tiles' element-wise steps ran
+    several times slower on a ``LocalCluster`` worker than in the client (the cost curve's
+    ``LocalCluster`` row, ``python -m benchmarks.scale``).  This sets the mmap threshold
+    back to 32 MB (the ceiling of glibc's own dynamic threshold); the trim threshold, and
+    so the return of freed memory at the top of the heap, is left as the nanny set it.
+    Nothing happens outside Linux, without ``MALLOC_TRIM_THRESHOLD_`` in the environment,
+    or when the user chose ``MALLOC_MMAP_THRESHOLD_`` already.
+
+    Returns
+    -------
+    bool
+        True if the threshold was set by this call.
+    """
+    if _MALLOC_TUNED:
+        return False
+    _MALLOC_TUNED.append(True)
+    env = os.environ
+    if (not sys.platform.startswith("linux") or "MALLOC_TRIM_THRESHOLD_" not in env
+            or "MALLOC_MMAP_THRESHOLD_" in env):
+        return False
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+        return bool(libc.mallopt(-3, _MMAP_THRESHOLD))  # -3: M_MMAP_THRESHOLD
+    except (OSError, AttributeError):  # not glibc
+        return False
 
 
 @dataclass
@@ -180,8 +220,10 @@ def run_tile(
         ``core`` (box), ``regions`` (list of dict, full-image coordinates), ``complete``
         (bool: the result equals the whole-image decision).
     """
-    if os.getpid() != job.client_pid and cv2.getNumThreads() != 1:
-        cv2.setNumThreads(1)
+    if os.getpid() != job.client_pid:
+        if cv2.getNumThreads() != 1:
+            cv2.setNumThreads(1)
+        tune_worker_malloc()
     H, W = job.image_shape
     gain = np.asarray(job.gain, np.float32)
     offset = np.asarray(job.offset, np.float32)
