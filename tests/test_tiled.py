@@ -1,6 +1,7 @@
 """Tiled reblur equals whole-image reblur and the explicit per-pose blur."""
 
 import numpy as np
+import pytest
 import zarr
 
 from reblur import PoseGrid, reblur
@@ -154,7 +155,5 @@ def test_grow_tile_equals_loading_the_larger_window(levir_gray):
     np.testing.assert_array_equal(grown[2], direct[2])
     assert grown[2].any() and not grown[2].all()
     assert np.max(np.abs(grown[1] - direct[1])) < 1e-5
-    import pytest
-
     with pytest.raises(ValueError, match="contain"):
         grow_tile(poses, ref, obs, large, direct, small, **kw)

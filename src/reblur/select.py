@@ -234,11 +234,15 @@ def _coverage_cells(ref_shape, obs_shape, base, grid: PoseGrid, unit: int) -> np
             continue
         sub = np.unique(np.r_[np.arange(0, n, m), n - 1])
         j = np.searchsorted(sub, np.arange(n))
-        d = np.minimum(
-            np.hypot(*(mapped - mapped[sub[np.minimum(j, sub.size - 1)]]).transpose(2, 0, 1)),
-            np.hypot(*(mapped - mapped[sub[np.maximum(j - 1, 0)]]).transpose(2, 0, 1)),
-        ).max()
-        bound = 1.25 * float(d) + 1.0
+
+        def gap(c: np.ndarray) -> np.ndarray:
+            # per base: the farthest probe from where mapped base c sends it
+            return np.hypot(*(mapped - mapped[c]).transpose(2, 0, 1)).max(axis=1)
+
+        # one mapped base must cover every point of a base: the nearer of its two
+        # neighbours by their farthest probe (not the nearer one probe by probe)
+        d = np.minimum(gap(sub[np.minimum(j, sub.size - 1)]), gap(sub[np.maximum(j - 1, 0)]))
+        bound = 1.25 * float(d.max()) + 1.0
         if bound <= unit:
             step, delta = m, bound
             break
