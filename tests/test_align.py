@@ -430,3 +430,42 @@ def test_shakes_arguments():
         assert isinstance(err, AlignmentError) and "textureless" in str(err)
     with pytest.raises(AlignmentError, match="textureless"):
         coarse_align(flat, ref, min_side=32)
+
+
+def test_overview_cache_reads_once_and_derives_coarser_factors():
+    """An OverviewCache reads the image once for a factor and its multiples; the derived
+    block means equal those read directly (means of equal blocks), for one band and
+    three; the pipeline's scaled view gives the overview of the scaled pixels."""
+    from reblur.align import OverviewCache, block_means
+    from reblur.pipeline import ScaledView
+
+    rng = np.random.default_rng(5)
+    for shape in ((123, 161), (123, 161, 3)):
+        a = rng.integers(0, 255, size=shape, dtype=np.uint8)
+        rec = _Recorder(a)
+        cache = OverviewCache(rec)
+        g3, b3 = block_means(cache, 3)
+        n_reads = len(rec.reads)
+        g6, b6 = block_means(cache, 6)
+        g9, _ = block_means(cache, 9)
+        assert len(rec.reads) == n_reads and cache.reads == 1  # no new read
+        for k, g, b in ((3, g3, b3), (6, g6, b6)):
+            h, w = shape[0] // k, shape[1] // k
+            blocks = a[: h * k, : w * k].astype(np.float64).reshape(h, k, w, k, -1) / 255.0
+            want = blocks.mean(axis=(1, 3))
+            np.testing.assert_allclose(b, want, atol=1e-6)
+            np.testing.assert_allclose(g, want.mean(axis=2), atol=1e-6)
+        assert g9.shape == (123 // 9, 161 // 9)
+        assert cache.factor(5) == 6 and cache.factor(7) == 9 and cache.factor(2) == 3
+        # a factor that is no multiple of one read reads again
+        block_means(cache, 4)
+        assert cache.reads == 2
+        # the scaled view's overview, from the cache, against reading the view
+        C = shape[2] if len(shape) == 3 else 1
+        gain, offset = np.linspace(0.8, 1.2, C), np.linspace(-0.1, 0.1, C)
+        view = ScaledView(cache, 255.0, gain, offset)
+        plain = ScaledView(a, 255.0, gain, offset)
+        direct = align_mod._read_block_means(plain, 3)
+        for got, want in zip(view.block_means(3), direct, strict=True):
+            np.testing.assert_allclose(got, want, atol=1e-5)
+        assert cache.reads == 2

@@ -398,3 +398,41 @@ def test_gaussian_zero_matches_ndimage():
     for sigma, trunc in ((2.0, 4.0), (1.3, 3.0)):
         ref = ndi.gaussian_filter(a, sigma, mode="constant", cval=0.0, truncate=trunc)
         np.testing.assert_allclose(gaussian_zero(a, sigma, trunc), ref, rtol=0, atol=1e-12)
+
+
+def test_statistic_reused_on_a_larger_halo_equals_computing_it_whole():
+    """A re-run with a larger halo computes the statistic only on the ring (plus its
+    reach) and reuses the rest: the values are those of computing it over the whole
+    larger tile, on interior tiles and tiles on the image border, with unknown pixels."""
+    from reblur.decide import DecisionParams, Photometry, _tile_statistic, change_statistic
+
+    rng = np.random.default_rng(11)
+    H, W = 260, 300
+    obs = rng.normal(0.5, 0.1, (H, W, 2)).astype(np.float32)
+    reb = (obs + rng.normal(0, 0.02, obs.shape)).astype(np.float32)
+    known = np.ones((H, W), bool)
+    known[100:130, 40:90] = False
+    ph = Photometry(gain=np.ones(2), offset=np.zeros(2), sigma=np.array([0.02, 0.03]),
+                    image_shape=(H, W), edge_k=np.array([0.3, 0.2]),
+                    curv_k=np.array([0.1, 0.0]))
+    p = DecisionParams()
+    for small, large in (((60, 70, 120, 130), (30, 40, 180, 190)),  # interior
+                         ((0, 0, 110, 120), (0, 0, 170, 180)),  # top-left border
+                         ((140, 150, 120, 150), (100, 110, 160, 190))):  # bottom-right
+        def stat(box):
+            y, x, h, w = box
+            sl = (slice(y, y + h), slice(x, x + w))
+            return _tile_statistic(obs[sl], reb[sl], known[sl], ph, p, box, (H, W), None)
+
+        y, x, h, w = large
+        sl = (slice(y, y + h), slice(x, x + w))
+        reused = _tile_statistic(obs[sl], reb[sl], known[sl], ph, p, large, (H, W),
+                                 (stat(small), small))
+        whole = change_statistic(obs[sl], reb[sl], known[sl], ph.sigma, smooth=p.smooth,
+                                 truncate=p.truncate, edge_k=ph.edge_k, curv_k=ph.curv_k)
+        np.testing.assert_allclose(reused, whole, rtol=1e-6, atol=1e-7)
+        # the earlier values near its inner edges are not exact, so they were recomputed
+        sy, sx = small[0] - y, small[1] - x
+        if small[0] > 0:
+            edge = stat(small)[0, 20:-20]
+            assert not np.allclose(edge, whole[sy, sx + 20 : sx + small[3] - 20], rtol=1e-6)

@@ -362,3 +362,53 @@ def test_write_json(tmp_path):
     d = json.loads((tmp_path / "j.json").read_text())
     assert d == dict(a=1.5, b=None, c=[0, 1, 2], d=[1, 2], e=str(tmp_path), f=True)
     assert not [p for p in os.listdir(tmp_path) if p != "j.json"]
+
+
+class _Counting:
+    """A chunked array-like that counts the pixels it hands out."""
+
+    def __init__(self, a, chunks):
+        self.a, self.chunks, self.read_px = a, chunks, 0
+        self.shape, self.dtype = a.shape, a.dtype
+
+    def __getitem__(self, key):
+        out = np.asarray(self.a[key])
+        self.read_px += out.shape[0] * (out.shape[1] if out.ndim > 1 else 1)
+        return out
+
+
+@pytest.mark.parametrize("bands", [0, 3])
+def test_chunk_cache_windows_equal_direct_reads(bands):
+    """Every window assembled from kept chunks equals slicing the array itself (inside,
+    across chunk edges, at the image's edges, with a band index); overlapping windows
+    reuse chunks; the kept bytes never exceed the bound; pickling drops the chunks."""
+    import pickle
+
+    from reblur.io import ChunkCache
+
+    rng = np.random.default_rng(7)
+    shape = (300, 410) + ((bands,) if bands else ())
+    a = rng.integers(0, 65535, size=shape, dtype=np.uint16)
+    src = _Counting(a, (64, 96))
+    one_chunk = 64 * 96 * a.itemsize * (bands or 1)
+    cache = ChunkCache(src, max_bytes=12 * one_chunk)
+    assert cache.shape == a.shape and cache.dtype == a.dtype and cache.chunks == (64, 96)
+    for _ in range(200):
+        y0, x0 = int(rng.integers(0, 300)), int(rng.integers(0, 410))
+        y1, x1 = int(rng.integers(y0, 301)), int(rng.integers(x0, 411))
+        np.testing.assert_array_equal(cache[y0:y1, x0:x1], a[y0:y1, x0:x1])
+        assert cache._bytes <= 12 * one_chunk
+    np.testing.assert_array_equal(cache[:, 5:], a[:, 5:])
+    np.testing.assert_array_equal(cache[-70:, :-3], a[-70:, :-3])
+    if bands:
+        np.testing.assert_array_equal(cache[10:90, 20:200, 1], a[10:90, 20:200, 1])
+    np.testing.assert_array_equal(cache[3], a[3])  # not a window: read directly
+    # two overlapping windows: the second reads only the chunks the first did not cover
+    fresh = ChunkCache(_Counting(a, (64, 96)), max_bytes=100 * one_chunk)
+    fresh[0:128, 0:192]
+    n0 = fresh.array.read_px
+    fresh[64:128, 96:288]
+    assert n0 == 128 * 192 and fresh.array.read_px - n0 == 64 * 96
+    again = pickle.loads(pickle.dumps(fresh))
+    assert len(again._kept) == 0 and again.max_bytes == fresh.max_bytes
+    np.testing.assert_array_equal(again[50:70, 80:100], a[50:70, 80:100])

@@ -48,6 +48,7 @@ import functools
 import logging
 import math
 from collections.abc import Callable, Hashable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -58,8 +59,8 @@ from scipy.optimize import nnls
 from .grid import map_points, translation
 
 __all__ = [
-    "Alignment", "AlignmentError", "coarse_align", "coarse_align_shakes", "overview",
-    "overview_matrix",
+    "Alignment", "AlignmentError", "OverviewCache", "block_means", "coarse_align",
+    "coarse_align_shakes", "overview", "overview_matrix",
 ]
 
 log = logging.getLogger(__name__)
@@ -169,30 +170,153 @@ def _block_factor(max_len: int, max_side: int) -> int:
 
 def _overview_k(image, k: int) -> np.ndarray:
     """Grey block mean of ``image`` over ``k x k`` blocks (partial edge blocks dropped)."""
+    return block_means(image, k)[0]
+
+
+def block_means(image, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Grey and per-band means of ``image`` over ``k x k`` blocks, in one read.
+
+    Integer images are divided by their dtype's maximum (floats kept, NaN and Inf -> 0);
+    partial edge blocks are dropped.  An image that keeps its overviews (an
+    :class:`OverviewCache`, or anything with a ``block_means(k)`` method) answers
+    without a read when it can.
+
+    Returns
+    -------
+    grey : (H // k, W // k) float32 ndarray
+        Block means of the band average (of the image itself for one band).
+    bands : (H // k, W // k, C) float32 ndarray
+        Block means of every band (a view of ``grey`` for one band).
+    """
+    fn = getattr(image, "block_means", None)
+    if fn is not None:
+        return fn(int(k))
+    return _read_block_means(image, int(k))
+
+
+def _read_block_means(image, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`block_means` read from the image, in horizontal strips.
+
+    The next strip is read (decoded) in the background while one is averaged.  Integer
+    images are summed exactly in integers; floats are averaged by OpenCV's area resize.
+    """
     H, W = _shape2(image)
     C = int(image.shape[2]) if len(image.shape) == 3 else 1
     h, w = H // k, W // k
     if h < 1 or w < 1:
         raise ValueError(f"image {H}x{W} is smaller than one {k}x{k} overview block")
-    norm = _dtype_norm(image.dtype)
-    floating = np.issubdtype(np.dtype(image.dtype), np.floating)
+    dtype = np.dtype(image.dtype)
+    norm = _dtype_norm(dtype)
     m = max(1, _STRIP_BYTES // (k * k * w * C * 4))  # output rows per strip
-    out = np.empty((h, w), np.float32)
-    for r0 in range(0, h, m):
-        r1 = min(r0 + m, h)
-        a = np.asarray(image[r0 * k : r1 * k, : w * k])
-        if a.ndim == 3:
-            a = a.mean(axis=2, dtype=np.float32)
+    bands = np.empty((h, w, C), np.float32)
+
+    def read(r0: int) -> np.ndarray:
+        a = np.asarray(image[r0 * k : min(r0 + m, h) * k, : w * k])
+        return a.reshape(a.shape[0], a.shape[1], C)
+
+    with ThreadPoolExecutor(1) as pool:
+        ahead = pool.submit(read, 0)
+        for r0 in range(0, h, m):
+            r1 = min(r0 + m, h)
+            a = ahead.result()
+            if r1 < h:
+                ahead = pool.submit(read, r1)
+            bands[r0:r1] = _strip_means(a, k, norm)
+    grey = bands[:, :, 0] if C == 1 else bands.mean(axis=2, dtype=np.float32)
+    return grey, bands
+
+
+def _strip_means(a: np.ndarray, k: int, norm: float) -> np.ndarray:
+    """``(r k, w k, C)`` -> ``(r, w, C)`` float32 means of ``k x k`` blocks, times ``norm``."""
+    rk, wk, C = a.shape
+    r, w = rk // k, wk // k
+    if a.dtype.kind == "b" or (a.dtype.kind in "ui" and a.dtype.itemsize <= 4):
+        top = 1 if a.dtype.kind == "b" else int(np.iinfo(a.dtype).max)
+        if a.dtype.kind == "i":
+            acc, vert = np.int64, np.int64
         else:
-            a = a.astype(np.float32, copy=False)
-        if floating:
-            a = np.nan_to_num(a, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
-        if k > 1:
-            a = cv2.resize(np.ascontiguousarray(a), (w, r1 - r0), interpolation=cv2.INTER_AREA)
-        out[r0:r1] = a
+            acc = np.uint32 if k * k * top < 2**32 else np.uint64
+            vert = np.uint16 if k * top < 2**16 else acc
+        v = np.add.reduce(a.reshape(r, k, wk * C), axis=1, dtype=vert)
+        t = np.add.reduce(v.reshape(r, w, k, C), axis=2, dtype=acc)
+        out = t.astype(np.float64)
+        out *= norm / (k * k)
+        return out.astype(np.float32)
+    f = a.astype(np.float32, copy=False)
+    if a.dtype.kind == "f":
+        f = np.nan_to_num(f, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
+    if k > 1:
+        f = np.stack([cv2.resize(np.ascontiguousarray(f[:, :, c]), (w, r),
+                                 interpolation=cv2.INTER_AREA) for c in range(C)], axis=2)
     if norm != 1.0:
-        out *= np.float32(norm)
-    return out
+        f = f * np.float32(norm)
+    return f
+
+
+class OverviewCache:
+    """An image that keeps the block-mean overviews read from it.
+
+    It stands in for the image anywhere (``shape``, ``dtype`` and ``__getitem__`` are the
+    image's), and :func:`block_means` (hence :func:`overview`) asks it first: a block
+    factor already read costs nothing, and a multiple of one is block-averaged from it
+    (the mean of means over equal blocks is the mean), so the several low-resolution
+    views of a pipeline -- alignment, photometric pre-fit, window selection -- read a
+    huge image once.  What it keeps is a few overviews (each ``1 / k^2`` of the image).
+
+    Parameters
+    ----------
+    image : array-like, (H, W) or (H, W, C)
+        numpy, zarr, tifffile store, ...
+
+    Attributes
+    ----------
+    reads : int
+        Passes over the image so far.
+    """
+
+    def __init__(self, image):
+        self.image = image
+        self.shape = tuple(int(s) for s in image.shape)
+        self.dtype = np.dtype(image.dtype)
+        self.reads = 0
+        self._memo: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    def __getitem__(self, key):
+        return self.image[key]
+
+    def factor(self, k: int) -> int:
+        """The smallest block factor ``>= k`` that costs no read, if one is at most
+        ``2 k``; otherwise ``k``."""
+        got = [k0 * -(-k // k0) for k0 in self._memo]
+        got = [g for g in got if g <= 2 * k]
+        return min(got) if got else int(k)
+
+    def block_means(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`block_means` of the image, read at most once per unrelated factor."""
+        k = int(k)
+        if k not in self._memo:
+            divisors = [k0 for k0 in self._memo if k % k0 == 0]
+            if divisors:
+                k0 = max(divisors)
+                _, bands0 = self._memo[k0]
+                f = k // k0
+                h, w = self.shape[0] // k, self.shape[1] // k
+                C = bands0.shape[2]
+                bands = np.empty((h, w, C), np.float32)
+                for c in range(C):
+                    bands[:, :, c] = cv2.resize(
+                        np.ascontiguousarray(bands0[: h * f, : w * f, c]), (w, h),
+                        interpolation=cv2.INTER_AREA)
+                grey = bands[:, :, 0] if C == 1 else bands.mean(axis=2, dtype=np.float32)
+                self._memo[k] = (grey, bands)
+            else:
+                self._memo[k] = _read_block_means(self.image, k)
+                self.reads += 1
+        return self._memo[k]
 
 
 def overview(image, max_side: int = 1024) -> tuple[np.ndarray, float]:

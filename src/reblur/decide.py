@@ -1434,6 +1434,50 @@ def tile_boxes(
             yield (py0, px0, py1 - py0, px1 - px0), (y, x, ch, cw)
 
 
+def _tile_statistic(o, matched, known, photometry: Photometry, p: DecisionParams,
+                    box: tuple[int, int, int, int], image_shape, previous) -> np.ndarray:
+    """:func:`change_statistic` over a padded tile, reusing ``previous = (S, box)`` (an
+    earlier tile inside this one, same inputs) where its values are exact.
+
+    A value depends on the inputs within ``smooth_radius + 1`` pixels (the Gaussian window
+    and the 3x3 stencils of the model error), so the earlier values are exact except
+    within that reach of its edges that are not image borders; the rest of the tile is
+    computed in (at most four) strips, each from its window grown by the reach, cropped.
+    """
+
+    def compute(y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
+        sl = (slice(y0, y1), slice(x0, x1))
+        return change_statistic(o[sl], matched[sl], known[sl], photometry.sigma,
+                                smooth=p.smooth, truncate=p.truncate,
+                                edge_k=photometry.edge_k, curv_k=photometry.curv_k)
+
+    by0, bx0, bh, bw = box
+    if previous is None:
+        return compute(0, bh, 0, bw)
+    S0, (py0, px0, ph, pw) = previous
+    H, W = image_shape if image_shape is not None else (None, None)
+    r = p.smooth_radius + 1
+    # the exact part of the earlier statistic, in this tile's coordinates
+    ey0 = py0 - by0 + (r if py0 > 0 else 0)
+    ex0 = px0 - bx0 + (r if px0 > 0 else 0)
+    ey1 = py0 + ph - by0 - (0 if H is not None and py0 + ph >= H else r)
+    ex1 = px0 + pw - bx0 - (0 if W is not None and px0 + pw >= W else r)
+    inside = py0 >= by0 and px0 >= bx0 and py0 + ph <= by0 + bh and px0 + pw <= bx0 + bw
+    if not inside or S0.shape != (ph, pw) or ey0 >= ey1 or ex0 >= ex1:
+        return compute(0, bh, 0, bw)
+    S = np.empty((bh, bw), np.float32)
+    oy, ox = by0 - py0, bx0 - px0
+    S[ey0:ey1, ex0:ex1] = S0[ey0 + oy : ey1 + oy, ex0 + ox : ex1 + ox]
+    strips = [(0, ey0, 0, bw), (ey1, bh, 0, bw), (ey0, ey1, 0, ex0), (ey0, ey1, ex1, bw)]
+    for y0, y1, x0, x1 in strips:
+        if y0 >= y1 or x0 >= x1:
+            continue
+        gy0, gy1 = max(y0 - r, 0), min(y1 + r, bh)
+        gx0, gx1 = max(x0 - r, 0), min(x1 + r, bw)
+        S[y0:y1, x0:x1] = compute(gy0, gy1, gx0, gx1)[y0 - gy0 : y1 - gy0, x0 - gx0 : x1 - gx0]
+    return S
+
+
 def decide_tile(
     observed_tile: np.ndarray,
     reblurred_tile: np.ndarray,
@@ -1446,6 +1490,8 @@ def decide_tile(
     params: DecisionParams | None = None,
     image_shape: tuple[int, int] | None = None,
     stop_incomplete: bool = False,
+    statistic: tuple[np.ndarray, Any] | None = None,
+    keep_statistic: bool = False,
 ) -> tuple[np.ndarray | None, dict[str, Any]]:
     """Decide change on one padded tile and return its core.
 
@@ -1474,6 +1520,13 @@ def decide_tile(
         joins the core to the edge band), for a caller that re-runs such tiles with a
         larger halo anyway: ``mask`` is then None and ``info`` holds ``complete`` (False),
         ``threshold``, ``strong_threshold`` and ``n_unknown`` only.
+    statistic : (S, box), optional
+        The statistic of an earlier call on a window ``box`` inside this tile, with the
+        same inputs there (``info["statistic"]`` of that call): a re-run with a larger
+        halo computes the statistic only on the ring it adds, plus the statistic's reach
+        (the values are those of a computation over the whole tile).
+    keep_statistic : bool
+        Return ``(S, box)`` as ``info["statistic"]``, for ``statistic=`` of a re-run.
 
     Returns
     -------
@@ -1501,8 +1554,7 @@ def decide_tile(
         raise ValueError(f"core {(cy0, cx0, ch, cw)} is not inside box {(by0, bx0, bh, bw)}")
     shape = image_shape if image_shape is not None else photometry.image_shape
     matched = photometry.apply(r, (by0, bx0, bh, bw))
-    S = change_statistic(o, matched, known, photometry.sigma, smooth=p.smooth, truncate=p.truncate,
-                         edge_k=photometry.edge_k, curv_k=photometry.curv_k)
+    S = _tile_statistic(o, matched, known, photometry, p, (by0, bx0, bh, bw), shape, statistic)
     ly, lx = cy0 - by0, cx0 - bx0
     # completeness: regions reaching the core must stay clear of non-border tile edges
     m = p.local_radius
@@ -1528,10 +1580,11 @@ def decide_tile(
         return stop_incomplete and not cand_clear[0]
 
     mask, cand, counts = _decide_core(S, known, float(threshold), p, stop=level0)
+    kept = {"statistic": (S, (by0, bx0, bh, bw))} if keep_statistic else {}
     if mask is None:
         return None, {"complete": False, "threshold": float(threshold),
                       "strong_threshold": float(p.strong_factor * threshold),
-                      "n_unknown": n_unknown}
+                      "n_unknown": n_unknown, **kept}
     if np.any(mask & ~cand):  # filled holes: mask | cand has components of its own
         complete = _clear_of(mask | cand, band, core_sl)
     else:  # mask | cand == cand: the test is the one on the candidates
@@ -1543,6 +1596,7 @@ def decide_tile(
         "counts": counts,
         "regions": _region_records(mask, S, by0, bx0, core=(ly, lx, ch, cw)),
         "n_unknown": n_unknown,
+        **kept,
     }
     return mask[ly : ly + ch, lx : lx + cw].copy(), info
 

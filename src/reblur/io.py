@@ -49,6 +49,7 @@ __all__ = [
     "InputError",
     "Image",
     "LazyBands",
+    "ChunkCache",
     "DEFAULT_MAX_PIXELS",
     "MIN_SIDE",
     "open_image",
@@ -210,6 +211,115 @@ class LazyBands:
     def __array__(self, dtype=None, copy=None) -> np.ndarray:
         a = self[...]
         return a if dtype is None else a.astype(dtype, copy=False)
+
+
+class ChunkCache:
+    """Window reader of a chunked, on-disk image that keeps recently decoded chunks.
+
+    The windows of a tiled pass overlap -- each padded tile reads its halo and the reach
+    of its poses -- so reading them straight from a compressed store decodes most chunks
+    several times (about four times each, for 1024-px tiles over 512-px chunks).  Through
+    this reader every chunk is read whole, once while it stays among the most recently
+    used ones, and windows are assembled from the kept chunks.  Slicing returns numpy
+    arrays, exactly ``np.asarray(array[key])``.
+
+    Parameters
+    ----------
+    array : array-like
+        ``(H, W)`` or ``(H, W, C)`` with a ``chunks`` attribute (zarr, tifffile's zarr
+        store, :class:`reblur.dask_backend.TiffSource`, :class:`LazyBands` over one).
+    max_bytes : int, optional
+        Bound on the bytes of the kept chunks (least recently used go first).  Default:
+        four rows of chunks across the image (a row of 1024-px tiles and the one before
+        it), at least 64 MB and at most 1 GB.
+    chunks : (int, int), optional
+        Chunk size to use; default ``array.chunks``.
+
+    Notes
+    -----
+    Thread-safe: tile threads share one reader (two threads may decode the same chunk at
+    the same moment; both copies are equal).  Pickling drops the kept chunks.
+    """
+
+    def __init__(self, array, max_bytes: int | None = None, chunks=None):
+        self.array = array
+        self.shape = tuple(int(v) for v in array.shape)
+        if len(self.shape) not in (2, 3):
+            raise ValueError(f"ChunkCache needs an (H, W) or (H, W, C) array, got {self.shape}")
+        self.dtype = np.dtype(array.dtype)
+        self.ndim = len(self.shape)
+        ch = chunks if chunks is not None else getattr(array, "chunks", None)
+        if ch is None:
+            raise ValueError("ChunkCache needs a chunked array (or chunks=)")
+        self.chunks = (max(1, int(ch[0])), max(1, int(ch[1])))
+        px = int(np.prod(self.shape[2:], dtype=np.int64)) * self.dtype.itemsize
+        if max_bytes is None:
+            rows = 4 * self.chunks[0] * self.shape[1] * px
+            max_bytes = min(max(rows, 64 * 2**20), 2**30)
+        self.max_bytes = int(max_bytes)
+        self.hits = self.misses = 0
+        self._init_cache()
+
+    def _init_cache(self) -> None:
+        import collections
+        import threading
+
+        self._kept: collections.OrderedDict = collections.OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = dict(self.__dict__)
+        for k in ("_kept", "_bytes", "_lock"):
+            state.pop(k, None)
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state)
+        self._init_cache()
+
+    def _chunk(self, cy: int, cx: int) -> np.ndarray:
+        key = (cy, cx)
+        with self._lock:
+            got = self._kept.get(key)
+            if got is not None:
+                self._kept.move_to_end(key)
+                self.hits += 1
+                return got
+            self.misses += 1
+        hy, hx = self.chunks
+        a = np.asarray(self.array[cy * hy : min((cy + 1) * hy, self.shape[0]),
+                                  cx * hx : min((cx + 1) * hx, self.shape[1])])
+        with self._lock:
+            if key not in self._kept:
+                self._kept[key] = a
+                self._bytes += a.nbytes
+                while self._bytes > self.max_bytes and len(self._kept) > 1:
+                    _, old = self._kept.popitem(last=False)
+                    self._bytes -= old.nbytes
+        return a
+
+    def __getitem__(self, key):
+        if not isinstance(key, tuple):
+            key = (key,)
+        ys = key[0] if len(key) > 0 else slice(None)
+        xs = key[1] if len(key) > 1 else slice(None)
+        if not (isinstance(ys, slice) and isinstance(xs, slice)
+                and ys.step in (None, 1) and xs.step in (None, 1)):
+            return np.asarray(self.array[key])
+        y0, y1, _ = ys.indices(self.shape[0])
+        x0, x1, _ = xs.indices(self.shape[1])
+        y1, x1 = max(y0, y1), max(x0, x1)
+        out = np.empty((y1 - y0, x1 - x0, *self.shape[2:]), self.dtype)
+        hy, hx = self.chunks
+        for cy in range(y0 // hy, -(-y1 // hy)):
+            for cx in range(x0 // hx, -(-x1 // hx)):
+                c = self._chunk(cy, cx)
+                ya, yb = max(y0, cy * hy), min(y1, (cy + 1) * hy)
+                xa, xb = max(x0, cx * hx), min(x1, (cx + 1) * hx)
+                out[ya - y0 : yb - y0, xa - x0 : xb - x0] = c[ya - cy * hy : yb - cy * hy,
+                                                              xa - cx * hx : xb - cx * hx]
+        return out[(slice(None), slice(None), *key[2:])] if len(key) > 2 else out
 
 
 def _luminance(a: np.ndarray) -> np.ndarray:

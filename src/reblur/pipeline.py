@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from .align import OverviewCache, block_means, overview_matrix
 from .decide import (
     DecisionParams,
     change_statistic,
@@ -28,6 +29,7 @@ from .decide import (
 )
 from .estimate import estimate_motion, intensity_scale
 from .grid import PoseGrid
+from .io import ChunkCache
 from .refine import refine_alignment
 from .result import ChangeResult, CropChoice
 from .select import SelectParams, select_windows
@@ -59,6 +61,17 @@ class ScaledView:
             return (a - self.offset) / self.gain
         return (a - self.offset[0]) / self.gain[0]
 
+    def block_means(self, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`reblur.align.block_means` of the view, from those of the array (the
+        affine map commutes with block means, so an :class:`~reblur.align.OverviewCache`
+        underneath answers without a read)."""
+        _, bands = block_means(self.array, k)
+        # block_means divides integers by the dtype's maximum, which is ``scale`` here
+        raw = intensity_scale(np.dtype(self.array.dtype)) / self.scale
+        v = (bands * np.float32(raw) - self.offset) / self.gain
+        grey = v[:, :, 0] if v.shape[2] == 1 else v.mean(axis=2, dtype=np.float32)
+        return grey, v
+
 
 def _check_inputs(reference, observed) -> None:
     for name, a in (("reference", reference), ("observed", observed)):
@@ -80,28 +93,30 @@ def _check_inputs(reference, observed) -> None:
         )
 
 
-def _strided(image, max_side: int) -> tuple[np.ndarray, int]:
-    """Every ``k``-th pixel (float32, (h, w, C)), ``k`` so the long side is <= max_side."""
-    k = max(1, int(np.ceil(max(image.shape[:2]) / max_side)))
-    a = np.asarray(image[::k, ::k], dtype=np.float32)
-    return (a[:, :, None] if a.ndim == 2 else a), k
-
-
 def photometric_prefit(
     reference, observed, H0: np.ndarray, s_ref: float, s_obs: float, max_side: int = 512
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per-band gain and offset with ``observed ~ gain * reference + offset`` (robust).
 
-    Fitted at low resolution on the aligned, low-pass images (blur matters little there),
-    by Huber-weighted least squares so that changes do not bias it.
+    Fitted at low resolution (block means, :func:`reblur.align.block_means`, the long side
+    at most ``max_side``, or the nearest overview an :class:`~reblur.align.OverviewCache`
+    already holds) on the aligned, low-pass images (blur matters little there), by
+    Huber-weighted least squares so that changes do not bias it.  ``s_ref`` and ``s_obs``
+    are the images' full-scale values (:func:`reblur.estimate.intensity_scale`).
     """
-    ref, kr = _strided(reference, max_side)
-    obs, ko = _strided(observed, max_side)
-    ref /= s_ref
-    obs /= s_obs
-    S_ref = np.diag([kr, kr, 1.0])
-    S_obs_inv = np.diag([1.0 / ko, 1.0 / ko, 1.0])
-    Hs = S_obs_inv @ H0 @ S_ref
+    def low(image, s):
+        k = max(1, int(np.ceil(max(image.shape[:2]) / max_side)))
+        factor = getattr(image, "factor", None)
+        if factor is not None:
+            k = factor(k)
+        _, b = block_means(image, k)
+        # block means of integers come divided by the dtype's maximum; scale by ``s``
+        b = b * np.float32(intensity_scale(np.dtype(image.dtype)) / s)
+        return b, k
+
+    ref, kr = low(reference, s_ref)
+    obs, ko = low(observed, s_obs)
+    Hs = np.linalg.inv(overview_matrix(1.0 / ko)) @ H0 @ overview_matrix(1.0 / kr)
     h, w = obs.shape[:2]
     ones = np.ones(ref.shape[:2], np.float32)
     cover = cv2.warpPerspective(ones, Hs, (w, h), flags=cv2.INTER_LINEAR) > 0.999
@@ -172,6 +187,25 @@ def sample_windows(shape: tuple[int, int], n: int, side: int) -> list[tuple[int,
             for i in rows for j in cols]
 
 
+def _chunk_cached(image, tile_size: int, params: DecisionParams):
+    """``image`` read through a :class:`reblur.io.ChunkCache` when it is a chunked on-disk
+    array whose chunks are tiles (not single rows) -- numpy arrays are returned as they are.
+
+    The cache keeps the rows a row of tiles and the next one share: two tile rows, a
+    generous halo and a chunk row on each side (64 MB to 256 MB).
+    """
+    chunks = getattr(image, "chunks", None)
+    if isinstance(image, np.ndarray) or not chunks or len(chunks) < 2:
+        return image
+    ch, cw = int(chunks[0]), int(chunks[1])
+    if min(ch, cw) < 64 or ch * cw > 2**24:
+        return image
+    px = int(np.prod(image.shape[2:], dtype=np.int64)) * np.dtype(image.dtype).itemsize
+    rows = 2 * tile_size + 4 * params.halo(64) + 2 * ch
+    budget = min(max(rows * int(image.shape[1]) * px, 64 * 2**20), 256 * 2**20)
+    return ChunkCache(image, max_bytes=budget, chunks=(ch, cw))
+
+
 def reblur_and_decide(
     reference,
     observed,
@@ -223,8 +257,12 @@ def reblur_and_decide(
         # (1024 px tiles: 1.35x the core's pixels, against 2.35x for 256 px)
         max_region = max(32, min(64, tile_size // 4))
 
+    # windows of neighbouring tiles overlap: read on-disk images through a chunk cache
+    ref_r = _chunk_cached(reference, tile_size, params=p)
+    obs_r = _chunk_cached(observed, tile_size, params=p)
+
     def load(box):
-        return load_tile(poses, reference, observed, box, s_ref=s_ref, s_obs=s_obs,
+        return load_tile(poses, ref_r, obs_r, box, s_ref=s_ref, s_obs=s_obs,
                          gain=gain, offset=offset)
 
     # pass 1: photometry and threshold from a sample of windows spread over the image
@@ -298,7 +336,7 @@ def reblur_and_decide(
         lock = threading.Lock()
 
         def run(pair) -> None:
-            res = run_tile(job, reference, observed, *pair)
+            res = run_tile(job, ref_r, obs_r, *pair)
             with lock:
                 results.append(res)
                 n_done = len(results)
@@ -405,6 +443,9 @@ def _estimate_stage(
     Ho, Wo = observed.shape[:2]
     s_ref = intensity_scale(reference.dtype)
     s_obs = intensity_scale(observed.dtype)
+    # the low-resolution views of steps 1-3 (alignment, photometric pre-fit, window
+    # selection) come from one read of each image
+    reference, observed = OverviewCache(reference), OverviewCache(observed)
 
     # 1. coarse alignment
     t = time.perf_counter()

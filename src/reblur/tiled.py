@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from .grid import PoseGrid, translation
-from .warp import Box, as_box, read_window, source_box, warp_window
+from .warp import Box, as_box, read_window, source_box, warp_source
 
 __all__ = ["reblur", "reblur_tile", "iter_tiles", "SparsePoses"]
 
@@ -80,41 +80,41 @@ def reblur_tile(poses: SparsePoses, reference, box, *, dtype=np.float32):
         ext = box.grow(int(ty.max()), int(-ty.min()), int(tx.max()),
                        int(-tx.min()))
         warps.append((Hb, ext, (tx, ty, tw[:, 2])))
-    source = _shared_source(reference, [(H, dst) for H, dst, _ in warps], dtype)
-    # the shifted copies are summed over bands of rows that stay in cache (the same
-    # products and sums, pixel by pixel, in the same order as over the whole tile)
-    rows = max(1, _BAND_ELEMENTS // (box.w * C))
-    tmp = np.empty((min(rows, box.h), box.w, C), dtype)
-    for H, dst, what in warps:
-        img, ok = warp_window(reference, H, dst, dtype=dtype, source=source)
+    needs = [source_box(H, dst) for H, dst, _ in warps]
+    source = _shared_source(reference, needs, dtype)
+    shape = tuple(reference.shape[:2])
+    acc = out[:, :, 0] if C == 1 else out  # OpenCV sees one multi-band image
+
+    def view(a: np.ndarray) -> np.ndarray:
+        return a[:, :, 0] if C == 1 else a
+
+    for (H, dst, what), need in zip(warps, needs, strict=True):
+        if source is None:  # the window reads nothing of the reference
+            img, ok = np.zeros((dst.h, dst.w, C), dtype), np.zeros((dst.h, dst.w), bool)
+        else:
+            img, ok = warp_source(source, H, dst, need, shape)
         if not poses.integer:
-            out += np.asarray(what, dtype) * img
-            valid &= ok
+            cv2.scaleAdd(view(img), float(np.asarray(what, dtype)), acc, dst=acc)
+            if ok is not None:
+                valid &= ok
             continue
+        # whole-pixel translations: the shifted copies, weighted, added in place
         tx, ty, wv = what
         tymax, txmax = int(ty.max()), int(tx.max())
-        shifts = [(tymax - int(sy), txmax - int(sx), np.asarray(v, dtype))
-                  for sx, sy, v in zip(tx, ty, wv, strict=True)]
-        all_ok = bool(ok.all())
-        for y in range(0, box.h, rows):
-            n = min(rows, box.h - y)
-            o, t = out[y : y + n], tmp[:n]
-            for oy, ox, v in shifts:
-                np.multiply(img[oy + y : oy + y + n, ox : ox + box.w], v, out=t)
-                o += t
-                if not all_ok:
-                    valid[y : y + n] &= ok[oy + y : oy + y + n, ox : ox + box.w]
+        src = view(img)
+        for sx, sy, v in zip(tx, ty, wv, strict=True):
+            oy, ox = tymax - int(sy), txmax - int(sx)
+            cv2.scaleAdd(src[oy : oy + box.h, ox : ox + box.w], float(np.asarray(v, dtype)),
+                         acc, dst=acc)
+            if ok is not None:
+                valid &= ok[oy : oy + box.h, ox : ox + box.w]
     return out, valid
 
 
-#: Elements of one band of rows of the shifted-copy sums (512 KB of float32).
-_BAND_ELEMENTS = 1 << 17
-
-
-def _shared_source(reference, warps, dtype) -> tuple[np.ndarray, Box] | None:
-    """One reference window (clipped to the image) covering what every warp reads."""
+def _shared_source(reference, boxes: list[Box], dtype) -> tuple[np.ndarray, Box] | None:
+    """One reference window (clipped to the image) covering every box of ``boxes`` (the
+    :func:`reblur.warp.source_box` of each warp)."""
     Href, Wref = reference.shape[:2]
-    boxes = [source_box(H, dst) for H, dst in warps]
     y0 = max(min(b.y0 for b in boxes), 0)
     x0 = max(min(b.x0 for b in boxes), 0)
     y1 = min(max(b.y1 for b in boxes), Href)

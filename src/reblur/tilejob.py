@@ -202,9 +202,9 @@ def run_tile(
 
     The padded tile is reblurred (reading only the reference window its poses touch),
     pre-matched, decided by :func:`reblur.decide.decide_tile`, re-run with a twice larger
-    halo (at most three times) when a region reaches the halo's edge (reading and
-    reblurring only the ring the halo adds, :func:`grow_tile`), and its core written into
-    the job's outputs.
+    halo (at most three times) when a region reaches the halo's edge (reading, reblurring
+    and computing the statistic only on the ring the halo adds, :func:`grow_tile`), and its
+    core written into the job's outputs.
 
     Parameters
     ----------
@@ -230,7 +230,7 @@ def run_tile(
     padded = tuple(int(v) for v in padded)
     core = tuple(int(v) for v in core)
     halo = int(job.halo)
-    loaded, prev = None, padded
+    loaded, prev, stat = None, padded, None
     for attempt in range(_ATTEMPTS):
         last = attempt == _ATTEMPTS - 1
         if loaded is None:
@@ -245,7 +245,9 @@ def run_tile(
         mask, info = decide_tile(
             obs, reb, unk, threshold=job.threshold, photometry=job.photometry, box=padded,
             core=core, params=job.params, image_shape=(H, W), stop_incomplete=not last,
+            statistic=stat, keep_statistic=not last,
         )
+        stat = info.pop("statistic", None)
         if info["complete"] or last:
             break
         halo *= 2

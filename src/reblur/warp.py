@@ -16,7 +16,7 @@ import numpy as np
 
 from .grid import local_homography, map_points
 
-__all__ = ["Box", "as_channels", "read_window", "source_box", "warp_window"]
+__all__ = ["Box", "as_channels", "read_window", "source_box", "warp_source", "warp_window"]
 
 #: Extra source pixels read around the mapped window (bilinear needs 1, keep 2).
 _PAD = 2
@@ -112,16 +112,51 @@ def source_box(H: np.ndarray, dst: Box, pad: int = _PAD) -> Box:
 
 
 def _warp(src: np.ndarray, M: np.ndarray, dst: Box, interpolation: int) -> np.ndarray:
-    flags = interpolation
-    out = np.empty((dst.h, dst.w, src.shape[2]), dtype=src.dtype)
-    for c0 in range(0, src.shape[2], 4):  # OpenCV warps at most 4 channels at once
-        c1 = min(c0 + 4, src.shape[2])
-        part = cv2.warpPerspective(
-            np.ascontiguousarray(src[:, :, c0:c1]), M, (dst.w, dst.h), flags=flags,
+    C = src.shape[2]
+    out = np.empty((dst.h, dst.w, C), dtype=src.dtype)
+    for c0 in range(0, C, 4):  # OpenCV warps at most 4 channels at once
+        c1 = min(c0 + 4, C)
+        if c1 - c0 == 1:
+            part_src, part_dst = src[:, :, c0], out[:, :, c0]
+        else:
+            part_src, part_dst = src[:, :, c0:c1], out[:, :, c0:c1]
+        part_src = np.ascontiguousarray(part_src)
+        into = part_dst if C <= 4 else None  # a channel range of more is not contiguous
+        got = cv2.warpPerspective(
+            part_src, M, (dst.w, dst.h), dst=into, flags=interpolation,
             borderMode=cv2.BORDER_CONSTANT, borderValue=0,
         )
-        out[:, :, c0:c1] = part.reshape(dst.h, dst.w, c1 - c0)
+        if into is None or not np.shares_memory(got, out):
+            out[:, :, c0:c1] = got.reshape(dst.h, dst.w, c1 - c0)
     return out
+
+
+def warp_source(
+    source: tuple[np.ndarray, Box], H: np.ndarray, dst: Box, need: Box,
+    ref_shape: tuple[int, int], interpolation: int = cv2.INTER_LINEAR,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`warp_window` from a read source window, with its :func:`source_box` known.
+
+    Returns the warped window and its validity mask, or None for the mask when every
+    pixel's footprint lies inside the reference (the usual case, which costs nothing).
+    """
+    src, sbox = source
+    Href, Wref = ref_shape
+    M = local_homography(H, (sbox.x0, sbox.y0), (dst.x0, dst.y0))
+    out = _warp(src, M, dst, interpolation)
+    if need.y0 >= 0 and need.x0 >= 0 and need.y1 <= Href and need.x1 <= Wref:
+        return out, None
+    # validity: the reference extent expressed in the source window, warped like the data
+    inside = np.zeros(src.shape[:2], np.float32)
+    ya, yb = max(-sbox.y0, 0), min(Href - sbox.y0, sbox.h)
+    xa, xb = max(-sbox.x0, 0), min(Wref - sbox.x0, sbox.w)
+    if ya < yb and xa < xb:
+        inside[ya:yb, xa:xb] = 1.0
+    cover = cv2.warpPerspective(
+        inside, M, (dst.w, dst.h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+        borderValue=0,
+    )
+    return out, cover >= 1.0 - 1e-3
 
 
 def warp_window(
@@ -174,19 +209,5 @@ def warp_window(
     else:
         src, sbox = source
         src = as_channels(src).astype(dtype, copy=False)
-    M = local_homography(H, (sbox.x0, sbox.y0), (dst.x0, dst.y0))
-    out = _warp(src, M, dst, interpolation)
-    if need.y0 >= 0 and need.x0 >= 0 and need.y1 <= Href and need.x1 <= Wref:
-        # every pixel's footprint (with a margin) lies inside the reference
-        return out, np.ones((dst.h, dst.w), bool)
-    # validity: the reference extent expressed in the source window, warped like the data
-    inside = np.zeros(src.shape[:2], np.float32)
-    ya, yb = max(-sbox.y0, 0), min(Href - sbox.y0, sbox.h)
-    xa, xb = max(-sbox.x0, 0), min(Wref - sbox.x0, sbox.w)
-    if ya < yb and xa < xb:
-        inside[ya:yb, xa:xb] = 1.0
-    cover = cv2.warpPerspective(
-        inside, M, (dst.w, dst.h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-        borderValue=0,
-    )
-    return out, cover >= 1.0 - 1e-3
+    out, valid = warp_source((src, sbox), H, dst, need, (Href, Wref), interpolation)
+    return out, np.ones((dst.h, dst.w), bool) if valid is None else valid
