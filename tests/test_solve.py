@@ -280,3 +280,67 @@ def test_photometric_refit_recovers_the_offset(levir_gray, paper_grid):
     same = estimate_motion(levir_gray, _embed(clean, levir_gray.shape), paper_grid,
                            boxes=[BOX], refit_photometry=True)
     assert abs(same.info["photometry"]["offset"][0]) <= 5e-4
+
+
+class _Win:
+    """The part of a window that the line search reads: mask, Huber delta, outliers."""
+
+    def __init__(self, m3, delta, signs=None):
+        self.m3, self.delta, self.s = m3, delta, signs
+
+    def outliers(self, r):
+        if self.delta is None:
+            return None
+        if self.s is None:
+            return self.m3 & (np.abs(r) > self.delta)
+        return self.m3 & (self.s * r > self.delta)
+
+
+def test_line_search_finds_the_minimiser_of_the_huber_objective():
+    """The Newton / secant line search returns the step that bisection on the derivative
+    of ``phi(t) = lam t sum(dw) + sum huber(r - t D)`` converges to (written out here
+    independently), for squared, two-sided and one-sided Huber losses, and 1 when the
+    objective still decreases at the full step."""
+    from reblur.solve import _line_search
+
+    def phi_slope(wins, res, deltas, dw_sum, lam, t):
+        s = lam * dw_sum
+        for w, r, D in zip(wins, res, deltas, strict=True):
+            rt = r - t * D
+            if w.delta is None:
+                psi = 2.0 * rt
+            else:
+                out = w.m3 & ((np.abs(rt) if w.s is None else w.s * rt) > w.delta)
+                psi = np.where(out, 2.0 * w.delta * np.sign(rt), 2.0 * rt)
+            s -= float(np.sum(np.where(w.m3, psi, 0.0) * D))
+        return s
+
+    rng = np.random.default_rng(3)
+    found_interior = 0
+    for trial in range(60):
+        kind = trial % 3
+        wins, res, deltas = [], [], []
+        for _ in range(2):
+            m3 = rng.random((30, 20, 1)) > 0.2
+            delta = None if kind == 0 else float(rng.uniform(0.05, 0.5))
+            signs = np.sign(rng.normal(size=m3.shape)) if kind == 2 else None
+            r = np.where(m3, rng.normal(0, 0.4, m3.shape), 0.0)
+            D = np.where(m3, rng.normal(0, 0.3, m3.shape) + 0.2 * r, 0.0)
+            wins.append(_Win(m3, delta, signs))
+            res.append(r)
+            deltas.append(D)
+        dw_sum, lam = float(rng.normal()), float(rng.uniform(0, 2))
+        t = _line_search(wins, res, deltas, dw_sum, lam)
+        if phi_slope(wins, res, deltas, dw_sum, lam, 1.0) <= 0:
+            assert t == 1.0
+            continue
+        lo, hi = 0.0, 1.0
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            if phi_slope(wins, res, deltas, dw_sum, lam, mid) <= 0:
+                lo = mid
+            else:
+                hi = mid
+        assert abs(t - lo) < 1e-9, (trial, t, lo)
+        found_interior += 0.0 < lo < 1.0
+    assert found_interior >= 20

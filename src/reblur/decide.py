@@ -1373,24 +1373,35 @@ def _clear_of(
     cc : _Components, optional
         The 8-connected components of ``mask``, if already known.
     """
+    return not _reaching(mask, band, core, cc)
+
+
+def _reaching(
+    mask: np.ndarray | None, band: list[tuple[slice, slice]], core: tuple[slice, slice],
+    cc: _Components | None = None,
+) -> list[int]:
+    """Indices of the strips of ``band`` that an 8-connected component of ``mask`` joins
+    to ``core`` (empty: the core is clear of the band; see :func:`_clear_of`)."""
     if not band:
-        return True
+        return []
     if cc is None:
         cc = _components(mask)
     lab, n = cc.lab, cc.n
     if n == 0:
-        return True
-    touch = np.zeros(n + 1, bool)
-    for sl in band:
-        touch[lab[sl].ravel()] = True
-    touch[0] = False
+        return []
+    touch = np.zeros((len(band), n + 1), bool)
+    for i, sl in enumerate(band):
+        touch[i, lab[sl].ravel()] = True
+    touch[:, 0] = False
+    any_touch = touch.any(axis=0)
     cy, cx = core
-    for lbl, (ys, xs) in _boxes(cc, np.flatnonzero(touch)).items():
+    joined = np.zeros(n + 1, bool)
+    for lbl, (ys, xs) in _boxes(cc, np.flatnonzero(any_touch)).items():
         ya, yb = max(ys.start, cy.start), min(ys.stop, cy.stop)
         xa, xb = max(xs.start, cx.start), min(xs.stop, cx.stop)
         if ya < yb and xa < xb and np.any(lab[ya:yb, xa:xb] == lbl):
-            return False
-    return True
+            joined[lbl] = True
+    return [i for i in range(len(band)) if np.any(touch[i] & joined)]
 
 
 def _prepare(observed, reblurred, unknown):
@@ -1519,7 +1530,8 @@ def decide_tile(
         Give up as soon as the tile is known to be incomplete (a level-0 candidate region
         joins the core to the edge band), for a caller that re-runs such tiles with a
         larger halo anyway: ``mask`` is then None and ``info`` holds ``complete`` (False),
-        ``threshold``, ``strong_threshold`` and ``n_unknown`` only.
+        ``reach`` (of the level-0 candidates), ``threshold``, ``strong_threshold`` and
+        ``n_unknown`` only.
     statistic : (S, box), optional
         The statistic of an earlier call on a window ``box`` inside this tile, with the
         same inputs there (``info["statistic"]`` of that call): a re-run with a larger
@@ -1535,6 +1547,9 @@ def decide_tile(
         ``complete`` (True when the result is guaranteed equal to the whole-image call:
         no candidate region reaching the core comes within ``params.local_radius`` of a
         tile edge that is not an image border; otherwise re-run with a larger halo),
+        ``reach`` (the edges, of ``"top"``, ``"bottom"``, ``"left"``, ``"right"``, that
+        such a region comes within that distance of: where the halo must grow; empty when
+        complete),
         ``regions`` (regions whose first pixel in raster order lies in the core, full-image
         coordinates: each region is listed by one tile), ``counts`` (candidates accepted /
         dropped, over the padded tile), ``threshold``, ``strong_threshold``, ``n_unknown``.
@@ -1558,39 +1573,46 @@ def decide_tile(
     ly, lx = cy0 - by0, cx0 - bx0
     # completeness: regions reaching the core must stay clear of non-border tile edges
     m = p.local_radius
-    band = []
-    if not by0 <= 0:  # top
+    band, names = [], []
+    if not by0 <= 0:
         band.append((slice(0, m), slice(None)))
-    if not (shape is not None and by0 + bh >= shape[0]):  # bottom
+        names.append("top")
+    if not (shape is not None and by0 + bh >= shape[0]):
         band.append((slice(bh - m, None), slice(None)))
-    if not bx0 <= 0:  # left
+        names.append("bottom")
+    if not bx0 <= 0:
         band.append((slice(None), slice(0, m)))
-    if not (shape is not None and bx0 + bw >= shape[1]):  # right
+        names.append("left")
+    if not (shape is not None and bx0 + bw >= shape[1]):
         band.append((slice(None), slice(bw - m, None)))
+        names.append("right")
     core_sl = (slice(ly, ly + ch), slice(lx, lx + cw))
     n_unknown = int(np.count_nonzero(~known[core_sl]))
 
-    cand_clear = [True]
+    cand_reach: list[list[int]] = [[]]
 
     def level0(cc: _Components) -> bool:
         # the test on the level-0 candidates, from their components: a candidate region
         # joining the core to the band makes the tile incomplete (mask | cand, tested
         # below, is a superset of the candidates)
-        cand_clear[0] = _clear_of(None, band, core_sl, cc)
-        return stop_incomplete and not cand_clear[0]
+        cand_reach[0] = _reaching(None, band, core_sl, cc)
+        return stop_incomplete and bool(cand_reach[0])
 
     mask, cand, counts = _decide_core(S, known, float(threshold), p, stop=level0)
     kept = {"statistic": (S, (by0, bx0, bh, bw))} if keep_statistic else {}
     if mask is None:
-        return None, {"complete": False, "threshold": float(threshold),
+        return None, {"complete": False, "reach": [names[i] for i in cand_reach[0]],
+                      "threshold": float(threshold),
                       "strong_threshold": float(p.strong_factor * threshold),
                       "n_unknown": n_unknown, **kept}
     if np.any(mask & ~cand):  # filled holes: mask | cand has components of its own
-        complete = _clear_of(mask | cand, band, core_sl)
+        reach = _reaching(mask | cand, band, core_sl)
     else:  # mask | cand == cand: the test is the one on the candidates
-        complete = cand_clear[0]
+        reach = cand_reach[0]
+    complete = not reach
     info = {
         "complete": complete,
+        "reach": [names[i] for i in reach],
         "threshold": float(threshold),
         "strong_threshold": float(p.strong_factor * threshold),
         "counts": counts,

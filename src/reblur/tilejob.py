@@ -27,7 +27,8 @@ from .warp import as_box, read_window
 
 __all__ = ["TileJob", "grow_tile", "load_tile", "run_tile", "pad_box", "tune_worker_malloc"]
 
-#: Tries per tile: the first halo, then doubled up to three times (8x the first halo).
+#: Tries per tile: the first halo, then doubled where a region reaches the edge, and 8x the
+#: first halo on every edge for the last try.
 _ATTEMPTS = 4
 
 #: Serialises in-process writes into outputs whose chunks straddle tiles.
@@ -126,11 +127,14 @@ class TileJob:
     client_pid: int = 0
 
 
-def pad_box(core: Sequence[int], halo: int, shape: tuple[int, int]) -> tuple[int, int, int, int]:
-    """``core`` grown by ``halo`` pixels on every side, clipped to an image of ``shape``."""
+def pad_box(core: Sequence[int], halo: int | Sequence[int],
+            shape: tuple[int, int]) -> tuple[int, int, int, int]:
+    """``core`` grown by ``halo`` pixels on every side (or by ``(top, bottom, left,
+    right)``), clipped to an image of ``shape``."""
     y, x, h, w = (int(v) for v in core)
-    y0, x0 = max(y - halo, 0), max(x - halo, 0)
-    y1, x1 = min(y + h + halo, shape[0]), min(x + w + halo, shape[1])
+    t, b, lf, r = (int(halo),) * 4 if np.isscalar(halo) else (int(v) for v in halo)
+    y0, x0 = max(y - t, 0), max(x - lf, 0)
+    y1, x1 = min(y + h + b, shape[0]), min(x + w + r, shape[1])
     return (y0, x0, y1 - y0, x1 - x0)
 
 
@@ -201,9 +205,10 @@ def run_tile(
     """Reblur, decide and write one tile.
 
     The padded tile is reblurred (reading only the reference window its poses touch),
-    pre-matched, decided by :func:`reblur.decide.decide_tile`, re-run with a twice larger
-    halo (at most three times) when a region reaches the halo's edge (reading, reblurring
-    and computing the statistic only on the ring the halo adds, :func:`grow_tile`), and its
+    pre-matched, decided by :func:`reblur.decide.decide_tile`, re-run when a region reaches
+    the halo's edge -- with a twice larger halo on the edges it reaches, and on the last of
+    at most three re-runs eight times the first halo on every edge -- reading, reblurring
+    and computing the statistic only on what the halo adds (:func:`grow_tile`), and its
     core written into the job's outputs.
 
     Parameters
@@ -229,7 +234,8 @@ def run_tile(
     offset = np.asarray(job.offset, np.float32)
     padded = tuple(int(v) for v in padded)
     core = tuple(int(v) for v in core)
-    halo = int(job.halo)
+    sides = ("top", "bottom", "left", "right")
+    halo = dict.fromkeys(sides, int(job.halo))
     loaded, prev, stat = None, padded, None
     for attempt in range(_ATTEMPTS):
         last = attempt == _ATTEMPTS - 1
@@ -250,8 +256,12 @@ def run_tile(
         stat = info.pop("statistic", None)
         if info["complete"] or last:
             break
-        halo *= 2
-        padded = pad_box(core, halo, (H, W))
+        if attempt + 1 == _ATTEMPTS - 1:  # the last try: the largest halo on every side
+            halo = dict.fromkeys(sides, int(job.halo) << attempt + 1)
+        else:  # twice the halo where a region came too close to the edge
+            for side in info["reach"]:
+                halo[side] *= 2
+        padded = pad_box(core, [halo[side] for side in sides], (H, W))
     ly, lx = core[0] - padded[0], core[1] - padded[1]
     sl = (slice(ly, ly + core[2]), slice(lx, lx + core[3]))
     cs = (slice(core[0], core[0] + core[2]), slice(core[1], core[1] + core[3]))
