@@ -220,7 +220,8 @@ class ChunkCache:
     of its poses -- so reading them straight from a compressed store decodes most chunks
     several times (about four times each, for 1024-px tiles over 512-px chunks).  Through
     this reader every chunk is read whole, once while it stays among the most recently
-    used ones, and windows are assembled from the kept chunks.  Slicing returns numpy
+    used ones (the chunks a window lacks in one request), and windows are assembled from
+    the kept chunks.  Slicing returns numpy
     arrays, exactly ``np.asarray(array[key])``.
 
     Parameters
@@ -278,26 +279,47 @@ class ChunkCache:
         self.__dict__.update(state)
         self._init_cache()
 
-    def _chunk(self, cy: int, cx: int) -> np.ndarray:
-        key = (cy, cx)
+    def _fetch(self, keys: list[tuple[int, int]]) -> dict[tuple[int, int], np.ndarray]:
+        """The chunks ``keys``: kept ones from memory, the others read in one request
+        (the rectangle of chunks that holds them: one call, decoded concurrently by the
+        store, costs less than a call per chunk)."""
+        got: dict[tuple[int, int], np.ndarray] = {}
         with self._lock:
-            got = self._kept.get(key)
-            if got is not None:
-                self._kept.move_to_end(key)
-                self.hits += 1
-                return got
-            self.misses += 1
+            for key in keys:
+                a = self._kept.get(key)
+                if a is not None:
+                    self._kept.move_to_end(key)
+                    got[key] = a
+            self.hits += len(got)
+            self.misses += len(keys) - len(got)
+        missing = [k for k in keys if k not in got]
+        if not missing:
+            return got
         hy, hx = self.chunks
-        a = np.asarray(self.array[cy * hy : min((cy + 1) * hy, self.shape[0]),
-                                  cx * hx : min((cx + 1) * hx, self.shape[1])])
+        cy0, cy1 = min(k[0] for k in missing), max(k[0] for k in missing) + 1
+        cx0, cx1 = min(k[1] for k in missing), max(k[1] for k in missing) + 1
+        y0, x0 = cy0 * hy, cx0 * hx
+        block = np.asarray(self.array[y0 : min(cy1 * hy, self.shape[0]),
+                                      x0 : min(cx1 * hx, self.shape[1])])
+        fresh = {}
+        for cy in range(cy0, cy1):
+            for cx in range(cx0, cx1):
+                # a copy: a kept chunk must not hold the whole block alive
+                fresh[(cy, cx)] = block[cy * hy - y0 : (cy + 1) * hy - y0,
+                                        cx * hx - x0 : (cx + 1) * hx - x0].copy()
         with self._lock:
-            if key not in self._kept:
+            for key, a in fresh.items():
+                if key in self._kept:
+                    self._kept.move_to_end(key)
+                    continue
                 self._kept[key] = a
                 self._bytes += a.nbytes
-                while self._bytes > self.max_bytes and len(self._kept) > 1:
-                    _, old = self._kept.popitem(last=False)
-                    self._bytes -= old.nbytes
-        return a
+            while self._bytes > self.max_bytes and len(self._kept) > 1:
+                _, old = self._kept.popitem(last=False)
+                self._bytes -= old.nbytes
+        for key in missing:
+            got[key] = fresh[key]
+        return got
 
     def __getitem__(self, key):
         if not isinstance(key, tuple):
@@ -312,13 +334,14 @@ class ChunkCache:
         y1, x1 = max(y0, y1), max(x0, x1)
         out = np.empty((y1 - y0, x1 - x0, *self.shape[2:]), self.dtype)
         hy, hx = self.chunks
-        for cy in range(y0 // hy, -(-y1 // hy)):
-            for cx in range(x0 // hx, -(-x1 // hx)):
-                c = self._chunk(cy, cx)
-                ya, yb = max(y0, cy * hy), min(y1, (cy + 1) * hy)
-                xa, xb = max(x0, cx * hx), min(x1, (cx + 1) * hx)
-                out[ya - y0 : yb - y0, xa - x0 : xb - x0] = c[ya - cy * hy : yb - cy * hy,
-                                                              xa - cx * hx : xb - cx * hx]
+        keys = [(cy, cx) for cy in range(y0 // hy, -(-y1 // hy))
+                for cx in range(x0 // hx, -(-x1 // hx))]
+        chunks = self._fetch(keys)
+        for (cy, cx), c in chunks.items():
+            ya, yb = max(y0, cy * hy), min(y1, (cy + 1) * hy)
+            xa, xb = max(x0, cx * hx), min(x1, (cx + 1) * hx)
+            out[ya - y0 : yb - y0, xa - x0 : xb - x0] = c[ya - cy * hy : yb - cy * hy,
+                                                          xa - cx * hx : xb - cx * hx]
         return out[(slice(None), slice(None), *key[2:])] if len(key) > 2 else out
 
 
