@@ -412,3 +412,20 @@ def test_chunk_cache_windows_equal_direct_reads(bands):
     again = pickle.loads(pickle.dumps(fresh))
     assert len(again._kept) == 0 and again.max_bytes == fresh.max_bytes
     np.testing.assert_array_equal(again[50:70, 80:100], a[50:70, 80:100])
+
+
+def test_chunk_cached_wraps_only_tiled_on_disk_arrays():
+    from reblur.io import ChunkCache, chunk_cached
+
+    a = np.zeros((4000, 3000), np.uint8)
+    assert chunk_cached(a, 1024, 80) is a  # in memory
+    tiled = _Counting(a, (512, 512))
+    c = chunk_cached(tiled, 1024, 80)
+    assert isinstance(c, ChunkCache) and c.chunks == (512, 512)
+    # two tile rows, four halos and two chunk rows across the image, within 64..256 MB
+    assert c.max_bytes == 64 * 2**20  # (2048 + 320 + 1024) * 3000 bytes is below the floor
+    big = _Counting(np.zeros((10, 200_000), np.uint16), (256, 256))
+    assert chunk_cached(big, 1024, 80).max_bytes == 256 * 2**20
+    assert chunk_cached(c, 1024, 80) is c  # already cached
+    rows = _Counting(a, (16, 3000))  # a striped file: chunks are row strips
+    assert chunk_cached(rows, 1024, 80) is rows

@@ -54,6 +54,7 @@ import cv2
 import numpy as np
 
 from .decide import DecisionParams, Photometry
+from .io import chunk_cached
 from .tiled import SparsePoses
 from .tilejob import TileJob, pad_box, run_tile, tune_worker_malloc
 
@@ -427,6 +428,11 @@ def decide_tiles(
     if not in_process:
         reference = portable(reference, "reference")
         observed = portable(observed, "observed")
+    # neighbouring tiles read overlapping windows: a worker keeps the chunks it decoded
+    # (the readers enter the graph once, so a worker's tasks share them; a process pool
+    # unpickles them per task, which keeps only what a task re-reads)
+    reference = chunk_cached(reference, tile_size, halo)
+    observed = chunk_cached(observed, tile_size, halo)
 
     graph = tile_graph(job, reference, observed, tile_size)
     try:

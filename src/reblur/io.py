@@ -50,6 +50,7 @@ __all__ = [
     "Image",
     "LazyBands",
     "ChunkCache",
+    "chunk_cached",
     "DEFAULT_MAX_PIXELS",
     "MIN_SIDE",
     "open_image",
@@ -343,6 +344,27 @@ class ChunkCache:
             out[ya - y0 : yb - y0, xa - x0 : xb - x0] = c[ya - cy * hy : yb - cy * hy,
                                                           xa - cx * hx : xb - cx * hx]
         return out[(slice(None), slice(None), *key[2:])] if len(key) > 2 else out
+
+
+def chunk_cached(image, tile_size: int, halo: int):
+    """``image`` read through a :class:`ChunkCache` sized for a tiled pass, when it is a
+    chunked on-disk array whose chunks are tiles (not single rows); anything else (numpy
+    arrays, a reader already cached) is returned as it is.
+
+    The cache keeps what a row of ``tile_size`` tiles with a ``halo`` shares with the next
+    row -- two tile rows, twice the halo and a chunk row on each side -- within 64 MB to
+    256 MB.
+    """
+    chunks = getattr(image, "chunks", None)
+    if isinstance(image, (np.ndarray, ChunkCache)) or not chunks or len(chunks) < 2:
+        return image
+    ch, cw = int(chunks[0]), int(chunks[1])
+    if min(ch, cw) < 64 or ch * cw > 2**24:
+        return image
+    px = int(np.prod(image.shape[2:], dtype=np.int64)) * np.dtype(image.dtype).itemsize
+    rows = 2 * int(tile_size) + 4 * int(halo) + 2 * ch
+    budget = min(max(rows * int(image.shape[1]) * px, 64 * 2**20), 256 * 2**20)
+    return ChunkCache(image, max_bytes=budget, chunks=(ch, cw))
 
 
 def _luminance(a: np.ndarray) -> np.ndarray:

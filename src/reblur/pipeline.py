@@ -29,7 +29,7 @@ from .decide import (
 )
 from .estimate import estimate_motion, intensity_scale
 from .grid import PoseGrid
-from .io import ChunkCache
+from .io import chunk_cached
 from .refine import refine_alignment
 from .result import ChangeResult, CropChoice
 from .select import SelectParams, select_windows
@@ -187,25 +187,6 @@ def sample_windows(shape: tuple[int, int], n: int, side: int) -> list[tuple[int,
             for i in rows for j in cols]
 
 
-def _chunk_cached(image, tile_size: int, params: DecisionParams):
-    """``image`` read through a :class:`reblur.io.ChunkCache` when it is a chunked on-disk
-    array whose chunks are tiles (not single rows) -- numpy arrays are returned as they are.
-
-    The cache keeps the rows a row of tiles and the next one share: two tile rows, a
-    generous halo and a chunk row on each side (64 MB to 256 MB).
-    """
-    chunks = getattr(image, "chunks", None)
-    if isinstance(image, np.ndarray) or not chunks or len(chunks) < 2:
-        return image
-    ch, cw = int(chunks[0]), int(chunks[1])
-    if min(ch, cw) < 64 or ch * cw > 2**24:
-        return image
-    px = int(np.prod(image.shape[2:], dtype=np.int64)) * np.dtype(image.dtype).itemsize
-    rows = 2 * tile_size + 4 * params.halo(64) + 2 * ch
-    budget = min(max(rows * int(image.shape[1]) * px, 64 * 2**20), 256 * 2**20)
-    return ChunkCache(image, max_bytes=budget, chunks=(ch, cw))
-
-
 def reblur_and_decide(
     reference,
     observed,
@@ -258,8 +239,8 @@ def reblur_and_decide(
         max_region = max(32, min(64, tile_size // 4))
 
     # windows of neighbouring tiles overlap: read on-disk images through a chunk cache
-    ref_r = _chunk_cached(reference, tile_size, params=p)
-    obs_r = _chunk_cached(observed, tile_size, params=p)
+    ref_r = chunk_cached(reference, tile_size, p.halo(max_region))
+    obs_r = chunk_cached(observed, tile_size, p.halo(max_region))
 
     def load(box):
         return load_tile(poses, ref_r, obs_r, box, s_ref=s_ref, s_obs=s_obs,
