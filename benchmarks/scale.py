@@ -382,7 +382,7 @@ def _markdown(rows: dict) -> str:
         "",
         f"Load: the 1-minute load average at the end of each case (up to {max(loads):.1f} on 2 "
         "cores; above 2, something else shared the cores).  'tiles re-run': tiles still "
-        "incomplete after the halo doublings (each tried 4 times).  Rows keep the commit they "
+        "incomplete after the last re-run (each tried at most 4 times).  Rows keep the commit they "
         "were measured at (`docs/scale_runs.json`).",
         "",
         "Pair generation (not timed above): " + ", ".join(

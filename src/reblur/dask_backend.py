@@ -370,7 +370,8 @@ def decide_tiles(
         ``change``, ``unknown``, ``reblurred`` (numpy for images up to
         :data:`NUMPY_MAX_PIXELS` pixels when no output was given, else the output arrays),
         ``regions`` (sorted like the local path), ``incomplete`` (tiles still incomplete
-        after three halo doublings) and ``info`` (scheduler, store).
+        after the last re-run, :func:`reblur.tilejob.run_tile`) and ``info`` (scheduler,
+        store).
     """
     kind = scheduler_kind(scheduler)
     H, W = observed.shape[:2]

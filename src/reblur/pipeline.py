@@ -109,7 +109,7 @@ def photometric_prefit(
         factor = getattr(image, "factor", None)
         if factor is not None:
             k = factor(k)
-        _, b = block_means(image, k)
+        _, b = block_means(image, min(k, *image.shape[:2]))  # a block fits any strip
         # block means of integers come divided by the dtype's maximum; scale by ``s``
         b = b * np.float32(intensity_scale(np.dtype(image.dtype)) / s)
         return b, k
@@ -219,8 +219,10 @@ def reblur_and_decide(
     ``params.halo(max_region)`` pixels, is reblurred (each padded tile reads only the
     reference window its poses touch), decided (:func:`reblur.decide.decide_tile`) and its
     core written out; a tile whose regions reach the halo's edge is re-run with a twice
-    larger halo, up to three times (:func:`reblur.tilejob.run_tile`).  Nothing full-size is
-    held but the output masks (and the reblurred image if ``keep_reblurred``).
+    larger halo on the edges they reach, up to three times (:func:`reblur.tilejob.run_tile`).
+    On-disk images are read through a chunk cache (:func:`reblur.io.chunk_cached`):
+    neighbouring windows share chunks.  Nothing full-size is held but the output masks (and
+    the reblurred image if ``keep_reblurred``).
 
     Pass 2 runs on a local thread pool of ``workers`` threads, or with ``scheduler`` as a
     Dask graph (:func:`reblur.dask_backend.decide_tiles`; ``work_dir`` holds its zarr
