@@ -1,6 +1,7 @@
 """Cost curve of ``detect_changes`` from 25 MP to a gigapixel, local path against Dask.
 
-``python -m benchmarks.scale [--sizes 25 100 400 1000] [--no-dask]``
+``python -m benchmarks.scale [--sizes 25 100 400 1000] [--no-dask] [--write]``; ``--table-only
+--write`` rewrites the section from ``docs/scale_runs.json`` without running.
 
 For each size a synthetic pair is generated tile by tile (never whole in memory) as tiled
 zstd BigTIFFs -- a mosaic of the real LEVIR/WHU images, blurred along a small camera path
@@ -306,7 +307,7 @@ def main(sizes=SIZES_MP, dask_up_to: float = 400, cluster_sizes=(100,)) -> str:
                 print(f"[scale] {mp} MP {mode}: {json.dumps(r)}", flush=True)
     rows = _newest(runs)
     _plot(rows)
-    return _markdown(rows)
+    return _markdown(rows, runs)
 
 
 def _fa(r: dict) -> str:
@@ -318,7 +319,27 @@ def _fa(r: dict) -> str:
     return f"{100 * fa:.2f} % outside the changes{extra}"
 
 
-def _markdown(rows: dict) -> str:
+def _earlier(runs: list[dict], shown: set, n: int = 2) -> list[str]:
+    """Lines listing the local path's time and I/O floor of the ``n`` commits measured
+    before the one(s) in the table: this machine's speed varies from run to run (its page
+    cache is reclaimed, and it shares its host), so one row is one sample."""
+    by: dict[str, dict] = {}
+    for r in runs:
+        if r["mode"] in ("local", "io"):
+            by.setdefault(r["commit"], {}).setdefault(r["mode"], {})[round(r["mp"])] = r
+    order = [c for c in dict.fromkeys(r["commit"] for r in reversed(runs)) if c not in shown]
+    out = []
+    for c in [c for c in order if "local" in by[c]][:n]:
+        loc, io = by[c]["local"], by[c].get("io", {})
+        cells = [f"{mp} MP {loc[mp]['time_s']:.1f} s"
+                 + (f" (floor {io[mp]['time_s']:.1f} s)" if mp in io else "")
+                 for mp in sorted(loc)]
+        date = next(iter(loc.values())).get("date", "")
+        out.append(f"Earlier run {c} ({date}), local path: " + ", ".join(cells) + ".")
+    return [""] + out if out else []
+
+
+def _markdown(rows: dict, runs: list[dict] | None = None) -> str:
     local = {round(r["mp"]): r for r in rows.get("local", [])}
     io = {round(r["mp"]): r for r in rows.get("io", [])}
     dask = {round(r["mp"]): r for r in rows.get("dask", [])}
@@ -370,6 +391,8 @@ def _markdown(rows: dict) -> str:
         tiles = [local[k]["timings"]["reblur_decide"] for k in sorted(local)]
         lines += ["", f"Log-log slope of time against pixels: {_slope(mps, ts):.2f} (whole run), "
                   f"{_slope(mps, tiles):.2f} (reblur + decide stage alone)."]
+    if runs:
+        lines += _earlier(runs, {r["commit"] for r in local.values()})
     for _mp, r in sorted(clus.items()):
         lines.append(
             f"Dask `distributed.LocalCluster` (2 single-thread workers) at {r['mp']:.0f} MP: "
@@ -404,7 +427,20 @@ def _cli() -> None:
     ap.add_argument("--sizes", type=float, nargs="*", default=list(SIZES_MP))
     ap.add_argument("--no-dask", action="store_true")
     ap.add_argument("--write", action="store_true", help="write the docs/benchmarks.md section")
+    ap.add_argument("--table-only", action="store_true",
+                    help="rewrite the section from docs/scale_runs.json without running")
     a = ap.parse_args()
+    if a.table_only:
+        runs = _load_runs()
+        rows = _newest(runs)
+        _plot(rows)
+        md = _markdown(rows, runs)
+        print(md)
+        if a.write:
+            from benchmarks.run import write_section
+
+            write_section("scale", md)
+        return
     if a.case is not None:
         r = io_floor(a.case) if a.mode == "io" else detect_case(a.case, a.mode)
         print(json.dumps(r))
