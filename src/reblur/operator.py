@@ -131,8 +131,15 @@ class BlurOperator:
         y1 = min(max(b.y1 for b in boxes), Href)
         x1 = min(max(b.x1 for b in boxes), Wref)
         C = self.dimsd[2]
-        self.stack = np.zeros((nb, self.ext.h, self.ext.w, C), self.dtype)
-        self.stack_valid = np.zeros((nb, self.ext.h, self.ext.w), bool)
+        # the stack is allocated at the FFT size, zero beyond ``ext``: its spectra need no
+        # padded copy (the columns are views into its ``ext`` part)
+        self._fshape = (
+            sfft.next_fast_len(self.ext.h, real=True),
+            sfft.next_fast_len(self.ext.w, real=True),
+        )
+        eh, ew = self.ext.h, self.ext.w
+        self.stack = np.zeros((nb, *self._fshape, C), self.dtype)
+        self.stack_valid = np.zeros((nb, eh, ew), bool)
         if y0 < y1 and x0 < x1:
             sbox = Box(y0, x0, y1 - y0, x1 - x0)
             src = read_window(self.reference, sbox, self.dtype)
@@ -142,7 +149,7 @@ class BlurOperator:
             for b, H in enumerate(Hs):
                 # warp in float32: OpenCV then keeps single-precision coordinates, while
                 # float64 warps snap them to a 1/32-px table (less accurate)
-                self.stack[b], self.stack_valid[b] = warp_window(
+                self.stack[b, :eh, :ew], self.stack_valid[b] = warp_window(
                     self.reference, H, self.ext, dtype=np.float32, source=(src, sbox)
                 )
             del src
@@ -151,17 +158,11 @@ class BlurOperator:
         self._oy = self.tymax - ty  # row offset into ext for each iy
         self._ox = self.txmax - tx
         self.spec = None
-        self._fshape = (
-            sfft.next_fast_len(self.ext.h, real=True),
-            sfft.next_fast_len(self.ext.w, real=True),
-        )
         Fh = self._fshape[0]
         k = np.arange(Fh)
         self._row_idft = np.exp(2j * np.pi * np.outer(np.arange(self.Dy + 1), k) / Fh) / Fh
         if spectra:
-            self.spec = sfft.rfft2(
-                self.stack, s=self._fshape, axes=(1, 2), workers=_WORKERS
-            )
+            self.spec = sfft.rfft2(self.stack, axes=(1, 2), workers=_WORKERS)
 
     def _all_pose_valid(self) -> np.ndarray:
         """Window pixels valid for every base and every translation (summed-area table)."""
