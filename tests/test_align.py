@@ -460,6 +460,8 @@ def test_overview_cache_reads_once_and_derives_coarser_factors():
         # a factor that is no multiple of one read reads again
         block_means(cache, 4)
         assert cache.reads == 2
+        with pytest.raises(ValueError, match="overview block"):  # derived, but too coarse
+            block_means(cache, 3 * 42)
         # the scaled view's overview, from the cache, against reading the view
         C = shape[2] if len(shape) == 3 else 1
         gain, offset = np.linspace(0.8, 1.2, C), np.linspace(-0.1, 0.1, C)

@@ -305,6 +305,9 @@ class OverviewCache:
                 _, bands0 = self._memo[k0]
                 f = k // k0
                 h, w = self.shape[0] // k, self.shape[1] // k
+                if h < 1 or w < 1:
+                    raise ValueError(f"image {self.shape[0]}x{self.shape[1]} is smaller than "
+                                     f"one {k}x{k} overview block")
                 C = bands0.shape[2]
                 bands = np.empty((h, w, C), np.float32)
                 for c in range(C):

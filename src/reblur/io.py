@@ -222,8 +222,7 @@ class ChunkCache:
     several times (about four times each, for 1024-px tiles over 512-px chunks).  Through
     this reader every chunk is read whole, once while it stays among the most recently
     used ones (the chunks a window lacks in one request), and windows are assembled from
-    the kept chunks.  Slicing returns numpy
-    arrays, exactly ``np.asarray(array[key])``.
+    the kept chunks.  Slicing returns numpy arrays, exactly ``np.asarray(array[key])``.
 
     Parameters
     ----------
