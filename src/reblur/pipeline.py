@@ -109,7 +109,8 @@ def photometric_prefit(
         factor = getattr(image, "factor", None)
         if factor is not None:
             k = factor(k)
-        _, b = block_means(image, min(k, *image.shape[:2]))  # a block fits any strip
+        k = min(k, *image.shape[:2])  # a block must fit in the image
+        _, b = block_means(image, k)
         # block means of integers come divided by the dtype's maximum; scale by ``s``
         b = b * np.float32(intensity_scale(np.dtype(image.dtype)) / s)
         return b, k

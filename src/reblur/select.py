@@ -228,17 +228,17 @@ def _coverage_cells(ref_shape, obs_shape, base, grid: PoseGrid, unit: int) -> np
     h1, w1 = obs_shape[0] - 1.0, obs_shape[1] - 1.0
     probe = np.array([[x, y] for y in (0.0, h1 / 2, h1) for x in (0.0, w1 / 2, w1)])
     mapped = np.stack([map_points(Hi, probe) for Hi in inv])  # (n_bases, 9, 2)
+
+    def gap(c: np.ndarray) -> np.ndarray:
+        # per base: the farthest probe from where mapped base c sends it
+        return np.hypot(*(mapped - mapped[c]).transpose(2, 0, 1)).max(axis=1)
+
     step, delta = 1, 0.0
     for m in (64, 32, 16, 8, 4):
         if 2 * m > n:
             continue
         sub = np.unique(np.r_[np.arange(0, n, m), n - 1])
         j = np.searchsorted(sub, np.arange(n))
-
-        def gap(c: np.ndarray) -> np.ndarray:
-            # per base: the farthest probe from where mapped base c sends it
-            return np.hypot(*(mapped - mapped[c]).transpose(2, 0, 1)).max(axis=1)
-
         # one mapped base must cover every point of a base: the nearer of its two
         # neighbours by their farthest probe (not the nearer one probe by probe)
         d = np.minimum(gap(sub[np.minimum(j, sub.size - 1)]), gap(sub[np.maximum(j - 1, 0)]))
