@@ -4,6 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
+from reblur import operator as operator_module
 from reblur.grid import PoseGrid
 from reblur.operator import BlurOperator, dottest
 
@@ -15,9 +16,14 @@ def _grid(**kw):
                     **kw)
 
 
+@pytest.mark.parametrize("blocks", ["one", "per-base"])
 @pytest.mark.parametrize("channels", [1, 3])
 @pytest.mark.parametrize("box", [(10, 12, 50, 70), (230, 320, 60, 70), (120, 40, 64, 64)])
-def test_fast_equals_exact(channels, box):
+def test_fast_equals_exact(channels, box, blocks, monkeypatch):
+    """Also with the spectral products done one base at a time (the blocks of a large
+    operator, see ``operator._BLOCK_BYTES``)."""
+    if blocks == "per-base":
+        monkeypatch.setattr(operator_module, "_BLOCK_BYTES", 1)
     rng = np.random.default_rng(sum(box) + channels)
     img = rng.random(SHAPE + ((channels,) if channels > 1 else ()))
     img = cv2.GaussianBlur(img, (0, 0), 1.0)  # smooth enough that warps are well defined

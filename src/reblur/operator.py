@@ -31,6 +31,9 @@ __all__ = ["BlurOperator", "dottest"]
 
 _WORKERS = max(1, os.cpu_count() or 1)
 
+#: Bytes of cross spectra per block in :meth:`BlurOperator.rmatvec` (fits a shared L3).
+_BLOCK_BYTES = 16 * 2**20
+
 
 def _channels(reference) -> int:
     return int(reference.shape[2]) if len(reference.shape) == 3 else 1
@@ -138,7 +141,9 @@ class BlurOperator:
             sfft.next_fast_len(self.ext.w, real=True),
         )
         eh, ew = self.ext.h, self.ext.w
-        self.stack = np.zeros((nb, *self._fshape, C), self.dtype)
+        # float32: the warps are single precision, so the stack holds their values exactly
+        # at half the memory (columns are promoted where they meet float64 weights)
+        self.stack = np.zeros((nb, *self._fshape, C), np.float32)
         self.stack_valid = np.zeros((nb, eh, ew), bool)
         if y0 < y1 and x0 < x1:
             sbox = Box(y0, x0, y1 - y0, x1 - x0)
@@ -161,8 +166,30 @@ class BlurOperator:
         Fh = self._fshape[0]
         k = np.arange(Fh)
         self._row_idft = np.exp(2j * np.pi * np.outer(np.arange(self.Dy + 1), k) / Fh) / Fh
+        self._xbuf = None  # rmatvec's work buffer (reused: see rmatvec)
         if spectra:
-            self.spec = sfft.rfft2(self.stack, axes=(1, 2), workers=_WORKERS)
+            self.spec = self._spectra()
+
+    def _chunk(self) -> int:
+        """Bases per block of the spectral products: a block of cross spectra of about
+        ``_BLOCK_BYTES`` stays in cache between its product and its inverse transform."""
+        Fh, Fw = self._fshape
+        per_base = Fh * (Fw // 2 + 1) * np.dtype(np.result_type(self.dtype, np.complex64)).itemsize
+        return int(max(1, min(self.grid.n_bases, _BLOCK_BYTES // per_base)))
+
+    def _spectra(self) -> np.ndarray:
+        """Spectra of the stack in the operator's precision, a block of bases at a time
+        (no full-size temporary)."""
+        nb = self.grid.n_bases
+        Fh, Fw = self._fshape
+        C = self.dimsd[2]
+        spec = np.empty((nb, Fh, Fw // 2 + 1, C), np.result_type(self.dtype, np.complex64))
+        step = self._chunk()
+        for c0 in range(0, nb, step):
+            c1 = min(c0 + step, nb)
+            spec[c0:c1] = sfft.rfft2(self.stack[c0:c1].astype(self.dtype, copy=False),
+                                     axes=(1, 2), workers=_WORKERS)
+        return spec
 
     def _all_pose_valid(self) -> np.ndarray:
         """Window pixels valid for every base and every translation (summed-area table)."""
@@ -194,7 +221,8 @@ class BlurOperator:
 
     # ------------------------------------------------------------------ columns
     def column(self, k: int) -> np.ndarray:
-        """Column ``k`` of ``F`` as an ``(h, w, C)`` image (a view for the fast engine)."""
+        """Column ``k`` of ``F`` as an ``(h, w, C)`` image (for the fast engine a float32
+        view into the warped stack, whose values are single precision by construction)."""
         b, iy, ix = np.unravel_index(int(k), self.grid.shape)
         if self.engine == "fast":
             oy, ox = self._oy[iy], self._ox[ix]
@@ -241,8 +269,14 @@ class BlurOperator:
         iy = (self._ty - self.tymin).astype(int)
         ix = (self._tx - self.txmin).astype(int)
         kern[:, iy[:, None], ix[None, :]] = w
-        ks = sfft.rfft2(kern, s=self._fshape, axes=(1, 2), workers=_WORKERS)
-        prod = np.einsum("byxc,byx->yxc", self.spec, ks)
+        prod = np.zeros(self.spec.shape[1:], self.spec.dtype)
+        step = self._chunk()
+        for c0 in range(0, self.grid.n_bases, step):  # blocks: no full-size kernel spectra
+            c1 = min(c0 + step, self.grid.n_bases)
+            if not kern[c0:c1].any():
+                continue
+            ks = sfft.rfft2(kern[c0:c1], s=self._fshape, axes=(1, 2), workers=_WORKERS)
+            prod += np.einsum("byxc,byx->yxc", self.spec[c0:c1], ks)
         full = sfft.irfft2(prod, s=self._fshape, axes=(0, 1), workers=_WORKERS)
         h, wd = self.box.h, self.box.w
         return full[self.Dy : self.Dy + h, self.Dx : self.Dx + wd].astype(self.dtype, copy=False)
@@ -255,13 +289,27 @@ class BlurOperator:
             for k in range(self.grid.size):
                 out[k] = float(np.vdot(self.column(k), r))
             return out.reshape(self.grid.shape)
-        R = sfft.rfft2(r, s=self._fshape, axes=(0, 1), workers=_WORKERS)
-        # sum over bands before the inverse transform (linearity): one irfft2 per base
-        cross = np.einsum("byxc,yxc->byx", self.spec, np.conj(R))
-        # Only the lags 0..Dy (rows) and 0..Dx (columns) are needed: the inverse DFT along
-        # the rows is a small matrix product (Dy + 1 output rows), then a real inverse FFT
-        # along the columns.  Same values as irfft2(cross), a few times cheaper.
-        rows = self._row_idft @ cross  # (nb, Dy + 1, Fw // 2 + 1)
+        Rc = np.conj(sfft.rfft2(r, s=self._fshape, axes=(0, 1), workers=_WORKERS))
+        nb, Fh, F2, C = self.spec.shape
+        # Sum over bands before the inverse transform (linearity).  Only the lags 0..Dy
+        # (rows) and 0..Dx (columns) are needed: the inverse DFT along the rows is a small
+        # matrix product (Dy + 1 output rows), then a real inverse FFT along the columns --
+        # the same values as irfft2, a few times cheaper.  Done a block of bases at a time
+        # in one reused buffer: a full-size cross spectrum is a fresh allocation per call
+        # whose first-touch page faults cost more than the products on this kind of VM.
+        step = self._chunk()
+        ctype = np.result_type(self.spec.dtype, Rc.dtype)
+        if self._xbuf is None or self._xbuf.dtype != ctype:
+            self._xbuf = np.empty((step, Fh, F2), ctype)
+        rows = np.empty((nb, self.Dy + 1, F2), ctype)
+        for c0 in range(0, nb, step):
+            c1 = min(c0 + step, nb)
+            buf = self._xbuf[: c1 - c0]
+            if C == 1:
+                np.multiply(self.spec[c0:c1, :, :, 0], Rc[:, :, 0], out=buf)
+            else:
+                np.einsum("byxc,yxc->byx", self.spec[c0:c1], Rc, out=buf)
+            np.matmul(self._row_idft, buf, out=rows[c0:c1])
         corr = sfft.irfft(rows, n=self._fshape[1], axis=2, workers=_WORKERS)
         return corr[:, self._oy[:, None], self._ox[None, :]]
 

@@ -94,6 +94,7 @@ class _Window:
         self.s = None if signs is None else np.asarray(signs, float).reshape(op.dimsd)
         self.inl = self.m3.copy()  # inlier pixels of the current partition
         self.sgn = np.zeros(op.dimsd, np.int8)  # outlier signs (0: inlier or masked)
+        self._buf: np.ndarray | None = None  # block_products' column copies (reused)
 
     def forward(self, active: list[int], wa: np.ndarray) -> np.ndarray:
         out = np.zeros(self.op.dimsd)
@@ -150,7 +151,12 @@ class _Window:
         G = np.zeros((n_all, n_new))
         b = np.zeros(n_new)
         d = np.zeros(n_new)
-        buf = np.empty((n_all, rows * w * C))
+        # one buffer per window, grown geometrically with the active set: a fresh one per
+        # call is a fresh mmap whose pages fault in on first touch (slow on this kind of VM)
+        need = n_all * rows * w * C
+        if self._buf is None or self._buf.size < need:
+            self._buf = np.empty(max(need, 3 * (0 if self._buf is None else self._buf.size) // 2))
+        buf = self._buf[:need].reshape(n_all, rows * w * C)
         for r0 in range(0, h, rows):
             r1 = min(r0 + rows, h)
             mk = self.m[r0:r1]
