@@ -184,6 +184,27 @@ def test_coarse_to_fine_matches_the_direct_solve(levir_gray):
     assert min(c2f.info["psnr"]) >= min(direct.info["psnr"]) - 0.5
 
 
+def test_coarse_to_fine_keeps_a_long_path():
+    """A roll path spread over many angles (each < 1 % of the weight, as a 0.3 deg path
+    at 1 Gpx) keeps all of them, with their neighbours on the next lattice; a stray angle
+    far below the heaviest one is dropped."""
+    from reblur.estimate import _next_angles
+
+    n, stride = 1600, 8
+    mass = np.zeros(n)
+    path = np.arange(200, 200 + 150 * stride, stride)  # 150 angles, 0.67 % each
+    mass[path] = 1.0 + 0.2 * np.sin(np.arange(path.size))
+    mass[40] = 1e-4  # stray
+    idx, new_stride = _next_angles(mass, stride)
+    assert new_stride == 2
+    want = {a + k * 2 for a in path for k in range(-4, 5)}
+    assert set(idx) == want  # every path angle within one old stride, none near the stray
+    one = np.zeros(n)
+    one[500] = 1.0
+    assert _next_angles(one, 10) == (list(range(490, 511, 2)), 2)  # 10 // 4: symmetric
+    assert _next_angles(one, 3) == (list(range(497, 504)), 1)
+
+
 @pytest.mark.parametrize("one_sided", [False, True])
 @pytest.mark.parametrize("changed", [0.1, 0.6])
 def test_huber_optimum_with_many_outliers(changed, one_sided):
