@@ -161,6 +161,13 @@ class Decided:
 #: Long side (px) above which the default spread windows add one near the centre.
 CENTRE_WINDOW_SIDE = 16384
 
+#: Side (px) of pass 1's sample windows.  The sample's job is to see the whole image (its
+#: windows are spread on a lattice); 256 px windows do that with a quarter of the pixels
+#: of 512 px ones: pass 1 at 100 MP 4.1-4.7 -> 1.1 s, the threshold 1.476 -> 1.470
+#: (``python -m benchmarks.scale --case DIR``); images up to ~4 MP are sampled whole
+#: either way (``python -m benchmarks.quality``: JC within 0.001).
+_SAMPLE_SIDE = 256
+
 
 def sample_windows(shape: tuple[int, int], n: int, side: int) -> list[tuple[int, int, int, int]]:
     """Up to ``n`` windows of the ``side``-px tiling of an image, on a lattice over it.
@@ -214,7 +221,7 @@ def reblur_and_decide(
     """Reblur the reference and decide change, streaming over tiles.
 
     Two passes.  (1) A sample of up to ``n_sample_tiles`` windows (:func:`sample_windows`,
-    at most 512 px a side) spread over the image fits the global photometric model
+    at most 256 px a side) spread over the image fits the global photometric model
     (:func:`reblur.decide.fit_photometry`) and the threshold of the change statistic
     (:func:`reblur.decide.estimate_threshold`).  (2) Every tile, padded with a halo of
     ``params.halo(max_region)`` pixels, is reblurred (each padded tile reads only the
@@ -251,7 +258,7 @@ def reblur_and_decide(
 
     # pass 1: photometry and threshold from a sample of windows spread over the image
     t_pass1 = time.perf_counter()
-    picked = sample_windows((H, W), n_sample_tiles, min(tile_size, 512))
+    picked = sample_windows((H, W), n_sample_tiles, min(tile_size, _SAMPLE_SIDE))
     loaded: list = [None] * len(picked)
 
     def load_sample(k: int) -> None:
