@@ -142,3 +142,41 @@ def test_sample_windows_cover_the_image_in_both_directions():
     for y, x, h, ww in sample_windows((1000, 700), 64, 512):
         m[y : y + h, x : x + ww] += 1
     assert np.all(m == 1)
+
+
+def test_pass1_threshold_from_the_tile_pass_statistic(levir_gray):
+    """Pass 1 fits the threshold on the statistic as the tile pass computes it: on its
+    sample windows, equal to the statistic of the whole image (an explicit slow
+    reference), not one truncated at the windows' edges."""
+    from reblur.decide import DecisionParams, change_statistic, estimate_threshold, fit_photometry
+    from reblur.grid import PoseGrid
+    from reblur.pipeline import _SAMPLE_SIDE, reblur_and_decide, sample_windows
+    from reblur.tiled import SparsePoses, reblur_tile
+
+    ref = levir_gray[:768, :896].astype(np.float32)
+    H, W = ref.shape
+    grid = PoseGrid((H, W), tx=[-1, 0, 2], ty=[0, 1], rz=[0.0, 0.3])
+    w = np.zeros(grid.shape)
+    w[0, 0, 1], w[1, 1, 2], w[0, 1, 0] = 0.5, 0.3, 0.2
+    poses = SparsePoses(w, grid)
+    full = (0, 0, H, W)
+    reb, valid = reblur_tile(poses, ref, full)
+    rng = np.random.default_rng(5)
+    obs = reb[:, :, 0] + rng.normal(0.0, 2 / 255, (H, W)).astype(np.float32)
+    obs[300:360, 400:470] += 0.3  # a change
+    dec = reblur_and_decide(ref, obs, poses, s_ref=1.0, s_obs=1.0, gain=np.ones(1),
+                            offset=np.zeros(1), tile_size=512, n_sample_tiles=6)
+    # the reference: the same fit on the same windows, the statistic on the whole image
+    boxes = sample_windows((H, W), 6, _SAMPLE_SIDE)
+    o3 = obs[:, :, None]
+    known = valid
+    cores = [(slice(y, y + h), slice(x, x + wd)) for y, x, h, wd in boxes]
+    photometry = fit_photometry([o3[c] for c in cores], [reb[c] for c in cores],
+                                [known[c] for c in cores], boxes=boxes, image_shape=(H, W),
+                                rng=0)
+    p = DecisionParams()
+    S = change_statistic(o3, photometry.apply(reb, full), known, photometry.sigma,
+                         smooth=p.smooth, truncate=p.truncate, edge_k=photometry.edge_k,
+                         curv_k=photometry.curv_k)
+    want, _ = estimate_threshold([S[c][known[c]] for c in cores])
+    assert dec.threshold == pytest.approx(want, rel=2e-4)

@@ -34,7 +34,7 @@ from .refine import refine_alignment
 from .result import ChangeResult, CropChoice
 from .select import SelectParams, select_windows
 from .tiled import SparsePoses, run_tiles
-from .tilejob import TileJob, load_tile, run_tile
+from .tilejob import TileJob, load_tile, pad_box, run_tile
 
 __all__ = ["detect_changes", "ScaledView"]
 
@@ -259,39 +259,45 @@ def reblur_and_decide(
     # pass 1: photometry and threshold from a sample of windows spread over the image
     t_pass1 = time.perf_counter()
     picked = sample_windows((H, W), n_sample_tiles, min(tile_size, _SAMPLE_SIDE))
+    # each window is loaded with the statistic's reach around it, so that its statistic
+    # is the one the tile pass computes there (not truncated at the window's edges)
+    grown = [pad_box(b, p.local_radius, (H, W)) for b in picked]
+    cores = [(slice(b[0] - g[0], b[0] - g[0] + b[2]), slice(b[1] - g[1], b[1] - g[1] + b[3]))
+             for b, g in zip(picked, grown, strict=True)]
     loaded: list = [None] * len(picked)
 
     def load_sample(k: int) -> None:
-        loaded[k] = (picked[k], *load(picked[k]))
+        loaded[k] = load(grown[k])
 
     run_tiles(load_sample, list(range(len(picked))), workers)
-    samples = loaded
-    known = [~u for _, _, _, u in samples]
-    if not any(k.any() for k in known):
+    known = [~u for _, _, u in loaded]
+    if not any(k[c].any() for k, c in zip(known, cores, strict=True)):
         raise ValueError("the reference covers no pixel of the observation")
+    # the photometric model is fitted on the windows themselves
     photometry = fit_photometry(
-        [o for _, o, _, _ in samples], [r for _, _, r, _ in samples], known,
-        boxes=[b for b, _, _, _ in samples], image_shape=(H, W), rng=0, edge_error=edge_error,
+        [o[c] for (o, _, _), c in zip(loaded, cores, strict=True)],
+        [r[c] for (_, r, _), c in zip(loaded, cores, strict=True)],
+        [k[c] for k, c in zip(known, cores, strict=True)],
+        boxes=picked, image_shape=(H, W), rng=0, edge_error=edge_error,
     )
-    matched = [photometry.apply(r, b) for b, _, r, _ in samples]
     if threshold is None:
-        stats: list = [None] * len(samples)
+        stats: list = [None] * len(picked)
 
-        def sample_statistic(item) -> None:
-            i, o, mt, k = item
-            S = change_statistic(o, mt, k, photometry.sigma, smooth=p.smooth,
-                                 truncate=p.truncate, edge_k=photometry.edge_k,
-                                 curv_k=photometry.curv_k)
-            stats[i] = S[k]
+        def sample_statistic(i: int) -> None:
+            o, r, _ = loaded[i]
+            k = known[i]
+            S = change_statistic(o, photometry.apply(r, grown[i]), k, photometry.sigma,
+                                 smooth=p.smooth, truncate=p.truncate,
+                                 edge_k=photometry.edge_k, curv_k=photometry.curv_k)
+            stats[i] = S[cores[i]][k[cores[i]]]
 
-        run_tiles(sample_statistic, [(i, smp[1], mt, k) for i, (smp, mt, k) in
-                                     enumerate(zip(samples, matched, known, strict=True))],
-                  workers)
+        run_tiles(sample_statistic, list(range(len(picked))), workers)
         threshold, tinfo = estimate_threshold(stats)
     else:
         tinfo = {"method": "given"}
     threshold = float(threshold)
-    del samples, known, matched
+    loaded.clear()  # the samples are not needed in pass 2
+    known.clear()
     t_pass1 = time.perf_counter() - t_pass1
     t_pass2 = time.perf_counter()
 
