@@ -163,9 +163,8 @@ CENTRE_WINDOW_SIDE = 16384
 
 #: Side (px) of pass 1's sample windows.  The sample's job is to see the whole image (its
 #: windows are spread on a lattice); 256 px windows do that with a quarter of the pixels
-#: of 512 px ones: pass 1 at 100 MP 4.1-4.7 -> 1.1 s, the threshold 1.476 -> 1.470
-#: (``python -m benchmarks.scale --case DIR``); images up to ~4 MP are sampled whole
-#: either way (``python -m benchmarks.quality``: JC within 0.001).
+#: of 512 px ones: pass 1 at 100 MP 4.1-4.7 -> 1.1 s (``python -m benchmarks.scale --case
+#: DIR --mode local``); images up to ~4 MP are sampled whole either way.
 _SAMPLE_SIDE = 256
 
 
