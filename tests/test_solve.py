@@ -203,6 +203,8 @@ def test_coarse_to_fine_keeps_a_long_path():
     one[500] = 1.0
     assert _next_angles(one, 10) == (list(range(490, 511, 2)), 2)  # 10 // 4: symmetric
     assert _next_angles(one, 3) == (list(range(497, 504)), 1)
+    # not from stride 6 straight to the (costly) last level: one more level at stride 2
+    assert _next_angles(one, 6) == (list(range(494, 507, 2)), 2)
 
 
 @pytest.mark.parametrize("one_sided", [False, True])

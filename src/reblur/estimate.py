@@ -357,6 +357,10 @@ def _next_angles(mass: np.ndarray, stride: int) -> tuple[list[int], int]:
     n = mass.size
     active = np.flatnonzero(mass > 0.01 * max(float(mass.max()), 1e-300))
     new_stride = max(1, stride // _C2F_FACTOR)
+    if new_stride == 1 and stride > _C2F_FACTOR:
+        # not straight to the last level (full windows, the costly one) from a stride
+        # whose candidates would span many angles: one more cheap level at stride 2
+        new_stride = 2
     reach = (stride // new_stride) * new_stride
     cand: set[int] = set()
     for a in active:
