@@ -18,10 +18,12 @@ import argparse
 import numpy as np
 from scipy import ndimage as ndi
 
+from reblur.metrics import change_metrics
+
 
 def _jaccard(truth, change, ignore) -> tuple[float, int, int]:
-    t, c = truth & ~ignore, change & ~ignore
-    return float((t & c).sum() / max((t | c).sum(), 1)), int((c & ~t).sum()), int((t & ~c).sum())
+    m = change_metrics(truth, change, ignore=ignore)
+    return float(m["jaccard"]), int(m["fp"]), int(m["fn"])
 
 
 def halfmax_boundary(change, amplitude, r: int, q: float) -> np.ndarray:

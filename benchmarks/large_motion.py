@@ -53,11 +53,12 @@ def pose_margin(H: int, W: int, rz_max: float = 3.0, t_max: int = 12) -> int:
     return int(np.ceil(np.hypot(H, W) / 2 * np.deg2rad(rz_max))) + t_max + 20
 
 
-def evaluate(scene, obs, est, boxes) -> list[float]:
-    """PSNR of the reblurred reference on windows (tile-local reblur, as the pipeline does)."""
+def evaluate(scene, obs, est, boxes, base=None) -> list[float]:
+    """PSNR of the reblurred reference on windows (tile-local reblur, as the pipeline does);
+    ``base``: the homography the pose grid acts after (a pipeline result's alignment)."""
     from reblur.tiled import SparsePoses, reblur_tile
 
-    poses = SparsePoses(est.weights, est.grid)
+    poses = SparsePoses(est.weights, est.grid, base=base)
     out = []
     for b in boxes:
         gt, v = obs.window(b)

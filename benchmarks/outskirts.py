@@ -106,18 +106,12 @@ def motion_psnr(res, scene, blurred, side: int = 500, margin: int = 300) -> list
     """PSNR of the estimated motion against the true blur (no squares, no noise, no
     quantisation) on a 3 x 3 lattice of windows over the image: the motion's accuracy
     apart from the decision's."""
-    from benchmarks.common import psnr
-    from reblur.tiled import SparsePoses, reblur_tile
+    from benchmarks.large_motion import evaluate
 
     H, W = scene.shape
-    poses = SparsePoses(res.motion.weights, res.motion.grid, base=res.alignment)
-    out = []
-    for y in (margin, (H - side) // 2, H - margin - side):
-        for x in (margin, (W - side) // 2, W - margin - side):
-            gt, v = blurred.window((y, x, side, side))
-            img, ok = reblur_tile(poses, scene, (y, x, side, side))
-            out.append(psnr(img[:, :, 0], gt, ok & v))
-    return out
+    boxes = [(y, x, side, side) for y in (margin, (H - side) // 2, H - margin - side)
+             for x in (margin, (W - side) // 2, W - margin - side)]
+    return evaluate(scene, blurred, res.motion, boxes, base=res.alignment)
 
 
 def run(ref_path: Path, obs_path: Path, squares, cell: int | None = None, truth=None,
