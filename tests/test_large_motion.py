@@ -42,10 +42,18 @@ def _unseen_psnr(scene, obs, est):
 
 
 def test_spread_windows_and_sized_grid_beat_the_paper_setup(big_pair):
+    """Four windows of the size the pipeline picks for four (400 px), centred where the
+    issue's 500 px corner windows are, against the paper's single central 500 px window."""
+    from reblur.select import SelectParams, spread_side
+
     scene, obs = big_pair
     H, W = scene.shape
+    p = SelectParams(windows=4)
+    s = spread_side(p) * p.unit
+    assert 4 * s * s <= p.spread_pixels
     lo, hy, hx = MARGIN, H - MARGIN - S, W - MARGIN - S
-    four = [(lo, lo, S, S), (hy, hx, S, S), (lo, hx, S, S), (hy, lo, S, S)]
+    d = (S - s) // 2
+    four = [(y + d, x + d, s, s) for y, x in ((lo, lo), (hy, hx), (lo, hx), (hy, lo))]
     fine = PoseGrid.from_ranges((H, W), corner_px=1.0)
     # one roll step moves the farthest pixel by one pixel
     assert np.deg2rad(fine.rz[1] - fine.rz[0]) * fine.radius == pytest.approx(1.0, rel=1e-6)

@@ -15,6 +15,7 @@ from reblur.select import (
     kernel_similarity,
     region_scores,
     select_windows,
+    spread_side,
 )
 from reblur.simulate import CameraPath, blur_along_path
 from reblur.tiled import reblur
@@ -93,6 +94,28 @@ def test_texture_term():
     sc = np.array([1.0, 0.5, 0.2, 0.05, 0.0])
     np.testing.assert_allclose(_texture_term(sc, 1.0, 0.2),
                                [1.0, 1.0, 1.0, np.sqrt(0.25), 0.0])
+
+
+def test_spread_side_shares_a_pixel_budget():
+    """The spread windows' side (units) is the largest whole number of units at which the
+    windows together hold at most ``spread_pixels``, capped at ``spread_size``."""
+    for k, side in ((1, 5), (2, 5), (3, 5), (4, 4), (5, 4), (6, 3), (8, 3), (9, 2), (81, 1)):
+        assert spread_side(SelectParams(windows=k)) == side, k
+    for k in range(2, 12):
+        p = SelectParams(windows=k, spread_pixels=300_000, spread_size=9)
+        s = spread_side(p)
+        fits = [u for u in range(1, 10) if k * (u * p.unit) ** 2 <= p.spread_pixels]
+        assert s == max(fits, default=1), k
+
+
+def test_coarse_levels_share_a_pixel_budget():
+    from reblur.estimate import _COARSE_PIXELS, coarse_side
+
+    assert coarse_side(1) == coarse_side(2) == 256  # sqrt(2**17 / 2); at most 256
+    for k in range(2, 9):
+        c = coarse_side(k)
+        assert k * c * c <= _COARSE_PIXELS < k * (c + 1) ** 2
+    assert coarse_side(10**6) == 64
 
 
 def test_spread_partner_goes_far_when_textured_enough():

@@ -368,13 +368,27 @@ def _next_angles(mass: np.ndarray, stride: int) -> tuple[list[int], int]:
     return sorted(cand), new_stride
 
 
+#: Pixels of all windows together on a coarse-to-fine level before the last: the central
+#: ``sqrt(_COARSE_PIXELS / K)`` px of each of the ``K`` windows, at most 256 (256 px for
+#: one or two windows, the pipeline's default below 2500 px; 181 px for four).  A coarse
+#: level only finds where the weight lies; its cost (Gram products, spectra) grows with its
+#: pixels, and at 1 Gpx it was most of the estimate with 256 px per window for four windows
+#: (``python -m benchmarks.large_motion``).
+_COARSE_PIXELS = 2**17
+
+
+def coarse_side(n_windows: int) -> int:
+    """Side (px) of each window's central part on the coarse levels (64 to 256 px)."""
+    return max(64, min(256, int(np.sqrt(_COARSE_PIXELS / max(int(n_windows), 1)))))
+
+
 def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam,
                        occlusion, max_outer, time_limit, max_bases, levels,
-                       coarse_side: int = 256, t_margin: int = 3):
+                       t_margin: int = 3):
     """Coarse-to-fine over the roll angles of ``grid`` (see :func:`estimate_motion`).
 
-    Coarse levels solve on the central ``coarse_side`` pixels of each window (the windows
-    stay far apart, so roll stays observable) and, after the first level, only over the
+    Coarse levels solve on the central :func:`coarse_side` pixels of each window (the
+    windows stay far apart, so roll stays observable) and, after the first level, only over the
     translations that carry weight plus ``t_margin`` pixels (every ``ts``-th of them on
     coarse levels, nested from level to level so that warm starts carry over); the last
     level uses the full windows and every translation.  The result is embedded in the full
@@ -410,7 +424,7 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
                        center=grid.center)
         w0 = None if w_prev is None else w_prev[np.ix_(
             idx, [grid.ty.index(v) for v in sub.ty], [grid.tx.index(v) for v in sub.tx])]
-        bx = boxes if last else [_shrink(b, coarse_side) for b in boxes]
+        bx = boxes if last else [_shrink(b, coarse_side(len(boxes))) for b in boxes]
         w, info, ops, gs = _solve(reference, observed, sub, bx, base, engine, s_ref, s_obs,
                                   lam, occlusion, "active-set", max_outer, time_limit, 0, w0)
         levels.append(dict(stride=stride, t_stride=ts, n_angles=len(idx),

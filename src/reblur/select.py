@@ -36,7 +36,7 @@ from .grid import PoseGrid, map_points
 from .result import CropChoice, MotionEstimate
 from .warp import Box
 
-__all__ = ["SelectParams", "kernel_similarity", "region_scores", "select_windows"]
+__all__ = ["SelectParams", "kernel_similarity", "region_scores", "select_windows", "spread_side"]
 
 
 @dataclass(frozen=True)
@@ -54,7 +54,11 @@ class SelectParams:
     invariant_ratio: float = 0.9  #: no window passed T_m: space-invariant only if m >= this * m_1
     max_occluded: float = 2.0 / 3.0  #: reject a window with more occluded pixels than this
     windows: int = 1  #: windows estimated jointly (1 = the paper's Algorithm 1)
-    spread_size: int = 5  #: window side (units) when ``windows >= 2``
+    spread_size: int = 5  #: largest window side (units) when ``windows >= 2``
+    #: pixels of all spread windows together: the side is at most ``sqrt(spread_pixels /
+    #: windows)`` (in whole units), so more windows spread the same estimation cost wider
+    #: (2 or 3 windows: 500 px, 4 or 5: 400 px; :func:`spread_side`)
+    spread_pixels: int = 800_000
     #: spread windows scoring at least this fraction of the best window count as fully
     #: textured: their distance apart, not their texture, then decides (roll observability)
     texture_floor: float = 0.2
@@ -392,9 +396,22 @@ def select_windows(
         return crop, est
 
 
+def spread_side(p: SelectParams) -> int:
+    """Side (units) of the spread windows: ``spread_size``, or less so that the
+    ``windows`` windows hold at most ``spread_pixels`` pixels together (at least 1 unit).
+
+    The estimate's cost grows with its pixels (Gram products of the active poses, the
+    spectra of the warped stacks), and four or five windows of 500 px made it the largest
+    fixed cost of the pipeline; the roll is observable from where the windows are, not
+    from their size (``python -m benchmarks.large_motion``).
+    """
+    per = np.sqrt(p.spread_pixels / max(p.windows, 1))
+    return int(max(1, min(p.spread_size, per // p.unit)))
+
+
 def _select_spread(reference, observed, grid, base, p: SelectParams, cells, cover, shape,
                    progress) -> tuple[CropChoice, MotionEstimate]:
-    """``p.windows`` windows of ``p.spread_size`` units, good regions spread far apart.
+    """``p.windows`` windows of :func:`spread_side` units, good regions spread far apart.
 
     Seen from one window, a small roll about a distant principal point is nearly a pure
     translation, so the roll is observable only from windows far apart.  The first window
@@ -438,7 +455,7 @@ def _select_spread(reference, observed, grid, base, p: SelectParams, cells, cove
 
     # the largest side up to spread_size at which all the windows fit
     best: tuple[int, list[Box]] = (0, [])
-    for S in range(int(min(p.spread_size, cells.shape[0], cells.shape[1])), 0, -1):
+    for S in range(int(min(spread_side(p), cells.shape[0], cells.shape[1])), 0, -1):
         chosen = place(S, None)
         if len(chosen) > len(best[1]):
             best = (S, chosen)

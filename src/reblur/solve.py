@@ -179,11 +179,14 @@ class _Window:
                 ib = self.inl[r0:r1][mk].ravel()
                 sb = self.sgn[r0:r1][mk].ravel()
             Atn = At[n_all - n_new :]
-            Ati = Atn if ib.all() else Atn * ib
-            G += At @ Ati.T
-            b += Ati @ gb
             if sb.any():
                 d += Atn @ sb.astype(float)
+            if not ib.all():
+                # zero the new columns' outlier pixels in place (the block is a fresh copy):
+                # D A_new, and D^2 = D makes the new-by-new part A_new^T D A_new as well
+                Atn[:, ~ib] = 0.0
+            G += At @ Atn.T
+            b += Atn @ gb
         return G, b, d
 
     def repartition(self, r: np.ndarray, active: list[int],
