@@ -575,7 +575,9 @@ def detect_changes(
         (the translations alone) the corners constrain only indirectly at these sizes
         (``benchmarks/motion_check.py``, centre window against the true blur, 5 windows /
         4: 53.9 / 50.9 dB at 400 MP, 57.2 / 52.8 dB at 1 Gpx; at 100 MP four suffice,
-        57.2 dB).
+        57.2 dB).  The windows share a pixel budget
+        (:attr:`reblur.select.SelectParams.spread_pixels`): 500 px for two, 400 px for
+        four or five.
     large_side : int
         Long side (pixels) above which the large-image defaults apply.
     select : SelectParams, optional
