@@ -183,6 +183,32 @@ def test_region_tests_reject_networks():
     assert pixel_only[40:52, 30:140].mean() > 0.9 and pixel_only[300:310, 30:250].mean() > 0.9
 
 
+def test_regions_closed_one_by_one():
+    """A bay cut into an object (open to the outside, so no hole) is filled by the
+    closing; two objects 6 px apart stay apart (a closing of their union would bridge
+    them); nothing is added outside the objects."""
+    from reblur.decide import _decide_core
+
+    h, w = 200, 300
+    yy, xx = np.mgrid[0:h, 0:w]
+    disc = (yy - 100) ** 2 + (xx - 80) ** 2 <= 40**2
+    bay = disc & (np.abs(yy - 100) <= 5) & (xx >= 80)  # 11 px wide, open to the right
+    left = np.zeros((h, w), bool)
+    left[85:115, 160:190] = True
+    right = np.zeros((h, w), bool)
+    right[85:115, 196:226] = True
+    S = np.where((disc & ~bay) | left | right, 5.0, 0.0).astype(np.float32)
+    known = np.ones((h, w), bool)
+    plain, _, _ = _decide_core(S, known, 1.0, DecisionParams(close_radius=0))
+    closed, _, _ = _decide_core(S, known, 1.0, DecisionParams(close_radius=8))
+    assert not plain[bay].any()  # not a hole: hole filling leaves it
+    # all but the mouth, where a 17 px disc from the outside still enters the bay
+    assert closed[bay & (xx <= 110)].all() and closed[bay].mean() > 0.8
+    assert not closed[:, 190:196].any()
+    assert not (closed & ~(disc | left | right)).any()
+    assert not (plain & ~closed).any()  # a closing only adds
+
+
 # --------------------------------------------------------------------------- tiles
 def _tiled(obs, reb, unknown, ph, threshold, params, tile, halo):
     out = np.zeros(unknown.shape, bool)

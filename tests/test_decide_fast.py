@@ -96,6 +96,16 @@ def _ref_decide_core(S, known, threshold, p):
         big = area >= p.min_area
         big[0] = False
         accepted = big[lab]
+    if p.close_radius > 0 and accepted.any():
+        # every region closed on its own, on the whole (padded) array
+        r = p.close_radius
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1,) * 2).astype(bool)
+        lab, n = ndi.label(accepted, structure=_EIGHT)
+        closed = accepted.copy()
+        for lbl in range(1, n + 1):
+            reg = np.pad(lab == lbl, r + 1)
+            closed |= ndi.binary_closing(reg, structure=disc)[r + 1 : -r - 1, r + 1 : -r - 1]
+        accepted = closed
     if p.max_hole_area > 0 and accepted.any():
         bg, nb = ndi.label(~accepted, structure=_FOUR)
         sizes = np.bincount(bg.ravel(), minlength=nb + 1)
@@ -260,6 +270,8 @@ PARAMS = [
     DecisionParams(min_area=30, open_radius=1, max_hole_area=200),
     DecisionParams(region_tests=False),
     DecisionParams(boundary_fraction=0.0, max_hole_area=0),
+    DecisionParams(close_radius=0),
+    DecisionParams(close_radius=3, max_hole_area=0),
     DecisionParams(open_radius=0, levels=(1.0, 1.1, 1.3), min_solidity=0.8, max_aspect=3.0),
 ]
 

@@ -28,10 +28,11 @@ def test_fig6_synthetic_scene(fig6_pair):
     p = fig6_pair
     res = reblur.detect_changes(p.reference, p.observed)
     m = change_metrics(p.truth, res.change, ignore=p.unknown | res.unknown)
-    # the paper's Table I on its synthetic scene: PCC 99.79 %, JC 0.851, YC 0.944.  Here
-    # JC is 0.88 (the 0.9 is not reached: the misses are the rims of the objects
-    # smeared by the blur and the low-contrast object; benchmarks/pipeline.py, fig6 seeds)
-    assert m["jaccard"] >= 0.85, m
+    # the targets (the paper's Table I on its synthetic scene: PCC 99.79 %, JC
+    # 0.851, YC 0.944).  JC is 0.902 here, just above: other seeds of the same set-up give
+    # 0.83-0.91 (python -m benchmarks.quality); the errors left are the rims of objects
+    # smeared by the blur and a low-contrast object whose inside matches the background
+    assert m["jaccard"] >= 0.9, m
     assert m["yule"] >= 0.9, m
     assert m["pcc"] >= 0.995, m
     assert not (res.change & res.unknown).any()

@@ -48,7 +48,10 @@ as a stream of tiles:
 
    Accepted regions are trimmed to their half-energy contour
    (``S >= boundary_fraction * median(S in region)``: an absolute threshold lies far down the
-   flank of a strong change and would bleed outwards), pieces below ``min_area`` go, enclosed
+   flank of a strong change and would bleed outwards), pieces below ``min_area`` go, each
+   region is closed on its own with a disc of ``close_radius`` (an object whose inside
+   partly matches the background -- a low-contrast object, a roof like the ground -- is
+   found with bays cut into it; the closing fills those narrower than the disc), enclosed
    holes up to ``max_hole_area`` are filled, and unknown pixels are never change.
 
 Tiling
@@ -601,6 +604,10 @@ class DecisionParams:
         (0: no trimming).  ``S`` is an RMS, so ``1/sqrt(2)`` is the half-energy contour,
         which lies on the edge of a sharp step; about 0.5 suits edges blurred over more
         than the statistic's window.
+    close_radius : int
+        Radius of the disc with which each accepted region is closed (on its own, so
+        neighbouring regions never merge) before the hole filling: bays narrower than
+        ``2 close_radius`` that open to the outside are filled.  0 for none.
     max_hole_area : int
         Largest enclosed hole filled, in pixels (0: no filling).
     region_tests : bool
@@ -617,6 +624,7 @@ class DecisionParams:
     min_solidity: float = 0.65
     max_aspect: float = 8.0
     boundary_fraction: float = 0.7071
+    close_radius: int = 8
     max_hole_area: int = 1024
     region_tests: bool = True
 
@@ -627,8 +635,8 @@ class DecisionParams:
             raise ValueError(f"levels must increase from 1.0, got {self.levels}")
         if self.smooth < 0 or self.truncate <= 0:
             raise ValueError("smooth must be >= 0 and truncate > 0")
-        if self.open_radius < 0 or self.min_area < 0 or self.max_hole_area < 0:
-            raise ValueError("open_radius, min_area and max_hole_area must be >= 0")
+        if min(self.open_radius, self.min_area, self.max_hole_area, self.close_radius) < 0:
+            raise ValueError("open_radius, min_area, close_radius and max_hole_area must be >= 0")
         if self.strong_factor < 1.0:
             raise ValueError(f"strong_factor must be >= 1, got {self.strong_factor}")
         if not 0.0 <= self.boundary_fraction < 1.0:
@@ -1300,6 +1308,8 @@ def _decide_core(
         win = _union_box([(b[0].start + win[0].start, b[1].start + win[1].start,
                            b[0].stop + win[0].start, b[1].stop + win[1].start)
                           for b in _boxes(cc, np.flatnonzero(big)).values()], 0, shape)
+    if p.close_radius > 0:
+        _close_regions(accepted, win, p.close_radius)
     if p.max_hole_area > 0:
         # a hole (a background component clear of the array's border) lies inside the
         # box of the accepted pixels; one pixel of margin keeps the outside connected
@@ -1313,6 +1323,26 @@ def _decide_core(
         acc |= fill[bg]
     accepted[win] &= known[win]
     return accepted, candidates, counts
+
+
+def _close_regions(mask: np.ndarray, win: tuple[slice, slice], radius: int) -> None:
+    """Close every connected region of ``mask[win]`` on its own with a disc of ``radius``,
+    in place.
+
+    A closing by a convex element stays inside the region's convex hull, hence inside its
+    bounding box: each region is closed in its box (padded so that the array's border does
+    not act as foreground), and regions never merge, however close.
+    """
+    sub = mask[win]
+    cc = _components(sub)
+    if cc.n == 0:
+        return
+    kernel = _disc(radius)
+    pad = radius + 1
+    for lbl, sl in _boxes(cc, np.arange(1, cc.n + 1)).items():
+        reg = np.pad((cc.lab[sl] == lbl).view(np.uint8), pad)
+        closed = cv2.morphologyEx(reg, cv2.MORPH_CLOSE, kernel)[pad:-pad, pad:-pad]
+        sub[sl] |= closed.view(bool)
 
 
 def _region_records(
