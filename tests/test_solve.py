@@ -148,6 +148,8 @@ def test_estimate_motion_validation(levir_gray):
         estimate_motion(levir_gray, levir_gray, grid, boxes=[(0, 0, 8, 8)])
     with pytest.raises(ValueError, match="refit_photometry"):
         estimate_motion(levir_gray, levir_gray, grid, solver="fista", refit_photometry=True)
+    with pytest.raises(ValueError, match="threads"):
+        estimate_motion(levir_gray, levir_gray, grid, threads=0)
 
 
 def test_uint8_input_is_scaled(levir_gray, paper_grid):
@@ -277,6 +279,30 @@ def test_huber_optimum_with_many_outliers(changed, one_sided):
     assert np.all(np.abs(grad_ws[on_ws]) <= 1e-6 * scale)
     assert np.all(grad_ws[~on_ws] >= -1e-6 * scale)
     assert f_ws <= ref.fun * (1 + 1e-9), (f_ws, ref.fun)
+
+
+def test_shared_scratch_gives_the_same_solve():
+    """The Gram copies of all windows (and of later calls) share one scratch buffer: a
+    buffer left large and full of garbage by an earlier use changes nothing."""
+    import cv2
+
+    from reblur.solve import Scratch
+
+    rng = np.random.default_rng(4)
+    f = cv2.GaussianBlur(rng.random((160, 160)), (0, 0), 1.5)
+    grid = PoseGrid((160, 160), tx=np.arange(-2, 3), ty=np.arange(-2, 3), rz=[-1.0, 0.0, 1.0])
+    ops = [BlurOperator(f, grid, b) for b in ((10, 10, 60, 70), (90, 80, 60, 70))]
+    w_true = np.zeros(grid.shape)
+    w_true[0, 2, 2], w_true[2, 1, 3] = 0.6, 0.4
+    gs = [op.matvec(w_true) + rng.normal(0, 0.01, op.dimsd) for op in ops]
+    gs[1][:20, :30] += 0.3  # a change in the second window
+    fresh, _ = active_set(ops, gs, lam=0.05)
+    scratch = Scratch()
+    scratch.take(10**6)[:] = np.nan  # a larger, dirty buffer from an earlier call
+    shared, _ = active_set(ops, gs, lam=0.05, scratch=scratch)
+    np.testing.assert_array_equal(shared, fresh)
+    assert scratch.nbytes == 8 * 10**6  # reused, not reallocated
+    assert mass_near_truth(shared, w_true) > 0.9
 
 
 def test_photometric_refit_recovers_the_offset(levir_gray, paper_grid):

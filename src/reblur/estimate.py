@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Sequence
 
@@ -12,7 +13,7 @@ from .grid import PoseGrid
 from .operator import BlurOperator
 from .result import MotionEstimate
 from .robust import huber_line, mad
-from .solve import active_set, fista
+from .solve import Scratch, active_set, fista
 from .warp import as_box, read_window
 
 __all__ = ["estimate_motion", "intensity_scale", "soft_threshold"]
@@ -62,6 +63,7 @@ def estimate_motion(
     coarse_to_fine: bool | str = "auto",
     max_bases: int = 16,
     refit_photometry: bool = False,
+    threads: int | None = None,
 ) -> MotionEstimate:
     """Estimate pose weights ``w >= 0`` and the change term ``chi`` (eq. 5, or eq. 3).
 
@@ -118,6 +120,13 @@ def estimate_motion(
         61-65 dB with).  ``info["photometry"]`` holds the ``offset`` removed (per band,
         ``g ~ F w + offset``) and the ``rounds``; ``chi`` is then in the corrected units.
 
+    threads : int, optional
+        BLAS threads of the solver (its Gram products and the adjoint's row transforms);
+        default the CPUs available to the process, at most :data:`MAX_BLAS_THREADS`.  The
+        estimate runs while nothing else does (the tiles wait for its weights), so it
+        may use the cores: on 2 cores the 1 Gpx estimate takes 0.7x the time of one
+        thread (docs/NOTES.md, "Memory of the estimate").
+
     Returns
     -------
     MotionEstimate
@@ -160,21 +169,26 @@ def estimate_motion(
     if coarse_to_fine and not only_rz:
         raise ValueError("coarse_to_fine refines the roll axis only: use a grid varying rz alone")
     levels = []
-    with threadpool_limits(1, user_api="blas"):
+    scratch = Scratch()  # the solver's work memory, shared by every solve below
+    if threads is None:
+        threads = min(_available_cpus(), MAX_BLAS_THREADS)
+    if int(threads) < 1:
+        raise ValueError(f"threads must be >= 1, got {threads}")
+    with threadpool_limits(int(threads), user_api="blas"):
         if coarse_to_fine:
             w, info, ops, gs, grid_used = _rz_coarse_to_fine(
                 reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, occlusion,
-                max_outer, time_limit, max_bases, levels,
+                max_outer, time_limit, max_bases, levels, scratch,
             )
         else:
             w, info, ops, gs = _solve(
                 reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, occlusion,
-                solver, max_outer, time_limit, fista_iter, None,
+                solver, max_outer, time_limit, fista_iter, None, scratch=scratch,
             )
             grid_used = grid
         if refit_photometry:
             w, info, gs = _refit_photometry(ops, gs, w, info, lam, occlusion, max_outer,
-                                            time_limit)
+                                            time_limit, scratch=scratch)
         chis, psnrs, psnr_in = [], [], []
         for op, g in zip(ops, gs, strict=True):
             r = g - op.matvec(w)
@@ -198,6 +212,19 @@ def estimate_motion(
     )
 
 
+#: Default cap on the solver's BLAS threads (:func:`estimate_motion`): its products are
+#: blocks of 32768 pixels times a few hundred columns, small enough that many threads
+#: mostly wait (measured on 2 cores only).
+MAX_BLAS_THREADS = 4
+
+
+def _available_cpus() -> int:
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
 def _psnr(r: np.ndarray) -> float:
     if r.size == 0:
         return float("nan")
@@ -206,7 +233,7 @@ def _psnr(r: np.ndarray) -> float:
 
 
 def _solve(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, occlusion,
-           solver, max_outer, time_limit, fista_iter, w0, gs=None):
+           solver, max_outer, time_limit, fista_iter, w0, gs=None, scratch=None):
     ops = [BlurOperator(reference, grid, b, base=base, engine=engine, scale=s_ref) for b in boxes]
     if gs is None:
         gs = [read_window(observed, b, np.float64) / s_obs for b in boxes]
@@ -218,7 +245,7 @@ def _solve(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, oc
     if solver == "active-set":
         w, info = active_set(
             ops, gs, lam=lam, occlusion=occlusion, max_outer=max_outer, time_limit=time_limit,
-            w0=w0,
+            w0=w0, scratch=scratch,
         )
     elif solver == "fista":
         if len(ops) != 1:
@@ -259,7 +286,7 @@ def _fit_gain_offset(ops, gs, w, lam, occlusion):
 
 
 def _refit_photometry(ops, gs, w, info, lam, occlusion, max_outer, time_limit,
-                      max_rounds: int = 4, tol: float = 1e-4):
+                      max_rounds: int = 4, tol: float = 1e-4, scratch=None):
     """Find the offset ``B`` (per band) with which eq. 5 on ``g - B`` leaves no offset.
 
     The weights represent a gain (their sum) but not an offset, so a solve against an
@@ -303,7 +330,8 @@ def _refit_photometry(ops, gs, w, info, lam, occlusion, max_outer, time_limit,
         B_new = B + step
         gs_new = [g - B_new for g in g0]
         w_new, more = active_set(ops, gs_new, lam=lam, occlusion=occlusion,
-                                 max_outer=max_outer, time_limit=time_limit, w0=w)
+                                 max_outer=max_outer, time_limit=time_limit, w0=w,
+                                 scratch=scratch)
         info["n_outer"] = int(info.get("n_outer", 0)) + int(more["n_outer"])
         info["time_s"] = float(info.get("time_s", 0.0)) + float(more["time_s"])
         obj = float(more["objective"][-1])
@@ -383,7 +411,7 @@ def coarse_side(n_windows: int) -> int:
 
 
 def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam,
-                       occlusion, max_outer, time_limit, max_bases, levels,
+                       occlusion, max_outer, time_limit, max_bases, levels, scratch=None,
                        t_margin: int = 3):
     """Coarse-to-fine over the roll angles of ``grid`` (see :func:`estimate_motion`).
 
@@ -425,8 +453,10 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
         w0 = None if w_prev is None else w_prev[np.ix_(
             idx, [grid.ty.index(v) for v in sub.ty], [grid.tx.index(v) for v in sub.tx])]
         bx = boxes if last else [_shrink(b, coarse_side(len(boxes))) for b in boxes]
+        ops = gs = None  # the previous level's stacks and spectra go before the next's come
         w, info, ops, gs = _solve(reference, observed, sub, bx, base, engine, s_ref, s_obs,
-                                  lam, occlusion, "active-set", max_outer, time_limit, 0, w0)
+                                  lam, occlusion, "active-set", max_outer, time_limit, 0, w0,
+                                  scratch=scratch)
         levels.append(dict(stride=stride, t_stride=ts, n_angles=len(idx),
                            n_t=len(sub.tx) * len(sub.ty),
                            n_outer=info["n_outer"], time_s=info["time_s"],

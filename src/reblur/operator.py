@@ -58,6 +58,15 @@ class BlurOperator:
         Working precision of the warped stack and FFTs (float64 default).
     spectra : bool
         Precompute FFT spectra (needed for dense ``matvec``/``rmatvec`` on the fast engine).
+    spectra_precision : {"single", "double"}
+        Storage of the spectra.  ``"single"`` (default) computes them in the working
+        precision and stores them rounded to complex64; the products with them stay in
+        the working precision.  The spectra are the operator's largest memory (twice the
+        float32 stack in complex128), and on a virtual machine whose fresh pages fault in
+        slowly, their first touch was a large share of a gigapixel estimate (docs/NOTES.md,
+        "Memory of the estimate").  The rounding (relative 6e-8 per coefficient) lies far
+        below the solver's KKT tolerance (1e-6 of the gradient's scale); ``matvec`` and
+        ``rmatvec`` stay exact adjoints of each other.
     scale : float
         Reference values are divided by ``scale`` (e.g. 255 for uint8 data).
 
@@ -87,6 +96,7 @@ class BlurOperator:
         dtype=np.float64,
         spectra: bool = True,
         scale: float = 1.0,
+        spectra_precision: str = "single",
     ):
         self.grid = grid
         self.box = as_box(box)
@@ -97,6 +107,11 @@ class BlurOperator:
             raise ValueError(f"engine must be 'auto', 'fast' or 'exact', got {engine!r}")
         if engine == "fast" and not grid.integer_translations:
             raise ValueError("the fast engine needs whole-pixel translations in the grid")
+        if spectra_precision not in ("single", "double"):
+            raise ValueError(
+                f"spectra_precision must be 'single' or 'double', got {spectra_precision!r}"
+            )
+        self.spectra_precision = spectra_precision
         self.engine = engine
         self.reference = reference
         self.dtype = np.dtype(dtype)
@@ -144,21 +159,24 @@ class BlurOperator:
         # float32: the warps are single precision, so the stack holds their values exactly
         # at half the memory (columns are promoted where they meet float64 weights)
         self.stack = np.zeros((nb, *self._fshape, C), np.float32)
-        self.stack_valid = np.zeros((nb, eh, ew), bool)
+        # ext pixels that some base does not cover (one mask, not one per base)
+        bad = np.ones((eh, ew), bool)
         if y0 < y1 and x0 < x1:
             sbox = Box(y0, x0, y1 - y0, x1 - x0)
             src = read_window(self.reference, sbox, self.dtype)
             if self.scale != 1.0:
                 src /= self.scale
             src = src.astype(np.float32, copy=False)
+            bad[...] = False
             for b, H in enumerate(Hs):
                 # warp in float32: OpenCV then keeps single-precision coordinates, while
                 # float64 warps snap them to a 1/32-px table (less accurate)
-                self.stack[b, :eh, :ew], self.stack_valid[b] = warp_window(
+                self.stack[b, :eh, :ew], ok = warp_window(
                     self.reference, H, self.ext, dtype=np.float32, source=(src, sbox)
                 )
+                bad |= ~ok
             del src
-        self.valid = self._all_pose_valid()
+        self.valid = self._all_pose_valid(bad)
         # flat-index helpers: lag offsets of every pose
         self._oy = self.tymax - ty  # row offset into ext for each iy
         self._ox = self.txmax - tx
@@ -178,12 +196,15 @@ class BlurOperator:
         return int(max(1, min(self.grid.n_bases, _BLOCK_BYTES // per_base)))
 
     def _spectra(self) -> np.ndarray:
-        """Spectra of the stack in the operator's precision, a block of bases at a time
-        (no full-size temporary)."""
+        """Spectra of the stack, computed in the operator's precision a block of bases at
+        a time (no full-size temporary) and stored as ``spectra_precision`` says."""
         nb = self.grid.n_bases
         Fh, Fw = self._fshape
         C = self.dimsd[2]
-        spec = np.empty((nb, Fh, Fw // 2 + 1, C), np.result_type(self.dtype, np.complex64))
+        ctype = np.result_type(self.dtype, np.complex64)
+        if self.spectra_precision == "single":
+            ctype = np.complex64
+        spec = np.empty((nb, Fh, Fw // 2 + 1, C), ctype)
         step = self._chunk()
         for c0 in range(0, nb, step):
             c1 = min(c0 + step, nb)
@@ -191,10 +212,11 @@ class BlurOperator:
                                      axes=(1, 2), workers=_WORKERS)
         return spec
 
-    def _all_pose_valid(self) -> np.ndarray:
-        """Window pixels valid for every base and every translation (summed-area table)."""
+    def _all_pose_valid(self, bad: np.ndarray) -> np.ndarray:
+        """Window pixels valid for every base and every translation, from the ``ext``
+        pixels ``bad`` that some base does not cover (summed-area table)."""
         h, w = self.box.h, self.box.w
-        bad = (~self.stack_valid).any(axis=0).astype(np.int64)
+        bad = bad.astype(np.int64)
         sat = np.zeros((bad.shape[0] + 1, bad.shape[1] + 1), np.int64)
         sat[1:, 1:] = bad.cumsum(0).cumsum(1)
         Dy, Dx = self.Dy, self.Dx
@@ -269,7 +291,7 @@ class BlurOperator:
         iy = (self._ty - self.tymin).astype(int)
         ix = (self._tx - self.txmin).astype(int)
         kern[:, iy[:, None], ix[None, :]] = w
-        prod = np.zeros(self.spec.shape[1:], self.spec.dtype)
+        prod = np.zeros(self.spec.shape[1:], np.result_type(self.dtype, np.complex64))
         step = self._chunk()
         for c0 in range(0, self.grid.n_bases, step):  # blocks: no full-size kernel spectra
             c1 = min(c0 + step, self.grid.n_bases)

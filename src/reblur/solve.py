@@ -37,7 +37,7 @@ from .operator import BlurOperator
 #: Pixels per block when building explicit active columns (bounds the solver's memory).
 _CHUNK = 32768
 
-__all__ = ["active_set", "fista", "huber_objective", "joint_objective", "power_norm"]
+__all__ = ["Scratch", "active_set", "fista", "huber_objective", "joint_objective", "power_norm"]
 
 
 def _rho(r: np.ndarray, delta: float | None) -> np.ndarray:
@@ -72,6 +72,32 @@ def joint_objective(op, g, w, chi, lam, mask=None) -> float:
     return float(np.sum(r * r) + lam * (np.abs(w).sum() + np.abs(chi[m]).sum()))
 
 
+class Scratch:
+    """Scratch memory of :func:`active_set`, reusable across windows and calls.
+
+    The Gram products copy the active columns of a row block into one float64 buffer.
+    Windows are processed one after the other, so they can share it, and a caller that
+    solves several related problems (the levels of a coarse-to-fine schedule, photometric
+    refits) can pass the same ``Scratch`` to each: the buffer then grows a few times in
+    all instead of once per window and call.  Fresh memory is not free: its pages fault in
+    on first touch, which costs up to ~8 ms per MB on some virtual machines (against
+    ~0.3 ms on bare metal), more than the products themselves.
+    """
+
+    def __init__(self) -> None:
+        self._buf = np.empty(0)
+
+    def take(self, n: int) -> np.ndarray:
+        """A float64 array of ``n`` elements (contents undefined), valid until the next call."""
+        if self._buf.size < n:
+            self._buf = np.empty(max(int(n), 3 * self._buf.size // 2))
+        return self._buf[:n]
+
+    @property
+    def nbytes(self) -> int:
+        return int(self._buf.nbytes)
+
+
 class _Window:
     """Per-window state of the active-set solver.
 
@@ -83,7 +109,8 @@ class _Window:
     """
 
     def __init__(self, op: BlurOperator, g: np.ndarray, mask: np.ndarray,
-                 delta: float | None, signs: np.ndarray | None = None):
+                 delta: float | None, signs: np.ndarray | None = None,
+                 scratch: Scratch | None = None):
         self.op = op
         self.delta = delta
         self.g = np.asarray(g, dtype=float).reshape(op.dimsd)
@@ -94,7 +121,7 @@ class _Window:
         self.s = None if signs is None else np.asarray(signs, float).reshape(op.dimsd)
         self.inl = self.m3.copy()  # inlier pixels of the current partition
         self.sgn = np.zeros(op.dimsd, np.int8)  # outlier signs (0: inlier or masked)
-        self._buf: np.ndarray | None = None  # block_products' column copies (reused)
+        self.scratch = Scratch() if scratch is None else scratch  # block_products' copies
 
     def forward(self, active: list[int], wa: np.ndarray) -> np.ndarray:
         out = np.zeros(self.op.dimsd)
@@ -151,12 +178,10 @@ class _Window:
         G = np.zeros((n_all, n_new))
         b = np.zeros(n_new)
         d = np.zeros(n_new)
-        # one buffer per window, grown geometrically with the active set: a fresh one per
-        # call is a fresh mmap whose pages fault in on first touch (slow on this kind of VM)
-        need = n_all * rows * w * C
-        if self._buf is None or self._buf.size < need:
-            self._buf = np.empty(max(need, 3 * (0 if self._buf is None else self._buf.size) // 2))
-        buf = self._buf[:need].reshape(n_all, rows * w * C)
+        # one buffer shared by the windows (and the calls that share the Scratch), grown
+        # geometrically with the active set: a fresh one per call is a fresh mmap whose
+        # pages fault in on first touch (slow on this kind of VM)
+        buf = self.scratch.take(n_all * rows * w * C).reshape(n_all, rows * w * C)
         for r0 in range(0, h, rows):
             r1 = min(r0 + rows, h)
             mk = self.m[r0:r1]
@@ -234,6 +259,7 @@ def active_set(
     w0: np.ndarray | None = None,
     time_limit: float | None = None,
     callback: Callable[[np.ndarray], None] | None = None,
+    scratch: Scratch | None = None,
 ) -> tuple[np.ndarray, dict]:
     """Solve eq. 5 (or eq. 3) over one or more windows sharing one set of pose weights.
 
@@ -269,6 +295,9 @@ def active_set(
         Seconds; the loop stops (``converged=False``) when exceeded.
     callback : callable, optional
         Called with the full weight array after every outer iteration (observes only).
+    scratch : Scratch, optional
+        Work memory to reuse (e.g. across the levels of a coarse-to-fine schedule); default
+        a fresh one, shared by the windows of this call.
 
     Returns
     -------
@@ -281,9 +310,10 @@ def active_set(
     grid = ops[0].grid
     P = grid.size
     delta = lam / 2.0 if occlusion else None
+    scratch = Scratch() if scratch is None else scratch
     wins = [
         _Window(op, g, op.valid if masks is None else masks[i], delta,
-                None if signs is None else signs[i])
+                None if signs is None else signs[i], scratch)
         for i, (op, g) in enumerate(zip(ops, gs, strict=True))
     ]
     if sum(int(w.m.sum()) for w in wins) == 0:
