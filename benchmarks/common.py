@@ -38,9 +38,16 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def run_case(module: str, *args: str, timeout: float = 1800) -> dict:
-    """Run ``python -m module args`` in a fresh process; it prints one JSON line last."""
-    env = dict(os.environ, OPENBLAS_NUM_THREADS="1")
+def run_case(module: str, *args: str, timeout: float = 1800,
+             blas_threads: int | None = 1) -> dict:
+    """Run ``python -m module args`` in a fresh process; it prints one JSON line last.
+
+    ``blas_threads``: ``OPENBLAS_NUM_THREADS`` of the case (None: the environment's, as a
+    user's run has it; the estimate then uses the available cores).
+    """
+    env = dict(os.environ)
+    if blas_threads is not None:
+        env["OPENBLAS_NUM_THREADS"] = str(int(blas_threads))
     out = subprocess.run(
         [sys.executable, "-m", module, *args], capture_output=True, text=True, cwd=REPO,
         timeout=timeout, env=env, check=False,

@@ -104,8 +104,8 @@ def big_case(side: int) -> dict:
 
 
 def main() -> str:
-    demo = run_case("benchmarks.pipeline", "--case", "demo")
-    big = run_case("benchmarks.pipeline", "--case", "10000", timeout=3600)
+    demo = run_case("benchmarks.pipeline", "--case", "demo", blas_threads=None)
+    big = run_case("benchmarks.pipeline", "--case", "10000", timeout=3600, blas_threads=None)
     lines = [
         "## detect_changes end to end",
         "",

@@ -300,7 +300,7 @@ def main(sizes=SIZES_MP, dask_up_to: float = 400, cluster_sizes=(100,)) -> str:
                 modes.append("inmemory")
             for mode in modes:
                 r = run_case("benchmarks.scale", "--case", str(d), "--mode", mode,
-                             timeout=3 * 3600)
+                             timeout=3 * 3600, blas_threads=None)
                 r.update(mode=mode, mp=side * side / 1e6, gen_s=gen, commit=commit, date=day)
                 runs.append(r)
                 _save_runs(runs)

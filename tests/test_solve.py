@@ -152,6 +152,23 @@ def test_estimate_motion_validation(levir_gray):
         estimate_motion(levir_gray, levir_gray, grid, threads=0)
 
 
+def test_default_threads_follow_the_environment(monkeypatch):
+    import os
+
+    from reblur.estimate import MAX_BLAS_THREADS, _default_threads
+
+    monkeypatch.delenv("OPENBLAS_NUM_THREADS", raising=False)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    cpus = len(os.sched_getaffinity(0))
+    assert _default_threads() == min(cpus, MAX_BLAS_THREADS)
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert _default_threads() == 1
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "junk")  # not a count: the next one counts
+    assert _default_threads() == 1
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "64")
+    assert _default_threads() == min(cpus, MAX_BLAS_THREADS)
+
+
 def test_uint8_input_is_scaled(levir_gray, paper_grid):
     w_true = grid_path(paper_grid, rng=4, n_poses=10)
     g, _ = blur_weights(levir_gray, paper_grid, w_true, BOX, dtype=np.float32)
