@@ -25,6 +25,7 @@ BENCHES = {
     "quality": ("benchmarks.quality", "main"),
     "outskirts": ("benchmarks.outskirts", "main"),
     "scale": ("benchmarks.scale", "main"),
+    "first_touch": ("benchmarks.first_touch", "main"),
 }
 
 
