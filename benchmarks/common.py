@@ -34,7 +34,19 @@ def machine() -> str:
 
 
 def peak_rss_mb() -> float:
-    """Peak resident set size of this process so far, MB."""
+    """Peak resident set size of this process so far, MB.
+
+    Read from ``VmHWM`` (the high-water mark of this program's own memory) where Linux
+    has it: ``ru_maxrss`` survives ``exec``, so a case started by a large parent (e.g.
+    ``benchmarks.run`` after in-process benchmarks) would report the parent's size.
+    """
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
