@@ -111,7 +111,8 @@ def run_accuracy(rows: int, cols: int, cell: int, rz: float, t: float, seed: int
     return (H, W), rows_out
 
 
-def run_timing(side: int, windows: int = 4, rz: float = 0.3, t: float = 9.0):
+def run_timing(side: int, windows: int = 4, rz: float = 0.3, t: float = 9.0,
+               **kw):
     from reblur import PoseGrid, estimate_motion
     from reblur.simulate import PathBlurredScene, random_camera_path
 
@@ -125,16 +126,18 @@ def run_timing(side: int, windows: int = 4, rz: float = 0.3, t: float = 9.0):
     m = max(MARGIN, pose_margin(H, W))
     boxes = list(layouts(H, W, m, pipeline_side(windows)).values())[2 if windows == 4 else 1]
     t0 = time.perf_counter()
-    est = estimate_motion(scene, obs, grid, boxes=boxes)
+    est = estimate_motion(scene, obs, grid, boxes=boxes, **kw)
     dt = time.perf_counter() - t0
     unseen = evaluate(scene, obs, est, unseen_windows(H, W, m))
     return (H, W), grid, dt, est, unseen
 
 
-def timing_case(side: int) -> dict:
-    """One timing row in this process (run it in a fresh one: peak RSS and kernel time)."""
+def timing_case(side: int, threads: int | None = None) -> dict:
+    """One timing row in this process (run it in a fresh one: peak RSS and kernel time);
+    ``threads``: the estimate's BLAS threads (default: the estimate's own default)."""
     r0 = resource.getrusage(resource.RUSAGE_SELF)
-    (H, W), grid, dt, est, unseen = run_timing(side)
+    kw = {} if threads is None else {"threads": threads}
+    (H, W), grid, dt, est, unseen = run_timing(side, **kw)
     r1 = resource.getrusage(resource.RUSAGE_SELF)
     return dict(H=H, W=W, poses=int(grid.size), step=float(grid.rz[1] - grid.rz[0]),
                 time_s=dt, unseen=[float(u) for u in unseen], peak_rss_mb=peak_rss_mb(),
@@ -192,9 +195,10 @@ def main(timing_sides=(5000, 10000, 32000)) -> str:
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true", help="timing at 25 MP only")
-    ap.add_argument("--case", type=int, help="(internal) one timing row at this side")
+    ap.add_argument("--case", type=int, help="one timing row at this side (JSON)")
+    ap.add_argument("--threads", type=int, default=None, help="with --case: BLAS threads")
     a = ap.parse_args()
     if a.case:
-        print(json.dumps(timing_case(a.case)))
+        print(json.dumps(timing_case(a.case, a.threads)))
     else:
         print(main((5000,) if a.quick else (5000, 10000, 32000)))

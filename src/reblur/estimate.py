@@ -123,10 +123,9 @@ def estimate_motion(
     threads : int, optional
         BLAS threads of the solver (its Gram products and the adjoint's row transforms);
         default the CPUs available to the process, at most :data:`MAX_BLAS_THREADS` and at
-        most ``OPENBLAS_NUM_THREADS`` or ``OMP_NUM_THREADS`` when set.  The
-        estimate runs while nothing else does (the tiles wait for its weights), so it
-        may use the cores: on 2 cores the 1 Gpx estimate takes 0.7x the time of one
-        thread (docs/NOTES.md, "Memory of the estimate").
+        most ``OPENBLAS_NUM_THREADS`` or ``OMP_NUM_THREADS`` when set.  The estimate runs
+        while nothing else does (the tiles wait for its weights), so it may use the cores
+        (docs/NOTES.md, "Memory of the estimate", for the gain on 2 cores).
 
     Returns
     -------

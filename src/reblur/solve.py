@@ -80,8 +80,9 @@ class Scratch:
     solves several related problems (the levels of a coarse-to-fine schedule, photometric
     refits) can pass the same ``Scratch`` to each: the buffer then grows a few times in
     all instead of once per window and call.  Fresh memory is not free: its pages fault in
-    on first touch, which costs up to ~8 ms per MB on some virtual machines (against
-    ~0.3 ms on bare metal), more than the products themselves.
+    on first touch, which on some virtual machines costs more than the products
+    themselves (about 6 ms per MB on the benchmark machine against 0.1 ms for pages the
+    kernel still holds: ``python -m benchmarks.first_touch``).
     """
 
     def __init__(self) -> None:
