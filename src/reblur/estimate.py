@@ -119,7 +119,6 @@ def estimate_motion(
         windows (``benchmarks/outskirts.py``, noise-free: corner windows 50-54 dB without,
         61-65 dB with).  ``info["photometry"]`` holds the ``offset`` removed (per band,
         ``g ~ F w + offset``) and the ``rounds``; ``chi`` is then in the corrected units.
-
     threads : int, optional
         BLAS threads of the solver (its Gram products and the adjoint's row transforms);
         default the CPUs available to the process, at most :data:`MAX_BLAS_THREADS` and at
