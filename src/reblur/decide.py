@@ -73,8 +73,10 @@ close to the tile edge, and the tile should be re-run with a larger halo.
 
 Defaults
 --------
-Pixel sizes (``smooth=2``, ``open_radius=3``, ``min_area=100``) suit imagery where the
-objects of interest are at least ~10 x 10 px; scale them with the ground resolution.  The
+Pixel sizes (``smooth=2``, ``open_radius=3``, ``min_area=100``, ``close_radius=8``) suit
+imagery where the objects of interest are at least ~10 x 10 px; scale them with the ground
+resolution (``close_radius=8`` fills bays up to 16 px wide; docs/NOTES.md, fifth stop, for
+its effect and the radii tried).  The
 shape limits are generic: L- or T-shaped objects have solidity 0.7-0.9, branching networks
 0.1-0.5 (``min_solidity=0.65`` lies between, on the flat part of the measured curve: 0.6 and
 0.7 give the same Jaccard on the development pairs, 0.75 loses 0.03); ``max_aspect=8``
