@@ -171,9 +171,10 @@ def main(timing_sides=(5000, 10000, 32000)) -> str:
         "out as every pose of the +-3 deg grid allows; grid sized to the image, coarse-to-fine "
         "over the roll angles; the image itself is never loaded). Target (issue: large "
         "images): <= 5 s at 1 Gpx.  Each row in a fresh process (BLAS threads: the "
-        "default, the available cores); peak RSS and kernel time are the process's, scene "
-        "generation included (the scene is synthesised window by window, outside the timed "
-        "estimate); kernel time is mostly page faults of fresh memory "
+        "default, the available cores); peak RSS and kernel time are the process's: they "
+        "also cover the scene's synthesis (window by window as the estimate reads it, inside "
+        "its time as file reads would be) and the unseen windows' evaluation after it; "
+        "kernel time is mostly page faults of fresh memory "
         "(`python -m benchmarks.first_touch`).",
         "",
         "| image | poses in the grid | roll step (deg) | time (s) | unseen windows (dB) "
