@@ -24,6 +24,7 @@ import os
 import numpy as np
 import scipy.fft as sfft
 
+from ._memory import zeros as _zeros
 from .grid import PoseGrid
 from .warp import Box, as_box, read_window, source_box, warp_window
 
@@ -158,7 +159,7 @@ class BlurOperator:
         eh, ew = self.ext.h, self.ext.w
         # float32: the warps are single precision, so the stack holds their values exactly
         # at half the memory (columns are promoted where they meet float64 weights)
-        self.stack = np.zeros((nb, *self._fshape, C), np.float32)
+        self.stack = _zeros((nb, *self._fshape, C), np.float32)
         # ext pixels that some base does not cover (one mask, not one per base)
         bad = np.ones((eh, ew), bool)
         if y0 < y1 and x0 < x1:
@@ -204,12 +205,14 @@ class BlurOperator:
         ctype = np.result_type(self.dtype, np.complex64)
         if self.spectra_precision == "single":
             ctype = np.complex64
-        spec = np.empty((nb, Fh, Fw // 2 + 1, C), ctype)
+        spec = _zeros((nb, Fh, Fw // 2 + 1, C), ctype)
         step = self._chunk()
         for c0 in range(0, nb, step):
             c1 = min(c0 + step, nb)
-            spec[c0:c1] = sfft.rfft2(self.stack[c0:c1].astype(self.dtype, copy=False),
-                                     axes=(1, 2), workers=_WORKERS)
+            blk = self.stack[c0:c1]
+            if ctype != np.complex64:
+                blk = blk.astype(self.dtype)
+            spec[c0:c1] = sfft.rfft2(blk, axes=(1, 2), workers=_WORKERS)
         return spec
 
     def _all_pose_valid(self, bad: np.ndarray) -> np.ndarray:
