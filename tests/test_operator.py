@@ -111,3 +111,22 @@ def test_valid_marks_pixels_outside_reference():
     assert not op.valid[:, :4].any()
     assert op.valid[:, 4:].all()
     np.testing.assert_allclose(op.matvec(np.full(g.shape, 1 / 9))[:, 4:], 1.0)
+
+
+def test_warp_window_into_a_given_array():
+    """``warp_window(out=)`` writes the same values as a fresh warp into the array given
+    (3 and 6 bands: one OpenCV call, or several), and refuses a wrong shape."""
+    from reblur.warp import warp_window
+
+    rng = np.random.default_rng(8)
+    H = np.array([[0.999, 0.02, 3.3], [-0.02, 0.999, -2.1], [0.0, 0.0, 1.0]])
+    for bands in (3, 6):
+        img = rng.random((80, 90, bands)).astype(np.float32)
+        want, ok_want = warp_window(img, H, (10, 12, 50, 60))
+        out = np.full((50, 60, bands), np.nan, np.float32)
+        got, ok = warp_window(img, H, (10, 12, 50, 60), out=out)
+        assert got is out
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(ok, ok_want)
+    with pytest.raises(ValueError, match="out must be"):
+        warp_window(img, H, (10, 12, 50, 60), out=np.zeros((50, 61, 6), np.float32))

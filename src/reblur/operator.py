@@ -142,27 +142,33 @@ class BlurOperator:
         self.ext = self.box.grow(self.tymax, -self.tymin, self.txmax, -self.txmin)
         nb = self.grid.n_bases
         Hs = [self._base_h(b) for b in range(nb)]
+        # the stack is allocated at the FFT size and every base is warped onto a whole
+        # plane of it (``ext`` grown to the FFT size): the warps write it in place, in
+        # OpenCV's threads, and its spectra need no padded copy.  The pixels beyond ``ext``
+        # are never read: the columns are views into ``ext``, and the products' lags
+        # (``0..Dy``, ``0..Dx``) reach no further, so their circular wrap never meets them.
+        self._fshape = (
+            sfft.next_fast_len(self.ext.h, real=True),
+            sfft.next_fast_len(self.ext.w, real=True),
+        )
+        plane = Box(self.ext.y0, self.ext.x0, *self._fshape)
         # one read of the union of what all bases need
-        boxes = [source_box(H, self.ext) for H in Hs]
+        boxes = [source_box(H, plane) for H in Hs]
         Href, Wref = self.reference.shape[:2]
         y0 = max(min(b.y0 for b in boxes), 0)
         x0 = max(min(b.x0 for b in boxes), 0)
         y1 = min(max(b.y1 for b in boxes), Href)
         x1 = min(max(b.x1 for b in boxes), Wref)
         C = self.dimsd[2]
-        # the stack is allocated at the FFT size, zero beyond ``ext``: its spectra need no
-        # padded copy (the columns are views into its ``ext`` part)
-        self._fshape = (
-            sfft.next_fast_len(self.ext.h, real=True),
-            sfft.next_fast_len(self.ext.w, real=True),
-        )
         eh, ew = self.ext.h, self.ext.w
         # float32: the warps are single precision, so the stack holds their values exactly
         # at half the memory (columns are promoted where they meet float64 weights)
-        self.stack = _zeros((nb, *self._fshape, C), np.float32)
+        self.stack = np.empty((nb, *self._fshape, C), np.float32)
         # ext pixels that some base does not cover (one mask, not one per base)
         bad = np.ones((eh, ew), bool)
-        if y0 < y1 and x0 < x1:
+        if not (y0 < y1 and x0 < x1):
+            self.stack[...] = 0.0
+        else:
             sbox = Box(y0, x0, y1 - y0, x1 - x0)
             src = read_window(self.reference, sbox, self.dtype)
             if self.scale != 1.0:
@@ -172,10 +178,9 @@ class BlurOperator:
             for b, H in enumerate(Hs):
                 # warp in float32: OpenCV then keeps single-precision coordinates, while
                 # float64 warps snap them to a 1/32-px table (less accurate)
-                self.stack[b, :eh, :ew], ok = warp_window(
-                    self.reference, H, self.ext, dtype=np.float32, source=(src, sbox)
-                )
-                bad |= ~ok
+                _, ok = warp_window(self.reference, H, plane, dtype=np.float32,
+                                    source=(src, sbox), out=self.stack[b])
+                bad |= ~ok[:eh, :ew]
             del src
         self.valid = self._all_pose_valid(bad)
         # flat-index helpers: lag offsets of every pose

@@ -111,9 +111,14 @@ def source_box(H: np.ndarray, dst: Box, pad: int = _PAD) -> Box:
     return Box(int(y0), int(x0), int(y1 - y0 + 1), int(x1 - x0 + 1))
 
 
-def _warp(src: np.ndarray, M: np.ndarray, dst: Box, interpolation: int) -> np.ndarray:
+def _warp(src: np.ndarray, M: np.ndarray, dst: Box, interpolation: int,
+          out: np.ndarray | None = None) -> np.ndarray:
     C = src.shape[2]
-    out = np.empty((dst.h, dst.w, C), dtype=src.dtype)
+    if out is None:
+        out = np.empty((dst.h, dst.w, C), dtype=src.dtype)
+    elif out.shape != (dst.h, dst.w, C) or out.dtype != src.dtype:
+        raise ValueError(f"out must be {(dst.h, dst.w, C)} {src.dtype}, got {out.shape} "
+                         f"{out.dtype}")
     for c0 in range(0, C, 4):  # OpenCV warps at most 4 channels at once
         c1 = min(c0 + 4, C)
         if c1 - c0 == 1:
@@ -134,16 +139,18 @@ def _warp(src: np.ndarray, M: np.ndarray, dst: Box, interpolation: int) -> np.nd
 def warp_source(
     source: tuple[np.ndarray, Box], H: np.ndarray, dst: Box, need: Box,
     ref_shape: tuple[int, int], interpolation: int = cv2.INTER_LINEAR,
+    out: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """:func:`warp_window` from a read source window, with its :func:`source_box` known.
 
     Returns the warped window and its validity mask, or None for the mask when every
     pixel's footprint lies inside the reference (the usual case, which costs nothing).
+    ``out``: an ``(h, w, C)`` array of the source's dtype to warp into.
     """
     src, sbox = source
     Href, Wref = ref_shape
     M = local_homography(H, (sbox.x0, sbox.y0), (dst.x0, dst.y0))
-    out = _warp(src, M, dst, interpolation)
+    out = _warp(src, M, dst, interpolation, out)
     if need.y0 >= 0 and need.x0 >= 0 and need.y1 <= Href and need.x1 <= Wref:
         return out, None
     # validity: the reference extent expressed in the source window, warped like the data
@@ -167,6 +174,7 @@ def warp_window(
     dtype=np.float32,
     interpolation: int = cv2.INTER_LINEAR,
     source: tuple[np.ndarray, Box] | None = None,
+    out: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Warp the reference by ``H`` into the output window ``dst``.
 
@@ -186,6 +194,9 @@ def warp_window(
     source : (array, Box), optional
         An already-read reference window (``(h, w, C)``) and its box, to avoid re-reading
         when several warps share a source.  It must cover :func:`source_box`.
+    out : (h, w, C) ndarray, optional
+        Array of ``dtype`` to warp into (and return); OpenCV's threads write it, so its
+        fresh pages are faulted in in parallel.
 
     Returns
     -------
@@ -203,11 +214,15 @@ def warp_window(
         y1, x1 = min(need.y1, Href), min(need.x1, Wref)
         if y0 >= y1 or x0 >= x1:
             C = reference.shape[2] if len(reference.shape) == 3 else 1
-            return np.zeros((dst.h, dst.w, C), dtype), np.zeros((dst.h, dst.w), bool)
+            if out is None:
+                out = np.zeros((dst.h, dst.w, C), dtype)
+            else:
+                out[...] = 0
+            return out, np.zeros((dst.h, dst.w), bool)
         sbox = Box(y0, x0, y1 - y0, x1 - x0)
         src = read_window(reference, sbox, dtype)
     else:
         src, sbox = source
         src = as_channels(src).astype(dtype, copy=False)
-    out, valid = warp_source((src, sbox), H, dst, need, (Href, Wref), interpolation)
+    out, valid = warp_source((src, sbox), H, dst, need, (Href, Wref), interpolation, out)
     return out, np.ones((dst.h, dst.w), bool) if valid is None else valid
