@@ -28,7 +28,6 @@ from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
-from scipy.signal import correlate
 from threadpoolctl import threadpool_limits
 
 from .estimate import estimate_motion
@@ -114,6 +113,10 @@ def _window_scores(cells: np.ndarray, n: int) -> np.ndarray:
 
 # ---------------------------------------------------------------------------- measure
 def _ncc_max(a: np.ndarray, b: np.ndarray, sigma: float = 1.0) -> float:
+    # imported here: scipy.signal takes a quarter of a second to import (scipy.stats
+    # with it), and only the paper's single-window selection compares kernels
+    from scipy.signal import correlate
+
     if sigma > 0:  # kernels from small patches are spiky: compare them at 1-px tolerance
         a = cv2.GaussianBlur(a, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
         b = cv2.GaussianBlur(b, (0, 0), sigma, borderType=cv2.BORDER_CONSTANT)
