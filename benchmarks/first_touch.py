@@ -24,25 +24,33 @@ import numpy as np
 from benchmarks.common import run_case
 
 #: (mode, MB per array, arrays, seconds idle before the case).  The second case starts
-#: right after the first freed its 2 GB: pages the kernel still holds.
-CASES = (("grow", 256, 8, 5.0), ("grow", 256, 8, 0.0), ("reuse", 256, 8, 5.0))
+#: right after the first freed its 2 GB: pages the kernel still holds.  ``grow-threads``
+#: is ``grow`` with each first write made by :func:`reblur._memory.zeros` (the available
+#: CPUs at once), as the estimate's stacks and spectra are.
+CASES = (("grow", 256, 8, 5.0), ("grow", 256, 8, 0.0), ("reuse", 256, 8, 5.0),
+         ("grow-threads", 256, 8, 5.0))
 
 
 def case(mode: str, mb: int, n: int) -> dict:
     """Time the first and the second write of ``n`` arrays of ``mb`` MB."""
+    from reblur._memory import zeros
+
     first = second = 0.0
     keep = []
     r0 = resource.getrusage(resource.RUSAGE_SELF)
     for _ in range(n):
         t = time.perf_counter()
-        a = np.empty(mb * 2**20 // 8)
-        a.fill(1.0)
+        if mode == "grow-threads":
+            a = zeros(mb * 2**20 // 8, np.float64)
+        else:
+            a = np.empty(mb * 2**20 // 8)
+            a.fill(1.0)
         t1 = time.perf_counter()
         a.fill(2.0)
         t2 = time.perf_counter()
         first += t1 - t
         second += t2 - t1
-        if mode == "grow":
+        if mode.startswith("grow"):
             keep.append(a)
         del a
     r1 = resource.getrusage(resource.RUSAGE_SELF)
@@ -60,7 +68,9 @@ def main(repeats: int = 3) -> str:
         "per MB, each case in a fresh process, repeated; `grow` keeps every array "
         "(new pages all the way), `reuse` frees each before the next.  The idle column is "
         "the pause before the case (0: right after the previous case freed its memory).  "
-        "The idle-0 row is what a page fault costs when the host still backs the page.",
+        "The idle-0 row is what a page fault costs when the host still backs the page. "
+        "`grow-threads` makes each first write with `reblur._memory.zeros`: the "
+        "available CPUs fault the pages in at once.",
         "",
         "| case | idle before (s) | MB written | first write (ms/MB), per run "
         "| second write (ms/MB) | kernel time (s), per run |",

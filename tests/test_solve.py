@@ -410,3 +410,29 @@ def test_line_search_finds_the_minimiser_of_the_huber_objective():
         assert abs(t - lo) < 1e-9, (trial, t, lo)
         found_interior += 0.0 < lo < 1.0
     assert found_interior >= 20
+
+
+def test_batch_grows_with_the_active_set():
+    """Poses enter ``batch`` at a time, or a quarter of the active set when that is more:
+    from a warm start of 40 poses with ``batch=1``, some outer iteration adds 10 or more
+    (the counts are observed through the callback), and the solve still fits the blur."""
+    import cv2
+
+    rng = np.random.default_rng(12)
+    f = cv2.GaussianBlur(rng.random((140, 140)), (0, 0), 1.2)
+    grid = PoseGrid((140, 140), tx=np.arange(-6, 7), ty=np.arange(-6, 7))
+    op = BlurOperator(f, grid, (20, 20, 100, 100))
+    w_true = np.zeros(grid.size)
+    w_true[rng.choice(grid.size, 60, replace=False)] = rng.random(60) + 0.5
+    w_true = (w_true / w_true.sum()).reshape(grid.shape)
+    g = op.matvec(w_true)
+    w0 = np.zeros(grid.size)
+    w0[np.flatnonzero(w_true.ravel())[:40]] = 1.0 / 40
+    sizes = []
+    w, info = active_set([op], [g], lam=1e-6, occlusion=False, batch=1,
+                         w0=w0.reshape(grid.shape),
+                         callback=lambda w: sizes.append(int(np.count_nonzero(w))))
+    steps = np.diff([40] + sizes)
+    assert steps.max() >= 10
+    assert info["converged"]
+    assert np.linalg.norm(op.matvec(w) - g) <= 1e-5 * np.linalg.norm(g)

@@ -253,7 +253,7 @@ def active_set(
     occlusion: bool = True,
     masks: Sequence[np.ndarray] | None = None,
     signs: Sequence[np.ndarray | None] | None = None,
-    batch: int = 48,
+    batch: int = 24,
     max_outer: int = 60,
     max_irls: int = 10,
     tol: float = 1e-7,
@@ -281,11 +281,11 @@ def active_set(
         (no change term there).  The loss is then one-sided: linear only where
         ``signs * r > lam / 2``.  None (default): either polarity everywhere (eq. 5).
     batch : int
-        Poses added to the active set per outer iteration (at most).  Every outer
-        iteration costs one adjoint per window over the whole grid and a copy of the
-        active columns for the Gram update, so larger batches cost less while the poses
-        they add stay (48 against 24: 37 instead of 53 outer iterations over the levels of
-        the 1 Gpx estimate, the same solution; ``python -m benchmarks.large_motion``).
+        Poses added to the active set per outer iteration, at most, or a quarter of the
+        active set when that is more.  Every outer iteration costs one adjoint per window
+        over the whole grid and a copy of the active columns for the Gram update, so a
+        large active set (a warm start of a few hundred poses) grows in few, large steps,
+        while a small one is not flooded with poses it drops again.
     max_outer : int
         Outer iterations (active-set growth) at most.
     max_irls : int
@@ -382,7 +382,7 @@ def active_set(
             break
         if time_limit is not None and time.perf_counter() - t_start > time_limit:
             break
-        order = np.argsort(cand)[:batch]
+        order = np.argsort(cand)[: max(batch, len(active) // 4)]
         new = [int(k) for k in order if cand[k] < 0]
         G, b, d = _gram_add(wins, active, new, G, b, d)
         active = active + new
