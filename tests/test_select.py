@@ -165,3 +165,20 @@ def test_coverage_cells_match_the_definition_on_a_fine_grid():
         slow = _coverage_slow(shape, shape, base, grid, 100)
         assert 0.3 < slow.mean() < 0.99
         assert np.array_equal(fast, slow)
+
+
+def test_kernel_similarity_against_direct_correlation():
+    """``_ncc_max`` (FFT on the zero-padded size) against scipy.signal's direct full
+    correlation (the explicit reference), on kernels of different shapes."""
+    from scipy.signal import correlate
+
+    from reblur.select import _ncc_max
+
+    rng = np.random.default_rng(21)
+    for sa, sb in (((9, 9), (9, 9)), ((7, 12), (10, 5)), ((1, 6), (4, 1))):
+        a, b = rng.random(sa), rng.random(sb)
+        want = correlate(a, b, mode="full", method="direct").max()
+        want /= np.linalg.norm(a) * np.linalg.norm(b)
+        assert abs(_ncc_max(a, b, sigma=0.0) - want) <= 1e-12
+    a = rng.random((9, 9))
+    assert abs(_ncc_max(a, a, sigma=0.0) - 1.0) <= 1e-12
