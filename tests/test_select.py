@@ -111,8 +111,9 @@ def test_spread_side_shares_a_pixel_budget():
 def test_coarse_levels_share_a_pixel_budget():
     from reblur.estimate import _COARSE_PIXELS, coarse_side
 
-    assert coarse_side(1) == coarse_side(2) == 256  # sqrt(2**17 / 2); at most 256
-    for k in range(2, 9):
+    assert coarse_side(1) == coarse_side(2) == 256  # one or two windows: 256 px each
+    assert coarse_side(4) == 128
+    for k in range(3, 9):
         c = coarse_side(k)
         assert k * c * c <= _COARSE_PIXELS < k * (c + 1) ** 2
     assert coarse_side(10**6) == 64

@@ -404,18 +404,27 @@ def _next_angles(mass: np.ndarray, stride: int) -> tuple[list[int], int]:
     return sorted(cand), new_stride
 
 
-#: Pixels of all windows together on a coarse-to-fine level before the last: the central
-#: ``sqrt(_COARSE_PIXELS / K)`` px of each of the ``K`` windows, at most 256 (256 px for
-#: one or two windows, the pipeline's default below 2500 px; 181 px for four).  A coarse
-#: level only finds where the weight lies; its cost (Gram products, spectra) grows with its
-#: pixels, and at 1 Gpx it was most of the estimate with 256 px per window for four windows
-#: (``python -m benchmarks.large_motion``).
-_COARSE_PIXELS = 2**17
+#: Pixels of all windows together on a coarse-to-fine level before the last, for three
+#: windows or more: the central ``sqrt(_COARSE_PIXELS / K)`` px of each of the ``K``
+#: windows (128 px for four, 114 for five: the pipeline's defaults above 2500 px).  One or
+#: two windows keep 256 px each.  A coarse level only finds where the weight lies, and its
+#: cost (Gram products, spectra) grows with its pixels.  Windows spread around the image
+#: pin the roll down jointly: 128 px each gave the same weights as 181 px at 38 MP, 105 MP
+#: and 1 Gpx (``python -m benchmarks.large_motion``: unseen windows to 0.01 dB; the 1 Gpx
+#: estimate 1.8 s shorter) and the same flags on the outskirts pair
+#: (``python -m benchmarks.outskirts``, defaults).  Two windows of a small image carry the
+#: roll alone: at 181 px each, ``python -m benchmarks.quality`` moved (Fig. 6 seed 8 JC
+#: 0.834 -> 0.807, the ``align=False`` WHU pairs 0.264 -> 0.284 in the mean), so they
+#: keep 256 px.
+_COARSE_PIXELS = 2**16
 
 
 def coarse_side(n_windows: int) -> int:
     """Side (px) of each window's central part on the coarse levels (64 to 256 px)."""
-    return max(64, min(256, int(np.sqrt(_COARSE_PIXELS / max(int(n_windows), 1)))))
+    n = max(int(n_windows), 1)
+    if n <= 2:
+        return 256
+    return max(64, min(256, int(np.sqrt(_COARSE_PIXELS / n))))
 
 
 def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam,
