@@ -1,11 +1,12 @@
 """Fresh memory, faulted in by several threads.
 
-The first write to a page of fresh memory costs a page fault.  On bare metal that is about
-0.2 ms per MB; on the virtual machine the benchmarks run on it is 6-7 ms per MB, because
-the host backs guest memory only when it is first touched (``python -m
-benchmarks.first_touch``).  The faults of different threads are served in parallel (two
-threads fault 1 GB in about half the time of one), so a large array that is about to be
-filled is first zeroed by a few threads at once.
+The first write to a page of fresh memory costs a page fault.  Where the host still backs
+the page that is about 0.1 ms per MB; on the virtual machine the benchmarks run on it is
+2-7 ms per MB (varying with the host), because the host backs guest memory only when it is
+first touched (``python -m benchmarks.first_touch``).  The faults of different threads are
+served in parallel (its ``grow-threads`` row: 0.9-1.7 ms per MB on 2 CPUs, against 2.1-2.8
+for one thread in the same run), so a large array that is about to be filled is first
+zeroed by all CPUs at once.
 """
 
 from __future__ import annotations
