@@ -16,13 +16,14 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-__all__ = ["zeros"]
+__all__ = ["available_cpus", "zeros"]
 
 #: Arrays below this size are zeroed by the calling thread alone.
 _PARALLEL_BYTES = 32 * 2**20
 
 
-def _cpus() -> int:
+def available_cpus() -> int:
+    """CPUs this process may run on (its affinity mask where the OS has one)."""
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # not on Linux
@@ -33,7 +34,7 @@ def zeros(shape, dtype, threads: int | None = None) -> np.ndarray:
     """``np.zeros(shape, dtype)`` whose pages are written (faulted in) by ``threads``
     threads at once (default: the available CPUs), not lazily by whoever writes first."""
     a = np.empty(shape, dtype)
-    n = _cpus() if threads is None else max(1, int(threads))
+    n = available_cpus() if threads is None else max(1, int(threads))
     flat = a.reshape(-1).view(np.uint8)
     if n == 1 or flat.size < _PARALLEL_BYTES:
         flat.fill(0)

@@ -9,6 +9,7 @@ from collections.abc import Sequence
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from ._memory import available_cpus
 from .grid import PoseGrid
 from .operator import BlurOperator
 from .result import MotionEstimate
@@ -221,11 +222,7 @@ def _default_threads() -> int:
     """The CPUs available to the process, capped by :data:`MAX_BLAS_THREADS` and by the
     usual environment limits (the first of ``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS``
     that holds a positive integer)."""
-    try:
-        n = len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        n = os.cpu_count() or 1
-    n = min(max(n, 1), MAX_BLAS_THREADS)
+    n = min(available_cpus(), MAX_BLAS_THREADS)
     for var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
         v = os.environ.get(var, "").strip()
         if v.isdigit() and int(v) > 0:

@@ -60,14 +60,15 @@ class BlurOperator:
     spectra : bool
         Precompute FFT spectra (needed for dense ``matvec``/``rmatvec`` on the fast engine).
     spectra_precision : {"single", "double"}
-        Storage of the spectra.  ``"single"`` (default) computes them in the working
-        precision and stores them rounded to complex64; the products with them stay in
-        the working precision.  The spectra are the operator's largest memory (twice the
+        Precision of the spectra.  ``"single"`` (default) computes them from the float32
+        stack in single precision and stores them as complex64; the products with them
+        stay in the working precision.  ``"double"`` computes and stores them in the
+        working precision.  The spectra are the operator's largest memory (twice the
         float32 stack in complex128), and on a virtual machine whose fresh pages fault in
         slowly, their first touch was a large share of a gigapixel estimate (docs/NOTES.md,
-        "Memory of the estimate").  The rounding (relative 6e-8 per coefficient) lies far
-        below the solver's KKT tolerance (1e-6 of the gradient's scale); ``matvec`` and
-        ``rmatvec`` stay exact adjoints of each other.
+        "Memory of the estimate").  The rounding lies far below the solver's KKT
+        tolerance (1e-6 of the gradient's scale); ``matvec`` and ``rmatvec`` stay exact
+        adjoints of each other.
     scale : float
         Reference values are divided by ``scale`` (e.g. 255 for uint8 data).
 

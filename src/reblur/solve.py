@@ -81,8 +81,8 @@ class Scratch:
     refits) can pass the same ``Scratch`` to each: the buffer then grows a few times in
     all instead of once per window and call.  Fresh memory is not free: its pages fault in
     on first touch, which on some virtual machines costs more than the products
-    themselves (about 6 ms per MB on the benchmark machine against 0.1 ms for pages the
-    kernel still holds: ``python -m benchmarks.first_touch``).
+    themselves (2-7 ms per MB on the benchmark machine, varying with its host, against
+    0.1 ms for pages the host still backs: ``python -m benchmarks.first_touch``).
     """
 
     def __init__(self) -> None:
