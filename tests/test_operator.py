@@ -130,3 +130,26 @@ def test_warp_window_into_a_given_array():
         np.testing.assert_array_equal(ok, ok_want)
     with pytest.raises(ValueError, match="out must be"):
         warp_window(img, H, (10, 12, 50, 60), out=np.zeros((50, 61, 6), np.float32))
+
+
+def test_matvec_sums_columns_or_uses_spectra_with_the_same_result():
+    """``matvec`` sums columns for a few poses per weighted angle (exactly: the float32
+    columns summed in float64) and takes the spectral product for many (to the rounding
+    of the single-precision spectra): both give the explicit sum of the weighted columns."""
+    from reblur import operator as operator_module
+
+    rng = np.random.default_rng(31)
+    img = cv2.GaussianBlur(rng.random(SHAPE), (0, 0), 1.0)
+    g = PoseGrid(SHAPE, tx=np.arange(-3, 4), ty=np.arange(-2, 5), rz=np.linspace(-2, 2, 12))
+    op = BlurOperator(img, g, (40, 250, 48, 56))
+    few = np.zeros(g.shape)  # 72 poses, 6 on every base: more than 64, few per base
+    few[:, 0, :6] = rng.random((12, 6))
+    assert few.astype(bool).sum() > 64 and 6 <= operator_module._COLUMNS_PER_BASE
+    dense = rng.random(g.shape)  # 49 per base
+    assert dense[0].size > operator_module._COLUMNS_PER_BASE
+    for w, rtol in ((few, 1e-12), (dense, 1e-5)):
+        want = sum(float(w.flat[k]) * op.column(k).astype(float) for k in range(g.size))
+        np.testing.assert_allclose(op.matvec(w), want, rtol=rtol, atol=rtol * 1e-3)
+        nz = np.flatnonzero(w)
+        np.testing.assert_allclose(op.combine(nz[::-1], w.ravel()[nz][::-1]), want,
+                                   rtol=1e-12, atol=1e-15)

@@ -436,3 +436,78 @@ def test_batch_grows_with_the_active_set():
     assert steps.max() >= 10
     assert info["converged"]
     assert np.linalg.norm(op.matvec(w) - g) <= 1e-5 * np.linalg.norm(g)
+
+
+def test_coarse_to_fine_solves_the_centres_before_the_full_windows(levir_gray):
+    """Four windows: the finest roll stride is solved on their central parts first, then
+    on the full windows with the same poses, reaching the optimum of the direct solve.
+    The observation is read once per window (the central parts are views)."""
+    H, W = levir_gray.shape
+    path = random_camera_path(6, center=((W - 1) / 2, (H - 1) / 2), t_max=5.0, rz_max=1.0)
+    boxes = [(120, 120, 260, 260), (640, 640, 260, 260), (120, 640, 260, 260),
+             (640, 120, 260, 260)]
+    obs = np.zeros((H, W))
+    for b in boxes:
+        g, _ = blur_along_path(levir_gray, path, b, dtype=np.float32)
+        obs[b[0] : b[0] + b[2], b[1] : b[1] + b[3]] = g.reshape(b[2], b[3])
+
+    class Counted:  # an array that counts its reads
+        def __init__(self, a):
+            self.a, self.shape, self.dtype, self.reads = a, a.shape, a.dtype, 0
+
+        def __getitem__(self, key):
+            self.reads += 1
+            return self.a[key]
+
+    grid = PoseGrid.from_ranges((H, W), t_max=8, rz_max=1.5, rz_step=0.05)  # 61 angles
+    direct = estimate_motion(levir_gray, obs, grid, boxes=boxes, coarse_to_fine=False)
+    counted = Counted(obs)
+    c2f = estimate_motion(levir_gray, counted, grid, boxes=boxes, coarse_to_fine=True,
+                          max_bases=6)
+    assert counted.reads == len(boxes)
+    lv = c2f.info["levels"]
+    assert [(v["stride"], v["side"]) for v in lv[-2:]] == [(1, 128), (1, 260)]
+    assert lv[-2]["n_angles"] == lv[-1]["n_angles"] and lv[-2]["n_t"] == lv[-1]["n_t"]
+    assert all(v["side"] == 128 for v in lv[:-1])
+    ops = [BlurOperator(levir_gray, grid, b) for b in boxes]
+    gs = [obs[b[0] : b[0] + b[2], b[1] : b[1] + b[3], None] for b in boxes]
+    f_direct = huber_objective(ops, gs, direct.weights, 0.1)
+    f_c2f = huber_objective(ops, gs, c2f.weights, 0.1)
+    data_direct = f_direct - 0.1 * direct.weights.sum()
+    assert f_c2f - f_direct <= 0.02 * data_direct, (f_c2f, f_direct, data_direct)
+    assert min(c2f.info["psnr"]) >= min(direct.info["psnr"]) - 0.5
+
+
+@pytest.mark.parametrize("n_old", [0, 30])
+def test_gram_of_many_new_columns_equals_the_explicit_product(n_old):
+    """Many columns entering at once (a warm start) take the triangular products: the
+    cached ``A^T D A``, ``A^T D g`` and ``A^T s`` equal those of the explicit matrix, with
+    a masked window and outliers of both signs."""
+    import cv2
+
+    from reblur.solve import _TRI_GROUP, _gram_add, _Window
+
+    rng = np.random.default_rng(21)
+    f = cv2.GaussianBlur(rng.random((140, 140)), (0, 0), 1.2)
+    grid = PoseGrid((140, 140), tx=np.arange(-3, 4), ty=np.arange(-3, 4),
+                    rz=[-1.0, -0.5, 0.0, 0.5, 1.0])  # 245 poses
+    op = BlurOperator(f, grid, (30, 25, 70, 90))
+    g = rng.random(op.dimsd)
+    mask = op.valid & (rng.random(op.valid.shape) > 0.1)
+    win = _Window(op, g, mask, delta=0.2)
+    win.inl, win.sgn = win.partition(g - 0.5)  # a partition with outliers of both signs
+    assert 0 < (~win.inl & win.m3).sum() and (win.sgn > 0).any() and (win.sgn < 0).any()
+    cols = [int(k) for k in rng.permutation(grid.size)[: n_old + 3 * _TRI_GROUP + 5]]
+    old, new = cols[:n_old], cols[n_old:]
+    G0, b0, d0 = np.zeros((0, 0)), np.zeros(0), np.zeros(0)
+    if old:
+        G0, b0, d0 = _gram_add([win], [], old, G0, b0, d0)
+    G, b, d = _gram_add([win], old, new, G0, b0, d0)
+    A = np.stack([op.column(k).astype(float).ravel() for k in cols], axis=1)
+    m = win.m3.ravel()
+    Dv = win.inl.ravel()[m].astype(float)
+    A = A[m]
+    np.testing.assert_allclose(G, A.T @ (Dv[:, None] * A), rtol=1e-10, atol=1e-9)
+    np.testing.assert_allclose(b, A.T @ (Dv * g.ravel()[m]), rtol=1e-10, atol=1e-9)
+    np.testing.assert_allclose(d, A.T @ win.sgn.ravel()[m].astype(float), rtol=1e-10,
+                               atol=1e-9)

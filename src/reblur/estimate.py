@@ -415,6 +415,15 @@ def _next_angles(mass: np.ndarray, stride: int) -> tuple[list[int], int]:
 #: keep 256 px.
 _COARSE_PIXELS = 2**16
 
+#: Solve the finest roll stride on the windows' central parts before the full windows
+#: (when those parts hold at most half of the pixels).  The full-window level is the
+#: costly one (every angle's stack and spectra at full size, Gram products over all its
+#: pixels); started from the stride-2 solution it spent most of its outer iterations
+#: finding the odd angles' weights, which the central parts find for a tenth of the
+#: pixels.  From their solution it only adjusts the weights (1 Gpx: 4 outer iterations
+#: there instead of 6, ``python -m benchmarks.large_motion``).
+_FINE_ON_CENTRES = True
+
 
 def coarse_side(n_windows: int) -> int:
     """Side (px) of each window's central part on the coarse levels (64 to 256 px)."""
@@ -432,9 +441,11 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
     Coarse levels solve on the central :func:`coarse_side` pixels of each window (the
     windows stay far apart, so roll stays observable) and, after the first level, only over the
     translations that carry weight plus ``t_margin`` pixels (every ``ts``-th of them on
-    coarse levels, nested from level to level so that warm starts carry over); the last
-    level uses the full windows and every translation.  The result is embedded in the full
-    grid.
+    coarse levels, nested from level to level so that warm starts carry over).  At the
+    finest stride the central parts are solved first when they hold at most half of the
+    windows' pixels; the last level then uses the full windows, the same poses, and the
+    warm start of that solve (see :data:`_FINE_ON_CENTRES`).  The result is embedded in the
+    full grid.  The observation windows are read once: the central parts are views of them.
     """
     n = grid.n_bases
     stride = int(np.ceil((n - 1) / max(max_bases - 1, 1)))
@@ -456,23 +467,30 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
     def every(vals: list, full: list, i0: int, ts: int) -> list:
         return [v for v in vals if (full.index(v) - i0) % ts == 0]
 
+    small = [_shrink(b, coarse_side(len(boxes))) for b in boxes]
+    g_full = [read_window(observed, b, np.float64) / s_obs for b in boxes]
+    g_small = [g[s.y0 - b.y0 : s.y1 - b.y0, s.x0 - b.x0 : s.x1 - b.x0]
+               for g, s, b in zip(g_full, small, boxes, strict=True)]
+    centres_first = _FINE_ON_CENTRES and (
+        2 * sum(b.h * b.w for b in small) <= sum(b.h * b.w for b in boxes))
     w_prev = None
     total = dict(objective=[], n_outer=0, time_s=0.0)
+    on_centres = True  # the level about to run solves on the central parts
     while True:
-        last = stride == 1
+        last = stride == 1 and not (on_centres and centres_first)
         ts = t_stride(stride)
         sub = PoseGrid(grid.image_shape, tx=every(tx, list(grid.tx), x0, ts),
                        ty=every(ty, list(grid.ty), y0, ts), rz=[grid.rz[i] for i in idx],
                        center=grid.center)
         w0 = None if w_prev is None else w_prev[np.ix_(
             idx, [grid.ty.index(v) for v in sub.ty], [grid.tx.index(v) for v in sub.tx])]
-        bx = boxes if last else [_shrink(b, coarse_side(len(boxes))) for b in boxes]
-        ops = gs = None  # the previous level's stacks and spectra go before the next's come
+        bx, gs = (boxes, g_full) if last else (small, g_small)
+        ops = None  # the previous level's stacks and spectra go before the next's come
         w, info, ops, gs = _solve(reference, observed, sub, bx, base, engine, s_ref, s_obs,
                                   lam, occlusion, "active-set", max_outer, time_limit, 0, w0,
-                                  scratch=scratch)
+                                  gs=gs, scratch=scratch)
         levels.append(dict(stride=stride, t_stride=ts, n_angles=len(idx),
-                           n_t=len(sub.tx) * len(sub.ty),
+                           n_t=len(sub.tx) * len(sub.ty), side=int(max(bx[0].h, bx[0].w)),
                            n_outer=info["n_outer"], time_s=info["time_s"],
                            n_active=info["n_active"]))
         total["objective"] += info["objective"]
@@ -482,6 +500,10 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
             total.update({k: v for k, v in info.items() if k not in total})
             return w, total, ops, gs, sub
         w_full = _embed_rz(w, sub, grid)
+        w_prev = w_full
+        if stride == 1:  # the central parts at the finest stride: same poses, full windows
+            on_centres = False
+            continue
         idx, stride = _next_angles(w_full.sum(axis=(1, 2)), stride)
         # translations: those carrying weight, plus a margin, within the grid
         nz = np.argwhere(w_full > 0)
@@ -491,4 +513,3 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
             xlo, xhi = nz[:, 2].min() - mg, nz[:, 2].max() + mg
             ty = list(grid.ty[max(ylo, 0) : yhi + 1])
             tx = list(grid.tx[max(xlo, 0) : xhi + 1])
-        w_prev = w_full

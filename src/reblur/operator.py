@@ -35,6 +35,11 @@ _WORKERS = max(1, os.cpu_count() or 1)
 #: Bytes of cross spectra per block in :meth:`BlurOperator.rmatvec` (fits a shared L3).
 _BLOCK_BYTES = 16 * 2**20
 
+#: :meth:`BlurOperator.matvec` sums columns while there are at most this many weighted
+#: poses per base angle with weight: a 400 x 400 column costs ~0.1 ms, a base's share of
+#: the spectral product (its kernel's transform and product) ~1.5 ms on 2 cores.
+_COLUMNS_PER_BASE = 8
+
 
 def _channels(reference) -> int:
     return int(reference.shape[2]) if len(reference.shape) == 3 else 1
@@ -61,14 +66,16 @@ class BlurOperator:
         Precompute FFT spectra (needed for dense ``matvec``/``rmatvec`` on the fast engine).
     spectra_precision : {"single", "double"}
         Precision of the spectra.  ``"single"`` (default) computes them from the float32
-        stack in single precision and stores them as complex64; the products with them
-        stay in the working precision.  ``"double"`` computes and stores them in the
-        working precision.  The spectra are the operator's largest memory (twice the
-        float32 stack in complex128), and on a virtual machine whose fresh pages fault in
-        slowly, their first touch was a large share of a gigapixel estimate (docs/NOTES.md,
-        "Memory of the estimate").  The rounding lies far below the solver's KKT
-        tolerance (1e-6 of the gradient's scale); ``matvec`` and ``rmatvec`` stay exact
-        adjoints of each other.
+        stack in single precision and stores them as complex64; ``rmatvec``'s products
+        with them are single precision too (twice as fast), while ``matvec``'s stay in the
+        working precision.  ``"double"`` computes, stores and uses them in the working
+        precision.  The spectra are the operator's largest memory (twice the float32 stack
+        in complex128), and on a virtual machine whose fresh pages fault in slowly, their
+        first touch was a large share of a gigapixel estimate (docs/NOTES.md, "Memory of
+        the estimate").  ``rmatvec``'s error relative to ``|F^T r|`` is ~4e-7 (~2e-7 from
+        the rounded spectra alone): relative to the current residual, which is small near
+        the optimum, so far below the solver's KKT tolerance (1e-6 of the gradient's
+        scale).  ``matvec`` and ``rmatvec`` stay adjoints of each other to that rounding.
     scale : float
         Reference values are divided by ``scale`` (e.g. 255 for uint8 data).
 
@@ -286,16 +293,31 @@ class BlurOperator:
         return np.stack([self.gather(int(k), rows, cols)[sel, chans] for k in ks], axis=1)
 
     # ------------------------------------------------------------------ products
+    def combine(self, ks, values) -> np.ndarray:
+        """``sum_i values[i] * column(ks[i])`` in the working precision (zero values
+        skipped), summed in column order: a base's columns are then neighbours in memory."""
+        out = np.zeros(self.dimsd, self.dtype)
+        ks = np.asarray(ks, dtype=np.int64)
+        values = np.asarray(values, dtype=float)
+        for i in np.argsort(ks, kind="stable"):
+            if values[i] != 0.0:
+                out += values[i] * self.column(int(ks[i]))
+        return out
+
     def matvec(self, weights: np.ndarray) -> np.ndarray:
-        """``F w``: the window of the reference blurred with pose weights ``w``."""
+        """``F w``: the window of the reference blurred with pose weights ``w``.
+
+        A sum of columns when that is cheaper than the spectral product (a few weighted
+        poses per base angle with weight: a column costs a tenth or less of a base's
+        spectral product), else the spectral product."""
         w = np.asarray(weights, dtype=float).reshape(self.grid.shape)
         nz = np.flatnonzero(w)
-        if self.engine == "exact" or self.spec is None or nz.size <= 64:
-            out = np.zeros(self.dimsd, self.dtype)
-            flat = w.ravel()
-            for k in nz:
-                out += flat[k] * self.column(k)
-            return out
+        sparse = nz.size <= 64
+        if not sparse and self.engine == "fast":
+            n_bases = np.unique(np.unravel_index(nz, self.grid.shape)[0]).size
+            sparse = nz.size <= _COLUMNS_PER_BASE * n_bases
+        if self.engine == "exact" or self.spec is None or sparse:
+            return self.combine(nz, w.ravel()[nz])
         kern = np.zeros((self.grid.n_bases, self.Dy + 1, self.Dx + 1))
         iy = (self._ty - self.tymin).astype(int)
         ix = (self._tx - self.txmin).astype(int)
@@ -321,6 +343,12 @@ class BlurOperator:
                 out[k] = float(np.vdot(self.column(k), r))
             return out.reshape(self.grid.shape)
         Rc = np.conj(sfft.rfft2(r, s=self._fshape, axes=(0, 1), workers=_WORKERS))
+        if self.spec.dtype == np.complex64:
+            # single-precision spectra: the products in single precision too (half the
+            # memory traffic, twice the arithmetic rate).  Their rounding is of the
+            # spectra's own order, relative to |r| (the current residual, small near the
+            # optimum where the solver's KKT test needs the gradient's sign)
+            Rc = Rc.astype(np.complex64)
         nb, Fh, F2, C = self.spec.shape
         # Sum over bands before the inverse transform (linearity).  Only the lags 0..Dy
         # (rows) and 0..Dx (columns) are needed: the inverse DFT along the rows is a small
@@ -340,9 +368,9 @@ class BlurOperator:
                 np.multiply(self.spec[c0:c1, :, :, 0], Rc[:, :, 0], out=buf)
             else:
                 np.einsum("byxc,yxc->byx", self.spec[c0:c1], Rc, out=buf)
-            np.matmul(self._row_idft, buf, out=rows[c0:c1])
+            np.matmul(self._row_idft.astype(ctype, copy=False), buf, out=rows[c0:c1])
         corr = sfft.irfft(rows, n=self._fshape[1], axis=2, workers=_WORKERS)
-        return corr[:, self._oy[:, None], self._ox[None, :]]
+        return corr[:, self._oy[:, None], self._ox[None, :]].astype(self.dtype, copy=False)
 
     @property
     def H(self) -> _Adjoint:

@@ -36,6 +36,11 @@ from .operator import BlurOperator
 
 #: Pixels per block when building explicit active columns (bounds the solver's memory).
 _CHUNK = 32768
+#: New columns per GEMM when many enter the Gram at once (a warm start): the products
+#: then skip the lower triangle of the symmetric new-by-new block, all but a group's
+#: diagonal block (a warm start of 260 poses: 60 % of the full product's arithmetic).
+#: OpenBLAS's SYRK did the same job slower than the full GEMM (docs/NOTES.md).
+_TRI_GROUP = 48
 
 __all__ = ["Scratch", "active_set", "fista", "huber_objective", "joint_objective", "power_norm"]
 
@@ -125,11 +130,7 @@ class _Window:
         self.scratch = Scratch() if scratch is None else scratch  # block_products' copies
 
     def forward(self, active: list[int], wa: np.ndarray) -> np.ndarray:
-        out = np.zeros(self.op.dimsd)
-        for k, v in zip(active, wa, strict=True):
-            if v != 0.0:
-                out += v * self.op.column(k)
-        return out
+        return self.op.combine(active, wa)
 
     def residual(self, active: list[int], wa: np.ndarray) -> np.ndarray:
         """``M (g - A w)``: the masked residual of the active columns."""
@@ -169,8 +170,12 @@ class _Window:
     def block_products(self, cols_all: list[int], cols_new: list[int]):
         """``A_all^T D A_new``, ``A_new^T D g`` and ``A_new^T s`` by row blocks.
 
-        The columns of a block are copied as contiguous rows (``A^T``), so each copy is
-        one contiguous write and the product one GEMM.
+        ``cols_new`` are the last columns of ``cols_all``.  The columns of a block are
+        copied as contiguous rows (``A^T``), so each copy is one contiguous write and the
+        product one GEMM -- or, for many new columns, one GEMM per group of
+        :data:`_TRI_GROUP` of them over the rows up to that group's end: the new-by-new
+        block is symmetric, so only its upper triangle (and the groups' diagonal blocks)
+        is computed, and the rest of it is left zero (:func:`_gram_add` mirrors it).
         """
         h, w = self.op.box.h, self.op.box.w
         C = self.op.dimsd[2]
@@ -211,7 +216,13 @@ class _Window:
                 # zero the new columns' outlier pixels in place (the block is a fresh copy):
                 # D A_new, and D^2 = D makes the new-by-new part A_new^T D A_new as well
                 Atn[:, ~ib] = 0.0
-            G += At @ Atn.T
+            if n_new <= 2 * _TRI_GROUP:
+                G += At @ Atn.T
+            else:
+                n_old = n_all - n_new
+                for s0 in range(0, n_new, _TRI_GROUP):
+                    s1 = min(s0 + _TRI_GROUP, n_new)
+                    G[: n_old + s1, s0:s1] += At[: n_old + s1] @ Atn[s0:s1].T
             b += Atn @ gb
         return G, b, d
 
@@ -433,6 +444,9 @@ def _gram_add(wins, active, new, G, b, d):
         Gn += Gw
         bn += bw
         dn += dw
+    if kn > 2 * _TRI_GROUP:  # the new-by-new block came as its upper triangle
+        N = np.triu(Gn[k:])
+        Gn[k:] = N + np.triu(N, 1).T
     out = np.zeros((k + kn, k + kn))
     out[:k, :k] = G
     out[:, k:] = Gn
