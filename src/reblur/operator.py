@@ -131,6 +131,8 @@ class BlurOperator:
         self.shape = (h * w * C, grid.size)
         self._tx = np.asarray(grid.tx)
         self._ty = np.asarray(grid.ty)
+        self._n_tx = len(grid.tx)
+        self._n_t = len(grid.ty) * len(grid.tx)
         if engine == "fast":
             self._build_fast(spectra)
         else:
@@ -261,10 +263,14 @@ class BlurOperator:
     def column(self, k: int) -> np.ndarray:
         """Column ``k`` of ``F`` as an ``(h, w, C)`` image (for the fast engine a float32
         view into the warped stack, whose values are single precision by construction)."""
-        b, iy, ix = np.unravel_index(int(k), self.grid.shape)
         if self.engine == "fast":
-            oy, ox = self._oy[iy], self._ox[ix]
+            # plain integer arithmetic (np.unravel_index costs more than the view; the
+            # solver asks for tens of thousands of columns)
+            b, rest = divmod(int(k), self._n_t)
+            iy, ix = divmod(rest, self._n_tx)
+            oy, ox = int(self._oy[iy]), int(self._ox[ix])
             return self.stack[b, oy : oy + self.box.h, ox : ox + self.box.w]
+        b, iy, ix = np.unravel_index(int(k), self.grid.shape)
         H = self.grid.homography((int(b), int(iy), int(ix))) @ self.base
         col = warp_window(self.reference, H, self.box, dtype=np.float32)[0].astype(self.dtype)
         return col / self.scale if self.scale != 1.0 else col

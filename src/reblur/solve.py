@@ -188,6 +188,7 @@ class _Window:
         # geometrically with the active set: a fresh one per call is a fresh mmap whose
         # pages fault in on first touch (slow on this kind of VM)
         buf = self.scratch.take(n_all * rows * w * C).reshape(n_all, rows * w * C)
+        views = [self.op.column(k) for k in cols_all]
         for r0 in range(0, h, rows):
             r1 = min(r0 + rows, h)
             mk = self.m[r0:r1]
@@ -196,16 +197,16 @@ class _Window:
             if mk.all():
                 n_pix = (r1 - r0) * w * C
                 At = buf[:, :n_pix]
-                for j, k in enumerate(cols_all):
-                    np.copyto(At[j].reshape(r1 - r0, w, C), self.op.column(k)[r0:r1])
+                for j, v in enumerate(views):
+                    np.copyto(At[j].reshape(r1 - r0, w, C), v[r0:r1])
                 gb = self.g[r0:r1].reshape(-1)
                 ib = self.inl[r0:r1].reshape(-1)
                 sb = self.sgn[r0:r1].reshape(-1)
             else:
                 n_pix = int(mk.sum()) * C
                 At = buf[:, :n_pix]
-                for j, k in enumerate(cols_all):
-                    At[j] = self.op.column(k)[r0:r1][mk].ravel()
+                for j, v in enumerate(views):
+                    At[j] = v[r0:r1][mk].ravel()
                 gb = self.g[r0:r1][mk].ravel()
                 ib = self.inl[r0:r1][mk].ravel()
                 sb = self.sgn[r0:r1][mk].ravel()
