@@ -104,6 +104,9 @@ def estimate_motion(
         A level whose angle stride moves the far windows by ``s`` pixels also keeps only
         every ``ts``-th translation (``ts`` the largest power of two <= ``s / 4``, at most a
         quarter of the translation range): finer shifts cannot be told apart there.
+        Levels before the last solve on the windows' central :func:`coarse_side` pixels;
+        at the finest stride those are solved first and the full windows then start from
+        their solution (:data:`_FINE_ON_CENTRES`).  ``info["levels"]`` lists the levels.
         ``"auto"``: when the grid varies only ``rz`` and has more than ``max_bases`` angles.
         This keeps fine rotation grids (a step that moves the farthest pixel of a huge
         image by one pixel) affordable.
@@ -421,7 +424,8 @@ _COARSE_PIXELS = 2**16
 #: pixels); started from the stride-2 solution it spent most of its outer iterations
 #: finding the odd angles' weights, which the central parts find for a tenth of the
 #: pixels.  From their solution it only adjusts the weights (1 Gpx: 4 outer iterations
-#: there instead of 6, ``python -m benchmarks.large_motion``).
+#: there instead of 6; ``python -m benchmarks.large_motion --case 32000`` prints the
+#: levels).  The result is the same optimum (the same poses, another warm start).
 _FINE_ON_CENTRES = True
 
 
