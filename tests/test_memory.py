@@ -23,3 +23,24 @@ def test_zeros_overwrites_every_byte(monkeypatch, threads, shape):
     monkeypatch.undo()
     assert a.shape == shape and a.dtype == np.complex64
     assert np.count_nonzero(a.view(np.uint8)) == 0
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3, 20])
+def test_split_sum_covers_every_item_once(threads):
+    """Every item lands in exactly one part (the parts are contiguous), whatever the
+    thread count, including more threads than items."""
+    from reblur._memory import split_sum
+
+    items = list(range(11))
+    seen: list[list[int]] = []
+
+    def fn(part):
+        seen.append(list(part))
+        out = np.zeros(11)
+        out[list(part)] += 1.0
+        return out
+
+    np.testing.assert_array_equal(split_sum(fn, items, threads), np.ones(11))
+    assert sorted(i for p in seen for i in p) == items
+    assert all(p == list(range(p[0], p[-1] + 1)) for p in seen)
+    assert len(seen) == min(threads, len(items))

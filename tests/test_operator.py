@@ -153,3 +153,22 @@ def test_matvec_sums_columns_or_uses_spectra_with_the_same_result():
         nz = np.flatnonzero(w)
         np.testing.assert_allclose(op.combine(nz[::-1], w.ravel()[nz][::-1]), want,
                                    rtol=1e-12, atol=1e-15)
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3])
+def test_combine_in_threads_equals_the_explicit_sum(monkeypatch, threads):
+    """Sums split across threads (forced on a small window) give the explicit weighted
+    sum of the columns, in any order of the poses given."""
+    from reblur import operator as operator_module
+
+    monkeypatch.setattr(operator_module, "_PARALLEL_SUM", 0)
+    rng = np.random.default_rng(32)
+    img = cv2.GaussianBlur(rng.random(SHAPE + (2,)), (0, 0), 1.0)
+    g = _grid()
+    op = BlurOperator(img, g, (40, 250, 48, 56), threads=threads)
+    assert op.threads == threads
+    ks = rng.choice(g.size, 40, replace=False)
+    vals = rng.standard_normal(40)
+    vals[::7] = 0.0
+    want = sum(float(v) * op.column(int(k)).astype(float) for k, v in zip(ks, vals, strict=True))
+    np.testing.assert_allclose(op.combine(ks, vals), want, rtol=1e-12, atol=1e-14)

@@ -1,4 +1,4 @@
-"""Fresh memory, faulted in by several threads.
+"""Fresh memory, faulted in by several threads; the CPUs available, and work split across them.
 
 The first write to a page of fresh memory costs a page fault.  Where the host still backs
 the page that is about 0.1 ms per MB; on the virtual machine the benchmarks run on it is
@@ -16,7 +16,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-__all__ = ["available_cpus", "zeros"]
+__all__ = ["available_cpus", "split_sum", "zeros"]
 
 #: Arrays below this size are zeroed by the calling thread alone.
 _PARALLEL_BYTES = 32 * 2**20
@@ -44,3 +44,21 @@ def zeros(shape, dtype, threads: int | None = None) -> np.ndarray:
     with ThreadPoolExecutor(n) as ex:  # np.copyto releases the GIL on large arrays
         list(ex.map(lambda p: np.copyto(p, 0), parts))
     return a
+
+
+def split_sum(fn, items, threads: int) -> np.ndarray:
+    """``sum(fn(part) for part in parts)``, ``items`` cut into ``threads`` contiguous parts
+    run in as many threads (``fn`` must release the GIL for most of its work, as numpy's
+    large-array arithmetic does).  The parts and the order of their sum depend only on
+    ``len(items)`` and ``threads``, so the result is deterministic."""
+    n = max(1, min(int(threads), len(items)))
+    if n == 1:
+        return fn(items)
+    bounds = np.linspace(0, len(items), n + 1).astype(np.int64)
+    parts = [items[b0:b1] for b0, b1 in zip(bounds[:-1], bounds[1:], strict=True)]
+    with ThreadPoolExecutor(n) as ex:
+        results = list(ex.map(fn, parts))
+    out = results[0]
+    for r in results[1:]:
+        out += r
+    return out

@@ -124,7 +124,8 @@ def estimate_motion(
         61-65 dB with).  ``info["photometry"]`` holds the ``offset`` removed (per band,
         ``g ~ F w + offset``) and the ``rounds``; ``chi`` is then in the corrected units.
     threads : int, optional
-        BLAS threads of the solver (its Gram products and the adjoint's row transforms);
+        Threads of the solver: BLAS (its Gram products and the adjoint's row transforms)
+        and the operators' sums of columns (:meth:`BlurOperator.combine`);
         default the CPUs available to the process, at most :data:`MAX_BLAS_THREADS` and at
         most ``OPENBLAS_NUM_THREADS`` or ``OMP_NUM_THREADS`` when set.  The estimate runs
         while nothing else does (the tiles wait for its weights), so it may use the cores
@@ -181,12 +182,13 @@ def estimate_motion(
         if coarse_to_fine:
             w, info, ops, gs, grid_used = _rz_coarse_to_fine(
                 reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, occlusion,
-                max_outer, time_limit, max_bases, levels, scratch,
+                max_outer, time_limit, max_bases, levels, scratch, threads=int(threads),
             )
         else:
             w, info, ops, gs = _solve(
                 reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, occlusion,
                 solver, max_outer, time_limit, fista_iter, None, scratch=scratch,
+                threads=int(threads),
             )
             grid_used = grid
         if refit_photometry:
@@ -241,8 +243,9 @@ def _psnr(r: np.ndarray) -> float:
 
 
 def _solve(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, occlusion,
-           solver, max_outer, time_limit, fista_iter, w0, gs=None, scratch=None):
-    ops = [BlurOperator(reference, grid, b, base=base, engine=engine, scale=s_ref) for b in boxes]
+           solver, max_outer, time_limit, fista_iter, w0, gs=None, scratch=None, threads=None):
+    ops = [BlurOperator(reference, grid, b, base=base, engine=engine, scale=s_ref,
+                        threads=threads) for b in boxes]
     if gs is None:
         gs = [read_window(observed, b, np.float64) / s_obs for b in boxes]
     if not any(op.valid.any() for op in ops):
@@ -439,7 +442,7 @@ def coarse_side(n_windows: int) -> int:
 
 def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam,
                        occlusion, max_outer, time_limit, max_bases, levels, scratch=None,
-                       t_margin: int = 3):
+                       t_margin: int = 3, threads=None):
     """Coarse-to-fine over the roll angles of ``grid`` (see :func:`estimate_motion`).
 
     Coarse levels solve on the central :func:`coarse_side` pixels of each window (the
@@ -492,7 +495,7 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
         ops = None  # the previous level's stacks and spectra go before the next's come
         w, info, ops, gs = _solve(reference, observed, sub, bx, base, engine, s_ref, s_obs,
                                   lam, occlusion, "active-set", max_outer, time_limit, 0, w0,
-                                  gs=gs, scratch=scratch)
+                                  gs=gs, scratch=scratch, threads=threads)
         levels.append(dict(stride=stride, t_stride=ts, n_angles=len(idx),
                            n_t=len(sub.tx) * len(sub.ty), side=int(max(bx[0].h, bx[0].w)),
                            n_outer=info["n_outer"], time_s=info["time_s"],

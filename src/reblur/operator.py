@@ -24,6 +24,7 @@ import os
 import numpy as np
 import scipy.fft as sfft
 
+from ._memory import available_cpus, split_sum
 from ._memory import zeros as _zeros
 from .grid import PoseGrid
 from .warp import Box, as_box, read_window, source_box, warp_window
@@ -39,6 +40,10 @@ _BLOCK_BYTES = 16 * 2**20
 #: poses per base angle with weight: a 400 x 400 column costs ~0.1 ms, a base's share of
 #: the spectral product (its kernel's transform and product) ~1.5 ms on 2 cores.
 _COLUMNS_PER_BASE = 8
+
+#: :meth:`BlurOperator.combine` splits sums of at least this many column pixels across
+#: threads (smaller ones cost less than the threads' start).
+_PARALLEL_SUM = 2**22
 
 
 def _channels(reference) -> int:
@@ -78,6 +83,8 @@ class BlurOperator:
         scale).  ``matvec`` and ``rmatvec`` stay adjoints of each other to that rounding.
     scale : float
         Reference values are divided by ``scale`` (e.g. 255 for uint8 data).
+    threads : int, optional
+        Threads of :meth:`combine`'s large sums (default: the CPUs available).
 
     Attributes
     ----------
@@ -106,6 +113,7 @@ class BlurOperator:
         spectra: bool = True,
         scale: float = 1.0,
         spectra_precision: str = "single",
+        threads: int | None = None,
     ):
         self.grid = grid
         self.box = as_box(box)
@@ -121,6 +129,7 @@ class BlurOperator:
                 f"spectra_precision must be 'single' or 'double', got {spectra_precision!r}"
             )
         self.spectra_precision = spectra_precision
+        self.threads = available_cpus() if threads is None else max(1, int(threads))
         self.engine = engine
         self.reference = reference
         self.dtype = np.dtype(dtype)
@@ -301,14 +310,21 @@ class BlurOperator:
     # ------------------------------------------------------------------ products
     def combine(self, ks, values) -> np.ndarray:
         """``sum_i values[i] * column(ks[i])`` in the working precision (zero values
-        skipped), summed in column order: a base's columns are then neighbours in memory."""
-        out = np.zeros(self.dimsd, self.dtype)
+        skipped), summed in column order (a base's columns are then neighbours in memory),
+        by :attr:`threads` threads when the sum is large, each summing a contiguous part of
+        the columns (the solver's forward products: 1.6x faster on 2 cores)."""
         ks = np.asarray(ks, dtype=np.int64)
         values = np.asarray(values, dtype=float)
-        for i in np.argsort(ks, kind="stable"):
-            if values[i] != 0.0:
+        order = [int(i) for i in np.argsort(ks, kind="stable") if values[i] != 0.0]
+
+        def part(idx: list[int]) -> np.ndarray:
+            out = np.zeros(self.dimsd, self.dtype)
+            for i in idx:
                 out += values[i] * self.column(int(ks[i]))
-        return out
+            return out
+
+        big = len(order) * self.box.h * self.box.w * self.dimsd[2] >= _PARALLEL_SUM
+        return split_sum(part, order, self.threads if big else 1)
 
     def matvec(self, weights: np.ndarray) -> np.ndarray:
         """``F w``: the window of the reference blurred with pose weights ``w``.
