@@ -159,7 +159,7 @@ def timing_case(side: int, threads: int | None = None) -> dict:
     return dict(H=H, W=W, poses=int(grid.size), step=float(grid.rz[1] - grid.rz[0]),
                 time_s=dt, synthesis_s=synth, unseen=[float(u) for u in unseen],
                 peak_rss_mb=peak_rss_mb(),
-                levels=[{k: v[k] for k in ("stride", "side", "n_angles", "n_t", "n_outer",
+                levels=[{k: v.get(k) for k in ("stride", "side", "n_angles", "n_t", "n_outer",
                                            "n_active")} | {"time_s": round(v["time_s"], 2)}
                         for v in est.info["levels"]],
                 sys_s=r1.ru_stime - r0.ru_stime, user_s=r1.ru_utime - r0.ru_utime)
