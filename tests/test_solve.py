@@ -511,3 +511,22 @@ def test_gram_of_many_new_columns_equals_the_explicit_product(n_old):
     np.testing.assert_allclose(b, A.T @ (Dv * g.ravel()[m]), rtol=1e-10, atol=1e-9)
     np.testing.assert_allclose(d, A.T @ win.sgn.ravel()[m].astype(float), rtol=1e-10,
                                atol=1e-9)
+
+
+def test_estimate_threads_reach_the_operators(monkeypatch, levir_gray):
+    """``estimate_motion(threads=...)`` sizes the operators' threaded column sums too."""
+    from reblur import estimate as estimate_module
+
+    made = []
+    real = estimate_module.BlurOperator
+
+    def spy(*args, **kwargs):
+        op = real(*args, **kwargs)
+        made.append(op.threads)
+        return op
+
+    monkeypatch.setattr(estimate_module, "BlurOperator", spy)
+    grid = PoseGrid(levir_gray.shape, tx=range(-2, 3), ty=range(-2, 3), rz=[-0.1, 0.0, 0.1])
+    f = levir_gray.astype(float)
+    estimate_motion(f, f, grid, boxes=[(300, 300, 64, 64)], occlusion=False, threads=1)
+    assert made == [1]
