@@ -44,20 +44,35 @@ def huber_line(
     y = np.asarray(y, dtype=np.float64)
     if x.size < 2 or np.ptp(x) == 0:
         return 1.0, float(np.median(y - x)) if y.size else 0.0
-    A = np.stack([x, np.ones_like(x)], axis=1)
-    if start is None:
-        p = np.linalg.lstsq(A, y, rcond=None)[0]
-    else:
-        p = np.asarray(start, dtype=np.float64)
+    p = _weighted_line(x, y, None) if start is None else np.asarray(start, dtype=np.float64)
     for _ in range(n_iter):
-        r = y - A @ p
+        r = y - (p[0] * x + p[1])
         s = mad(r)
         if not s > 0:
             break
-        sw = np.sqrt(np.minimum(1.0, 1.345 * s / np.maximum(np.abs(r), 1e-12)))
-        p_new = np.linalg.lstsq(A * sw[:, None], y * sw, rcond=None)[0]
+        wts = np.minimum(1.0, 1.345 * s / np.maximum(np.abs(r), 1e-12))
+        p_new = _weighted_line(x, y, wts)
         done = np.allclose(p_new, p, rtol=0, atol=1e-6)
         p = p_new
         if done:
             break
     return float(p[0]), float(p[1])
+
+
+def _weighted_line(x: np.ndarray, y: np.ndarray, wts: np.ndarray | None) -> np.ndarray:
+    """Weighted least-squares line ``(gain, offset)`` in closed form about the weighted
+    means (as stable as a QR of ``[x, 1]`` and a few times faster on 10^5-10^6 points);
+    ``np.linalg.lstsq`` when the weighted ``x`` has no spread."""
+    w = np.ones_like(x) if wts is None else wts
+    sw = float(w.sum())
+    if sw > 0:
+        xm = float(w @ x) / sw
+        ym = float(w @ y) / sw
+        dx = x - xm
+        sxx = float(w @ (dx * dx))
+        if sxx > 1e-12 * sw * max(float(np.abs(x).max()), 1e-300) ** 2:
+            gain = float(w @ (dx * (y - ym))) / sxx
+            return np.array([gain, ym - gain * xm])
+    sq = np.sqrt(w)
+    A = np.stack([x * sq, sq], axis=1)
+    return np.linalg.lstsq(A, y * sq, rcond=None)[0]

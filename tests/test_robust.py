@@ -1,0 +1,45 @@
+"""Robust line fit (``reblur.robust.huber_line``) against an explicit IRLS."""
+
+import numpy as np
+import pytest
+
+from reblur.robust import huber_line, mad
+
+
+def _irls_lstsq(x, y, n_iter=20):
+    """The same Huber IRLS with ``np.linalg.lstsq`` on the square-root-weighted design."""
+    A = np.stack([x, np.ones_like(x)], axis=1)
+    p = np.linalg.lstsq(A, y, rcond=None)[0]
+    for _ in range(n_iter):
+        r = y - A @ p
+        s = mad(r)
+        sw = np.sqrt(np.minimum(1.0, 1.345 * s / np.maximum(np.abs(r), 1e-12)))
+        p_new = np.linalg.lstsq(A * sw[:, None], y * sw, rcond=None)[0]
+        done = np.allclose(p_new, p, rtol=0, atol=1e-6)
+        p = p_new
+        if done:
+            break
+    return p
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_huber_line_equals_the_lstsq_irls_and_resists_outliers(seed):
+    rng = np.random.default_rng(seed)
+    x = rng.random(200_000)
+    y = 0.8 * x + 0.05 + rng.normal(0, 0.01, x.size)
+    out = rng.random(x.size) < 0.2  # a fifth of the points changed
+    y[out] += rng.uniform(0.2, 0.6, out.sum())
+    gain, offset = huber_line(x, y)
+    want = _irls_lstsq(x, y)
+    np.testing.assert_allclose([gain, offset], want, rtol=0, atol=1e-9)
+    assert abs(gain - 0.8) < 0.02 and abs(offset - 0.05) < 0.02  # the outliers barely bias it
+    ls = np.polyfit(x, y, 1)  # plain least squares is pulled up by them
+    assert ls[1] - 0.05 > 2 * abs(offset - 0.05)
+
+
+def test_huber_line_degenerate_inputs():
+    y = np.arange(10.0)
+    assert huber_line(np.full(10, 0.3), y) == (1.0, float(np.median(y - 0.3)))
+    assert huber_line(np.array([1.0]), np.array([2.0])) == (1.0, 1.0)
+    x = np.linspace(0, 1, 101)
+    assert np.allclose(huber_line(x, 2 * x - 1), (2.0, -1.0))  # exact line: MAD 0 stops
