@@ -39,11 +39,15 @@ def zeros(shape, dtype, threads: int | None = None) -> np.ndarray:
     if n == 1 or flat.size < _PARALLEL_BYTES:
         flat.fill(0)
         return a
-    bounds = np.linspace(0, flat.size, n + 1).astype(np.int64)
-    parts = [flat[b0:b1] for b0, b1 in zip(bounds[:-1], bounds[1:], strict=True)]
     with ThreadPoolExecutor(n) as ex:  # np.copyto releases the GIL on large arrays
-        list(ex.map(lambda p: np.copyto(p, 0), parts))
+        list(ex.map(lambda p: np.copyto(p, 0), _parts(flat, n)))
     return a
+
+
+def _parts(items, n: int) -> list:
+    """``items`` cut into ``n`` contiguous parts of near-equal length."""
+    bounds = np.linspace(0, len(items), n + 1).astype(np.int64)
+    return [items[b0:b1] for b0, b1 in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
 def split_sum(fn, items, threads: int) -> np.ndarray:
@@ -54,10 +58,8 @@ def split_sum(fn, items, threads: int) -> np.ndarray:
     n = max(1, min(int(threads), len(items)))
     if n == 1:
         return fn(items)
-    bounds = np.linspace(0, len(items), n + 1).astype(np.int64)
-    parts = [items[b0:b1] for b0, b1 in zip(bounds[:-1], bounds[1:], strict=True)]
     with ThreadPoolExecutor(n) as ex:
-        results = list(ex.map(fn, parts))
+        results = list(ex.map(fn, _parts(items, n)))
     out = results[0]
     for r in results[1:]:
         out += r

@@ -383,6 +383,7 @@ class BlurOperator:
         if self._xbuf is None or self._xbuf.dtype != ctype:
             self._xbuf = np.empty((step, Fh, F2), ctype)
         rows = np.empty((nb, self.Dy + 1, F2), ctype)
+        row_idft = self._row_idft.astype(ctype, copy=False)
         for c0 in range(0, nb, step):
             c1 = min(c0 + step, nb)
             buf = self._xbuf[: c1 - c0]
@@ -390,7 +391,7 @@ class BlurOperator:
                 np.multiply(self.spec[c0:c1, :, :, 0], Rc[:, :, 0], out=buf)
             else:
                 np.einsum("byxc,yxc->byx", self.spec[c0:c1], Rc, out=buf)
-            np.matmul(self._row_idft.astype(ctype, copy=False), buf, out=rows[c0:c1])
+            np.matmul(row_idft, buf, out=rows[c0:c1])
         corr = sfft.irfft(rows, n=self._fshape[1], axis=2, workers=_WORKERS)
         return corr[:, self._oy[:, None], self._ox[None, :]].astype(self.dtype, copy=False)
 
