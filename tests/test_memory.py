@@ -44,3 +44,33 @@ def test_split_sum_covers_every_item_once(threads):
     assert sorted(i for p in seen for i in p) == items
     assert all(p == list(range(p[0], p[-1] + 1)) for p in seen)
     assert len(seen) == min(threads, len(items))
+
+
+@pytest.mark.parametrize("workers", [1, 2, 5])
+def test_thread_map_keeps_order_and_opencv_threads(workers):
+    """Results come back in the items' order; OpenCV runs single-threaded inside the
+    threads and gets its thread count back after, also when an item fails."""
+    import cv2
+
+    from reblur._memory import thread_map
+
+    before = cv2.getNumThreads()
+    seen = []
+
+    def fn(x):
+        seen.append(cv2.getNumThreads())
+        return x * x
+
+    assert thread_map(fn, range(7), workers) == [x * x for x in range(7)]
+    if workers > 1:
+        assert set(seen) == {1}
+    assert cv2.getNumThreads() == before
+
+    def bad(x):
+        if x == 3:
+            raise ValueError("item 3")
+        return x
+
+    with pytest.raises(ValueError, match="item 3"):
+        thread_map(bad, range(6), workers)
+    assert cv2.getNumThreads() == before

@@ -367,7 +367,7 @@ def test_line_search_finds_the_minimiser_of_the_huber_objective():
     of ``phi(t) = lam t sum(dw) + sum huber(r - t D)`` converges to (written out here
     independently), for squared, two-sided and one-sided Huber losses, and 1 when the
     objective still decreases at the full step."""
-    from reblur.solve import _line_search
+    from reblur.solve import _line_search, _Windows
 
     def phi_slope(wins, res, deltas, dw_sum, lam, t):
         s = lam * dw_sum
@@ -396,7 +396,7 @@ def test_line_search_finds_the_minimiser_of_the_huber_objective():
             res.append(r)
             deltas.append(D)
         dw_sum, lam = float(rng.normal()), float(rng.uniform(0, 2))
-        t = _line_search(wins, res, deltas, dw_sum, lam)
+        t = _line_search(_Windows(wins), res, deltas, dw_sum, lam)
         if phi_slope(wins, res, deltas, dw_sum, lam, 1.0) <= 0:
             assert t == 1.0
             continue
@@ -485,7 +485,7 @@ def test_gram_of_many_new_columns_equals_the_explicit_product(n_old):
     a masked window and outliers of both signs."""
     import cv2
 
-    from reblur.solve import _TRI_GROUP, _gram_add, _Window
+    from reblur.solve import _TRI_GROUP, _gram_add, _Window, _Windows
 
     rng = np.random.default_rng(21)
     f = cv2.GaussianBlur(rng.random((140, 140)), (0, 0), 1.2)
@@ -501,8 +501,8 @@ def test_gram_of_many_new_columns_equals_the_explicit_product(n_old):
     old, new = cols[:n_old], cols[n_old:]
     G0, b0, d0 = np.zeros((0, 0)), np.zeros(0), np.zeros(0)
     if old:
-        G0, b0, d0 = _gram_add([win], [], old, G0, b0, d0)
-    G, b, d = _gram_add([win], old, new, G0, b0, d0)
+        G0, b0, d0 = _gram_add(_Windows([win]), [], old, G0, b0, d0)
+    G, b, d = _gram_add(_Windows([win]), old, new, G0, b0, d0)
     A = np.stack([op.column(k).astype(float).ravel() for k in cols], axis=1)
     m = win.m3.ravel()
     Dv = win.inl.ravel()[m].astype(float)
@@ -530,3 +530,85 @@ def test_estimate_threads_reach_the_operators(monkeypatch, levir_gray):
     f = levir_gray.astype(float)
     estimate_motion(f, f, grid, boxes=[(300, 300, 64, 64)], occlusion=False, threads=1)
     assert made == [1]
+
+
+def _three_windows(rng):
+    """Three windows sharing one blur, one of them partly changed (Huber outliers)."""
+    import cv2
+
+    f = cv2.GaussianBlur(rng.random((200, 200)), (0, 0), 1.5)
+    grid = PoseGrid((200, 200), tx=np.arange(-2, 3), ty=np.arange(-2, 3), rz=[-1.0, 0.0, 1.0])
+    boxes = ((10, 10, 60, 70), (120, 100, 60, 70), (20, 120, 50, 60))
+    ops = [BlurOperator(f, grid, b, threads=2) for b in boxes]
+    w_true = np.zeros(grid.shape)
+    w_true[0, 2, 2], w_true[2, 1, 3], w_true[1, 3, 1] = 0.5, 0.3, 0.2
+    gs = [op.matvec(w_true) + rng.normal(0, 0.005, op.dimsd) for op in ops]
+    gs[1][:25, :40] += 0.3  # a change in the second window
+    return grid, ops, gs, w_true
+
+
+@pytest.mark.parametrize("workers", [2, 3])
+def test_windows_in_threads_reach_the_same_optimum(workers):
+    """Per-window steps in threads (three windows: groups of 2 + 1, or one each) give the
+    one-after-the-other solve to rounding, and the optimum passes the KKT test computed
+    from the explicit columns of all windows; every operator's threads and the BLAS limit
+    are as before afterwards."""
+    from threadpoolctl import threadpool_info
+
+    rng = np.random.default_rng(31)
+    grid, ops, gs, w_true = _three_windows(rng)
+    lam = 0.05
+    blas_before = [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+    serial, info_s = active_set(ops, gs, lam=lam)
+    par, info_p = active_set(ops, gs, lam=lam, workers=workers)
+    assert info_p["converged"] and info_s["converged"]
+    np.testing.assert_allclose(par, serial, rtol=1e-8, atol=1e-10)
+    assert [op.threads for op in ops] == [2, 2, 2]
+    assert [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"] \
+        == blas_before
+    # KKT of eq. 5 (chi eliminated: Huber at lam / 2) from the explicit matrices
+    delta = lam / 2
+    grad = np.full(grid.size, lam)
+    scale = np.zeros(grid.size)
+    for op, g in zip(ops, gs, strict=True):
+        A = np.stack([op.column(k)[:, :, 0].ravel() for k in range(grid.size)], axis=1)
+        m = op.valid.ravel()
+        A, gv = A[m].astype(float), g[:, :, 0].ravel()[m]
+        grad -= A.T @ (2 * np.clip(gv - A @ par.ravel(), -delta, delta))
+        scale += A.T @ (2 * np.clip(gv, -delta, delta))
+    on = par.ravel() > 0
+    tol = 1e-6 * np.abs(scale - lam).max()
+    assert np.all(np.abs(grad[on]) <= tol) and np.all(grad[~on] >= -tol)
+    assert mass_near_truth(par, w_true) > 0.9
+
+
+def test_a_failing_window_thread_restores_the_threads():
+    """An error in one window's thread reaches the caller, and leaves the operators'
+    threads as they were."""
+    rng = np.random.default_rng(32)
+    _, ops, gs, _ = _three_windows(rng)
+
+    def broken(r):
+        raise RuntimeError("window 2 failed")
+
+    ops[2].rmatvec = broken
+    with pytest.raises(RuntimeError, match="window 2 failed"):
+        active_set(ops, gs, lam=0.05, workers=2)
+    assert [op.threads for op in ops] == [2, 2, 2]
+
+
+def test_operators_built_in_threads_equal_the_serial_build(levir_gray):
+    """The estimate builds its windows' operators in threads: the same stacks, spectra
+    and masks as one at a time, and each operator then has the estimate's threads."""
+    from reblur.estimate import _build_operators
+
+    f = levir_gray.astype(np.float32)
+    grid = PoseGrid(f.shape, tx=range(-3, 4), ty=range(-2, 3), rz=[-0.2, 0.0, 0.3])
+    boxes = [(100, 100, 90, 80), (600, 650, 70, 90), (300, 700, 64, 64)]
+    par = _build_operators(f, grid, boxes, None, "auto", 255.0, 2)
+    for op, b in zip(par, boxes, strict=True):
+        ref = BlurOperator(f, grid, b, scale=255.0, threads=1)
+        assert op.threads == 2
+        np.testing.assert_array_equal(op.stack, ref.stack)
+        np.testing.assert_array_equal(op.spec, ref.spec)
+        np.testing.assert_array_equal(op.valid, ref.valid)

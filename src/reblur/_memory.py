@@ -14,9 +14,10 @@ from __future__ import annotations
 import os
 from concurrent.futures import ThreadPoolExecutor
 
+import cv2
 import numpy as np
 
-__all__ = ["available_cpus", "split_sum", "zeros"]
+__all__ = ["available_cpus", "parts", "split_sum", "thread_map", "zeros"]
 
 #: Arrays below this size are zeroed by the calling thread alone.
 _PARALLEL_BYTES = 32 * 2**20
@@ -40,11 +41,11 @@ def zeros(shape, dtype, threads: int | None = None) -> np.ndarray:
         flat.fill(0)
         return a
     with ThreadPoolExecutor(n) as ex:  # np.copyto releases the GIL on large arrays
-        list(ex.map(lambda p: np.copyto(p, 0), _parts(flat, n)))
+        list(ex.map(lambda p: np.copyto(p, 0), parts(flat, n)))
     return a
 
 
-def _parts(items, n: int) -> list:
+def parts(items, n: int) -> list:
     """``items`` cut into ``n`` contiguous parts of near-equal length."""
     bounds = np.linspace(0, len(items), n + 1).astype(np.int64)
     return [items[b0:b1] for b0, b1 in zip(bounds[:-1], bounds[1:], strict=True)]
@@ -59,8 +60,23 @@ def split_sum(fn, items, threads: int) -> np.ndarray:
     if n == 1:
         return fn(items)
     with ThreadPoolExecutor(n) as ex:
-        results = list(ex.map(fn, _parts(items, n)))
+        results = list(ex.map(fn, parts(items, n)))
     out = results[0]
     for r in results[1:]:
         out += r
     return out
+
+
+def thread_map(fn, items, workers: int) -> list:
+    """``[fn(x) for x in items]`` on ``workers`` threads, OpenCV single-threaded inside
+    each (so the threads do not oversubscribe the cores); in order."""
+    items = list(items)
+    if workers <= 1 or len(items) <= 1:
+        return [fn(x) for x in items]
+    n_cv = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with ThreadPoolExecutor(min(int(workers), len(items))) as ex:
+            return list(ex.map(fn, items))
+    finally:
+        cv2.setNumThreads(n_cv)

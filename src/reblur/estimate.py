@@ -9,7 +9,7 @@ from collections.abc import Sequence
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from ._memory import available_cpus
+from ._memory import available_cpus, thread_map
 from .grid import PoseGrid
 from .operator import BlurOperator
 from .result import MotionEstimate
@@ -124,12 +124,16 @@ def estimate_motion(
         61-65 dB with).  ``info["photometry"]`` holds the ``offset`` removed (per band,
         ``g ~ F w + offset``) and the ``rounds``; ``chi`` is then in the corrected units.
     threads : int, optional
-        Threads of the solver: BLAS (its Gram products and the adjoint's row transforms)
-        and the operators' sums of columns (:meth:`BlurOperator.combine`);
-        default the CPUs available to the process, at most :data:`MAX_BLAS_THREADS` and at
-        most ``OPENBLAS_NUM_THREADS`` or ``OMP_NUM_THREADS`` when set.  The estimate runs
-        while nothing else does (the tiles wait for its weights), so it may use the cores
-        (docs/NOTES.md, "Memory of the estimate", for the gain on 2 cores).
+        Threads of the estimate; default the CPUs available to the process, at most
+        :data:`MAX_BLAS_THREADS` and at most ``OPENBLAS_NUM_THREADS`` or
+        ``OMP_NUM_THREADS`` when set.  With several windows they split the windows: each
+        thread builds its share of the operators and runs the solver's per-window steps
+        for them (``active_set(workers=)``), BLAS, OpenCV and the operators' products
+        single-threaded inside.  With one window they go to its products instead: BLAS
+        (Gram products, the adjoint's row transforms), FFTs and the sums of columns
+        (:meth:`BlurOperator.combine`).  The estimate runs while nothing else does (the
+        tiles wait for its weights), so it may use the cores (docs/NOTES.md, "Eighth
+        stop", for the gain on 2 cores).
 
     Returns
     -------
@@ -244,8 +248,7 @@ def _psnr(r: np.ndarray) -> float:
 
 def _solve(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, occlusion,
            solver, max_outer, time_limit, fista_iter, w0, gs=None, scratch=None, threads=None):
-    ops = [BlurOperator(reference, grid, b, base=base, engine=engine, scale=s_ref,
-                        threads=threads) for b in boxes]
+    ops = _build_operators(reference, grid, boxes, base, engine, s_ref, threads)
     if gs is None:
         gs = [read_window(observed, b, np.float64) / s_obs for b in boxes]
     if not any(op.valid.any() for op in ops):
@@ -256,7 +259,7 @@ def _solve(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, oc
     if solver == "active-set":
         w, info = active_set(
             ops, gs, lam=lam, occlusion=occlusion, max_outer=max_outer, time_limit=time_limit,
-            w0=w0, scratch=scratch,
+            w0=w0, scratch=scratch, workers=1 if threads is None else threads,
         )
     elif solver == "fista":
         if len(ops) != 1:
@@ -265,6 +268,22 @@ def _solve(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, oc
     else:
         raise ValueError(f"solver must be 'active-set' or 'fista', got {solver!r}")
     return w, info, ops, gs
+
+
+def _build_operators(reference, grid, boxes, base, engine, scale, threads):
+    """One operator per window, the windows built in parallel on ``threads`` threads
+    (each single-threaded inside: its warps, transforms and fresh pages), then every
+    operator given ``threads`` for its products."""
+    n = 1 if threads is None else int(threads)
+
+    def build(box):
+        return BlurOperator(reference, grid, box, base=base, engine=engine, scale=scale,
+                            threads=1 if n > 1 and len(boxes) > 1 else threads)
+
+    ops = thread_map(build, boxes, n)
+    for op in ops:
+        op.threads = n if threads is not None else op.threads
+    return ops
 
 
 def _fit_gain_offset(ops, gs, w, lam, occlusion):
@@ -342,7 +361,7 @@ def _refit_photometry(ops, gs, w, info, lam, occlusion, max_outer, time_limit,
         gs_new = [g - B_new for g in g0]
         w_new, more = active_set(ops, gs_new, lam=lam, occlusion=occlusion,
                                  max_outer=max_outer, time_limit=time_limit, w0=w,
-                                 scratch=scratch)
+                                 scratch=scratch, workers=ops[0].threads)
         info["n_outer"] = int(info.get("n_outer", 0)) + int(more["n_outer"])
         info["time_s"] = float(info.get("time_s", 0.0)) + float(more["time_s"])
         obj = float(more["objective"][-1])

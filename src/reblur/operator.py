@@ -19,8 +19,6 @@ solver ignores them; they are never treated as "no change".
 
 from __future__ import annotations
 
-import os
-
 import numpy as np
 import scipy.fft as sfft
 
@@ -30,8 +28,6 @@ from .grid import PoseGrid
 from .warp import Box, as_box, read_window, source_box, warp_window
 
 __all__ = ["BlurOperator", "dottest"]
-
-_WORKERS = max(1, os.cpu_count() or 1)
 
 #: Bytes of cross spectra per block in :meth:`BlurOperator.rmatvec` (fits a shared L3).
 _BLOCK_BYTES = 16 * 2**20
@@ -84,7 +80,9 @@ class BlurOperator:
     scale : float
         Reference values are divided by ``scale`` (e.g. 255 for uint8 data).
     threads : int, optional
-        Threads of :meth:`combine`'s large sums (default: the CPUs available).
+        Threads of the products: :meth:`combine`'s large sums and the FFTs (default: the
+        CPUs available).  An attribute: a caller that runs several operators in parallel
+        threads sets it to 1 for the time (:func:`reblur.solve.active_set`).
 
     Attributes
     ----------
@@ -236,7 +234,7 @@ class BlurOperator:
             blk = self.stack[c0:c1]
             if ctype != np.complex64:
                 blk = blk.astype(self.dtype)
-            spec[c0:c1] = sfft.rfft2(blk, axes=(1, 2), workers=_WORKERS)
+            spec[c0:c1] = sfft.rfft2(blk, axes=(1, 2), workers=self.threads)
         return spec
 
     def _all_pose_valid(self, bad: np.ndarray) -> np.ndarray:
@@ -350,9 +348,9 @@ class BlurOperator:
             c1 = min(c0 + step, self.grid.n_bases)
             if not kern[c0:c1].any():
                 continue
-            ks = sfft.rfft2(kern[c0:c1], s=self._fshape, axes=(1, 2), workers=_WORKERS)
+            ks = sfft.rfft2(kern[c0:c1], s=self._fshape, axes=(1, 2), workers=self.threads)
             prod += np.einsum("byxc,byx->yxc", self.spec[c0:c1], ks)
-        full = sfft.irfft2(prod, s=self._fshape, axes=(0, 1), workers=_WORKERS)
+        full = sfft.irfft2(prod, s=self._fshape, axes=(0, 1), workers=self.threads)
         h, wd = self.box.h, self.box.w
         return full[self.Dy : self.Dy + h, self.Dx : self.Dx + wd].astype(self.dtype, copy=False)
 
@@ -364,7 +362,7 @@ class BlurOperator:
             for k in range(self.grid.size):
                 out[k] = float(np.vdot(self.column(k), r))
             return out.reshape(self.grid.shape)
-        Rc = np.conj(sfft.rfft2(r, s=self._fshape, axes=(0, 1), workers=_WORKERS))
+        Rc = np.conj(sfft.rfft2(r, s=self._fshape, axes=(0, 1), workers=self.threads))
         if self.spec.dtype == np.complex64:
             # single-precision spectra: the products in single precision too (half the
             # memory traffic, twice the arithmetic rate).  Their rounding is of the
@@ -392,7 +390,7 @@ class BlurOperator:
             else:
                 np.einsum("byxc,yxc->byx", self.spec[c0:c1], Rc, out=buf)
             np.matmul(row_idft, buf, out=rows[c0:c1])
-        corr = sfft.irfft(rows, n=self._fshape[1], axis=2, workers=_WORKERS)
+        corr = sfft.irfft(rows, n=self._fshape[1], axis=2, workers=self.threads)
         return corr[:, self._oy[:, None], self._ox[None, :]].astype(self.dtype, copy=False)
 
     @property

@@ -27,11 +27,15 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import ExitStack
 
 import numpy as np
 import scipy.linalg as sla
 from scipy.optimize import nnls
+from threadpoolctl import threadpool_limits
 
+from ._memory import parts
 from .operator import BlurOperator
 
 #: Pixels per block when building explicit active columns (bounds the solver's memory).
@@ -81,7 +85,9 @@ class Scratch:
     """Scratch memory of :func:`active_set`, reusable across windows and calls.
 
     The Gram products copy the active columns of a row block into one float64 buffer.
-    Windows are processed one after the other, so they can share it, and a caller that
+    Windows processed one after the other share it; windows processed in parallel threads
+    (``active_set(workers=)``) use one buffer per thread (``slot``), each for blocks of a
+    matching share of the rows, so together they hold what one did.  A caller that
     solves several related problems (the levels of a coarse-to-fine schedule, photometric
     refits) can pass the same ``Scratch`` to each: the buffer then grows a few times in
     all instead of once per window and call.  Fresh memory is not free: its pages fault in
@@ -91,17 +97,19 @@ class Scratch:
     """
 
     def __init__(self) -> None:
-        self._buf = np.empty(0)
+        self._bufs: dict[int, np.ndarray] = {}
 
-    def take(self, n: int) -> np.ndarray:
-        """A float64 array of ``n`` elements (contents undefined), valid until the next call."""
-        if self._buf.size < n:
-            self._buf = np.empty(max(int(n), 3 * self._buf.size // 2))
-        return self._buf[:n]
+    def take(self, n: int, slot: int = 0) -> np.ndarray:
+        """A float64 array of ``n`` elements (contents undefined), valid until the next call
+        with the same ``slot`` (windows solved in parallel each use their group's slot)."""
+        buf = self._bufs.get(slot, np.empty(0))
+        if buf.size < n:
+            buf = self._bufs[slot] = np.empty(max(int(n), 3 * buf.size // 2))
+        return buf[:n]
 
     @property
     def nbytes(self) -> int:
-        return int(self._buf.nbytes)
+        return int(sum(b.nbytes for b in self._bufs.values()))
 
 
 class _Window:
@@ -116,8 +124,10 @@ class _Window:
 
     def __init__(self, op: BlurOperator, g: np.ndarray, mask: np.ndarray,
                  delta: float | None, signs: np.ndarray | None = None,
-                 scratch: Scratch | None = None):
+                 scratch: Scratch | None = None, slot: int = 0):
         self.op = op
+        self.slot = slot  # this window's buffer in the shared scratch
+        self.n_slots = 1  # buffers in use at once (windows solved in parallel)
         self.delta = delta
         self.g = np.asarray(g, dtype=float).reshape(op.dimsd)
         self.m = np.asarray(mask, bool)
@@ -179,7 +189,9 @@ class _Window:
         """
         h, w = self.op.box.h, self.op.box.w
         C = self.op.dimsd[2]
-        rows = max(1, _CHUNK // (w * C))
+        # windows solved in parallel each take a share of the block size: the scratch
+        # they hold together stays that of one block
+        rows = max(1, _CHUNK // (w * C * self.n_slots))
         n_all, n_new = len(cols_all), len(cols_new)
         G = np.zeros((n_all, n_new))
         b = np.zeros(n_new)
@@ -187,7 +199,7 @@ class _Window:
         # one buffer shared by the windows (and the calls that share the Scratch), grown
         # geometrically with the active set: a fresh one per call is a fresh mmap whose
         # pages fault in on first touch (slow on this kind of VM)
-        buf = self.scratch.take(n_all * rows * w * C).reshape(n_all, rows * w * C)
+        buf = self.scratch.take(n_all * rows * w * C, self.slot).reshape(n_all, rows * w * C)
         views = [self.op.column(k) for k in cols_all]
         for r0 in range(0, h, rows):
             r1 = min(r0 + rows, h)
@@ -227,19 +239,20 @@ class _Window:
             b += Atn @ gb
         return G, b, d
 
-    def repartition(self, r: np.ndarray, active: list[int],
-                    G: np.ndarray, b: np.ndarray, d: np.ndarray) -> int:
-        """Move to the partition of ``r``, updating ``G, b, d`` in place over the pixels
-        that change.  Returns their number."""
+    def repartition(self, r: np.ndarray, active: list[int]):
+        """Move to the partition of ``r``.  Returns the number of pixels that change and
+        the changes they make to the cached ``G, b, d`` (None when none changes)."""
         if self.delta is None:
-            return 0
+            return 0, None
         inl, sgn = self.partition(r)
         changed = (inl != self.inl) | (sgn != self.sgn)
         if not changed.any():
-            return 0
+            return 0, None
+        k = len(active)
+        G, b, d = np.zeros((k, k)), np.zeros(k), np.zeros(k)
         rows_all, cols_all, chans_all = np.nonzero(changed)
         n = rows_all.size
-        step = max(1, _CHUNK * 8 // max(len(active), 1))  # bounded gather memory
+        step = max(1, _CHUNK * 8 // max(k, 1))  # bounded gather memory
         for c0 in range(0, n, step):
             rows = rows_all[c0 : c0 + step]
             cols = cols_all[c0 : c0 + step]
@@ -254,7 +267,61 @@ class _Window:
             b += Ad.T @ self.g[rows, cols, chans]
             d += A.T @ ds
         self.inl, self.sgn = inl, sgn
-        return n
+        return n, (G, b, d)
+
+
+class _Windows:
+    """The windows of one :func:`active_set` call and how their work runs.
+
+    With ``workers > 1`` and several windows, the windows are cut into ``workers``
+    contiguous groups, one thread each, and every per-window step (residuals, adjoints,
+    Gram products, line-search sums, repartitions) runs in those threads; their results
+    are summed in window order, so the solve does not depend on the thread timing.  BLAS
+    then runs one thread per call and every operator's own products
+    (:attr:`BlurOperator.threads`) one thread too: the windows are the parallel work.
+    """
+
+    def __init__(self, wins: list[_Window], workers: int = 1):
+        self.wins = wins
+        n = max(1, min(int(workers), len(wins)))
+        self.groups = parts(list(range(len(wins))), n)
+        for slot, grp in enumerate(self.groups):
+            for i in grp:
+                wins[i].slot, wins[i].n_slots = slot, n
+        self._stack = ExitStack()
+        self._ex = None
+        if n > 1:
+            self._ex = self._stack.enter_context(ThreadPoolExecutor(n))
+            self._stack.enter_context(threadpool_limits(1, user_api="blas"))
+            saved = [w.op.threads for w in wins]
+            for w in wins:
+                w.op.threads = 1
+            self._stack.callback(_restore_threads, wins, saved)
+
+    def __enter__(self) -> _Windows:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._stack.close()
+
+    def map(self, fn: Callable, *seqs) -> list:
+        """``[fn(win, *items) for win, *items in zip(wins, *seqs)]``, by groups."""
+        args = list(zip(self.wins, *seqs, strict=True))
+        if self._ex is None:
+            return [fn(*a) for a in args]
+
+        def run(grp):
+            return [fn(*args[i]) for i in grp]
+
+        out: list = []
+        for res in self._ex.map(run, self.groups):
+            out.extend(res)
+        return out
+
+
+def _restore_threads(wins, saved) -> None:
+    for w, t in zip(wins, saved, strict=True):
+        w.op.threads = t
 
 
 def active_set(
@@ -273,6 +340,7 @@ def active_set(
     time_limit: float | None = None,
     callback: Callable[[np.ndarray], None] | None = None,
     scratch: Scratch | None = None,
+    workers: int = 1,
 ) -> tuple[np.ndarray, dict]:
     """Solve eq. 5 (or eq. 3) over one or more windows sharing one set of pose weights.
 
@@ -315,6 +383,12 @@ def active_set(
     scratch : Scratch, optional
         Work memory to reuse (e.g. across the levels of a coarse-to-fine schedule); default
         a fresh one, shared by the windows of this call.
+    workers : int
+        Threads over the windows: with several windows, each thread solves the per-window
+        steps of a contiguous group of them, BLAS and the operators' products then running
+        one thread each (the result does not depend on it beyond rounding).  1 (default):
+        the windows one after the other, each product using the threads BLAS and the
+        operator have.
 
     Returns
     -------
@@ -325,7 +399,6 @@ def active_set(
     """
     t_start = time.perf_counter()
     grid = ops[0].grid
-    P = grid.size
     delta = lam / 2.0 if occlusion else None
     scratch = Scratch() if scratch is None else scratch
     wins = [
@@ -335,6 +408,15 @@ def active_set(
     ]
     if sum(int(w.m.sum()) for w in wins) == 0:
         raise ValueError("no valid pixel to estimate the motion from")
+    with _Windows(wins, workers) as ws:
+        return _active_set(ws, grid, lam, batch, max_outer, max_irls, tol, w0, time_limit,
+                           callback, t_start)
+
+
+def _active_set(ws, grid, lam, batch, max_outer, max_irls, tol, w0, time_limit, callback,
+                t_start):
+    """The loop of :func:`active_set` over the windows ``ws`` (a :class:`_Windows`)."""
+    P = grid.size
 
     active: list[int] = []
     wa = np.zeros(0)
@@ -347,10 +429,14 @@ def active_set(
         nz = np.flatnonzero(np.asarray(w0).ravel() > 0)
         active = [int(k) for k in nz]
         wa = np.asarray(w0).ravel()[nz].astype(float)
-        res = [win.residual(active, wa) for win in wins]
-        for win, r in zip(wins, res, strict=True):  # start from the warm start's partition
+
+        def start(win):  # the warm start's residual, and its partition to start from
+            r = win.residual(active, wa)
             win.inl, win.sgn = win.partition(r)
-        G, b, d = _gram_add(wins, [], active, G, b, d)
+            return r
+
+        res = ws.map(start)
+        G, b, d = _gram_add(ws, [], active, G, b, d)
     # (a cold start keeps the all-inlier partition: its first step is least squares)
 
     history: list[float] = []
@@ -363,7 +449,8 @@ def active_set(
         # optimise the warm start's weights first: the KKT test below looks at the inactive
         # poses only, and a warm start from other data (a coarser level, other windows, a
         # corrected observation) would otherwise pass it unchanged
-        wa, res, n_newton = _huber_newton(wins, active, wa, res, G, b, d, lam, max_irls)
+        wa, res, n_newton, G, b, d = _huber_newton(ws, active, wa, res, G, b, d, lam,
+                                                   max_irls)
         keep = wa > 0
         if not keep.all():
             idx = np.flatnonzero(keep)
@@ -374,11 +461,17 @@ def active_set(
         # residuals, Huber weights and the full gradient (one FFT adjoint per window)
         grad = np.full(P, lam)
         obj = lam * float(wa.sum())
-        if res is None:
-            res = [win.residual(active, wa) for win in wins]
-        for win, r in zip(wins, res, strict=True):
-            obj += win.loss(r)
-            grad -= win.op.rmatvec(win.psi(r)).ravel()
+
+        def adjoint(win, r, active=active, wa=wa):
+            if r is None:
+                r = win.residual(active, wa)
+            return r, win.loss(r), win.op.rmatvec(win.psi(r)).ravel()
+
+        out = ws.map(adjoint, [None] * len(ws.wins) if res is None else res)
+        res = [o[0] for o in out]
+        for _, loss, gw in out:
+            obj += loss
+            grad -= gw
         history.append(obj)
         if grad_scale is None:
             grad_scale = max(float(np.max(np.abs(grad - lam))), 1e-300)
@@ -396,11 +489,11 @@ def active_set(
             break
         order = np.argsort(cand)[: max(batch, len(active) // 4)]
         new = [int(k) for k in order if cand[k] < 0]
-        G, b, d = _gram_add(wins, active, new, G, b, d)
+        G, b, d = _gram_add(ws, active, new, G, b, d)
         active = active + new
         # new columns enter at weight zero: the residuals are unchanged
         wa = np.concatenate([wa, np.zeros(len(new))])
-        wa, res, steps = _huber_newton(wins, active, wa, res, G, b, d, lam, max_irls)
+        wa, res, steps, G, b, d = _huber_newton(ws, active, wa, res, G, b, d, lam, max_irls)
         n_newton += steps
         keep = wa > 0
         if not keep.all():
@@ -431,8 +524,9 @@ def _full(grid, active, wa) -> np.ndarray:
     return w.reshape(grid.shape)
 
 
-def _gram_add(wins, active, new, G, b, d):
-    """Grow the cached ``A^T D A``, ``A^T D g`` and ``A^T s`` by the columns ``new``."""
+def _gram_add(ws, active, new, G, b, d):
+    """Grow the cached ``A^T D A``, ``A^T D g`` and ``A^T s`` by the columns ``new``
+    (the windows ``ws``' products, summed in window order)."""
     if not new:
         return G, b, d
     cols = active + new
@@ -440,8 +534,7 @@ def _gram_add(wins, active, new, G, b, d):
     Gn = np.zeros((k + kn, kn))
     bn = np.zeros(kn)
     dn = np.zeros(kn)
-    for win in wins:
-        Gw, bw, dw = win.block_products(cols, new)
+    for Gw, bw, dw in ws.map(lambda win: win.block_products(cols, new)):
         Gn += Gw
         bn += bw
         dn += dw
@@ -473,7 +566,7 @@ def _nnls_gram(G: np.ndarray, b: np.ndarray) -> np.ndarray:
     return w
 
 
-def _line_search(wins, res, deltas, dw_sum, lam, iters: int = 40) -> float:
+def _line_search(ws, res, deltas, dw_sum, lam, iters: int = 40) -> float:
     """Exact step ``t`` in [0, 1] minimising the (convex) objective along a direction.
 
     ``phi(t) = lam * t * dw_sum + sum loss(r - t D)`` (plus constants).  Its derivative is
@@ -485,19 +578,22 @@ def _line_search(wins, res, deltas, dw_sum, lam, iters: int = 40) -> float:
     bisections give (the root to ``2^-iters``, or a slope ``1e-10`` of the start's).
     """
 
+    def part(win, r, D, t: float) -> tuple[float, float]:
+        """One window's share of the slope at ``t`` and of its derivative."""
+        rt = r - t * D
+        out = win.outliers(rt)
+        if out is None:
+            # D is 0 off the mask
+            return -2.0 * float(np.vdot(rt, D)), 2.0 * float(np.vdot(D, D))
+        psi = np.where(out, 2.0 * win.delta * np.sign(rt), 2.0 * rt)
+        Di = np.where(out, 0.0, D)
+        return -float(np.vdot(psi, D)), 2.0 * float(np.vdot(Di, Di))
+
     def slope(t: float) -> tuple[float, float]:
         s, c = lam * dw_sum, 0.0
-        for win, r, D in zip(wins, res, deltas, strict=True):
-            rt = r - t * D
-            out = win.outliers(rt)
-            if out is None:
-                s -= 2.0 * float(np.vdot(rt, D))  # D is 0 off the mask
-                c += 2.0 * float(np.vdot(D, D))
-                continue
-            psi = np.where(out, 2.0 * win.delta * np.sign(rt), 2.0 * rt)
-            s -= float(np.vdot(psi, D))
-            Di = np.where(out, 0.0, D)
-            c += 2.0 * float(np.vdot(Di, Di))
+        for ds, dc in ws.map(lambda win, r, D: part(win, r, D, t), res, deltas):
+            s += ds
+            c += dc
         return s, c
 
     s_hi, _ = slope(1.0)
@@ -533,7 +629,7 @@ def _line_search(wins, res, deltas, dw_sum, lam, iters: int = 40) -> float:
     return lo
 
 
-def _huber_newton(wins, active, wa, res, G, b, d, lam, max_steps):
+def _huber_newton(ws, active, wa, res, G, b, d, lam, max_steps):
     """Exact Huber NNLS on the active columns: a finite Newton method on the partition.
 
     For the current partition (inliers quadratic, outliers linear with their sign) the
@@ -541,31 +637,43 @@ def _huber_newton(wins, active, wa, res, G, b, d, lam, max_steps):
     non-negative minimiser (NNLS on the Cholesky factor of the cached inlier Gram) gives a
     descent direction, an exact line search the step, and the partition then moves to
     that of the new residuals, updating the cache over the pixels that changed only.  It
-    stops at a full step that changes no pixel: the exact optimum.  ``G, b, d`` are
-    updated in place.  Returns the weights, their residuals and the number of steps.
+    stops at a full step that changes no pixel: the exact optimum.  Returns the weights,
+    their residuals, the number of steps and the updated ``G, b, d``.
     """
     steps = 0
     for steps in range(1, max_steps + 1):  # noqa: B007
-        delta = wins[0].delta
+        delta = ws.wins[0].delta
         c = b - lam / 2.0 if delta is None else b + delta * d - lam / 2.0
         wq = _nnls_gram(G, c)
         dw = wq - wa
         if not np.any(dw):
             break
-        deltas = [win.forward(active, dw) for win in wins]
-        for win, D in zip(wins, deltas, strict=True):
+
+        def direction(win, dw=dw):
+            D = win.forward(active, dw)
             D[~win.m3] = 0.0
-        t = _line_search(wins, res, deltas, float(dw.sum()), lam)
+            return D
+
+        deltas = ws.map(direction)
+        t = _line_search(ws, res, deltas, float(dw.sum()), lam)
         if t <= 0.0:
             break
         wa = np.maximum(wa + t * dw, 0.0) if t < 1.0 else wq
-        res = [r - t * D for r, D in zip(res, deltas, strict=True)]
-        n_changed = sum(
-            win.repartition(r, active, G, b, d) for win, r in zip(wins, res, strict=True)
-        )
+
+        def step(win, r, D, t=t):
+            r = r - t * D
+            return (r, *win.repartition(r, active))
+
+        out = ws.map(step, res, deltas)
+        res = [o[0] for o in out]
+        n_changed = 0
+        for _, n, upd in out:  # in window order: independent of the threads' timing
+            n_changed += n
+            if upd is not None:
+                G, b, d = G + upd[0], b + upd[1], d + upd[2]
         if n_changed == 0 and t == 1.0:
             break
-    return wa, res, steps
+    return wa, res, steps, G, b, d
 
 
 def power_norm(op: BlurOperator, n_iter: int = 30, rng=None) -> float:

@@ -13,11 +13,11 @@ from __future__ import annotations
 import threading
 from collections import defaultdict
 from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
 
+from ._memory import thread_map
 from .grid import PoseGrid, translation
 from .warp import Box, as_box, read_window, source_box, warp_source
 
@@ -207,14 +207,4 @@ def reblur(
 def run_tiles(fn: Callable, tiles: list, workers: int = 1) -> None:
     """Call ``fn(tile)`` for every tile, on ``workers`` threads (OpenCV single-threaded
     inside each, so the threads do not oversubscribe the cores)."""
-    if workers <= 1:
-        for t in tiles:
-            fn(t)
-        return
-    n_cv = cv2.getNumThreads()
-    cv2.setNumThreads(1)
-    try:
-        with ThreadPoolExecutor(workers) as ex:
-            list(ex.map(fn, tiles))
-    finally:
-        cv2.setNumThreads(n_cv)
+    thread_map(fn, tiles, workers)
