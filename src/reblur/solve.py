@@ -124,9 +124,9 @@ class _Window:
 
     def __init__(self, op: BlurOperator, g: np.ndarray, mask: np.ndarray,
                  delta: float | None, signs: np.ndarray | None = None,
-                 scratch: Scratch | None = None, slot: int = 0):
+                 scratch: Scratch | None = None):
         self.op = op
-        self.slot = slot  # this window's buffer in the shared scratch
+        self.slot = 0  # this window's buffer in the shared scratch (set by _Windows)
         self.n_slots = 1  # buffers in use at once (windows solved in parallel)
         self.delta = delta
         self.g = np.asarray(g, dtype=float).reshape(op.dimsd)
@@ -290,15 +290,19 @@ class _Windows:
                 wins[i].slot, wins[i].n_slots = slot, n
         self._stack = ExitStack()
         self._ex = None
-        if n > 1:
-            self._ex = self._stack.enter_context(ThreadPoolExecutor(n))
-            self._stack.enter_context(threadpool_limits(1, user_api="blas"))
-            saved = [w.op.threads for w in wins]
-            for w in wins:
-                w.op.threads = 1
-            self._stack.callback(_restore_threads, wins, saved)
 
     def __enter__(self) -> _Windows:
+        if len(self.groups) > 1:
+            try:
+                self._ex = self._stack.enter_context(ThreadPoolExecutor(len(self.groups)))
+                self._stack.enter_context(threadpool_limits(1, user_api="blas"))
+                saved = [w.op.threads for w in self.wins]
+                self._stack.callback(_restore_threads, self.wins, saved)
+                for w in self.wins:
+                    w.op.threads = 1
+            except BaseException:
+                self._stack.close()
+                raise
         return self
 
     def __exit__(self, *exc) -> None:
