@@ -931,7 +931,7 @@ def fit_model_error(observed, matched, known, sigma, *, bins: int = 8,
         if n > max_samples:
             # the sample drawn from the (never built) concatenation of the tiles
             pick = rng.choice(n, max_samples, replace=False)
-            ov, mv, g2, lp = (_take_concatenated(a, pick) for a in acc[c])
+            ov, mv, g2, lp = _take_concatenated(acc[c], pick)
         else:
             ov, mv, g2, lp = (np.concatenate(a) for a in acc[c])
         r2 = (ov.astype(np.float64) - mv) ** 2
@@ -942,9 +942,14 @@ def fit_model_error(observed, matched, known, sigma, *, bins: int = 8,
         ql = np.searchsorted(np.quantile(l2, np.linspace(0, 1, bins + 1)[1:-1]), l2, "right")
         cell = qg * bins + ql
         rows, rhs, wts = [], [], []
-        for b in np.unique(cell):
-            sel = cell == b
-            n = int(sel.sum())
+        # the cells' pixels in their sample order (a stable sort groups them: the same
+        # elements in the same order as a boolean mask per cell, one pass instead of one
+        # per cell)
+        by_cell = np.argsort(cell, kind="stable")
+        starts = np.flatnonzero(np.diff(cell[by_cell], prepend=-1))
+        for s0, s1 in zip(starts, np.append(starts[1:], cell.size), strict=True):
+            sel = by_cell[s0:s1]
+            n = int(s1 - s0)
             if n < 20:
                 continue
             rows.append([g2[sel].mean(), l2[sel].mean()])
@@ -961,15 +966,22 @@ def fit_model_error(observed, matched, known, sigma, *, bins: int = 8,
     return ek, ck
 
 
-def _take_concatenated(pieces: list[np.ndarray], idx: np.ndarray) -> np.ndarray:
-    """``np.concatenate(pieces)[idx]`` without building the concatenation."""
-    offsets = np.cumsum([0] + [a.size for a in pieces])
-    out = np.empty(idx.size, np.result_type(*pieces))
-    which = np.searchsorted(offsets, idx, side="right") - 1
-    for t, a in enumerate(pieces):
-        sel = which == t
-        out[sel] = a[idx[sel] - offsets[t]]
-    return out
+def _take_concatenated(lists: list[list[np.ndarray]], idx: np.ndarray) -> list[np.ndarray]:
+    """``np.concatenate(pieces)[idx]`` for each list of pieces (all of the same sizes),
+    without building the concatenations: ``idx`` is sorted once, so each piece serves a
+    contiguous run of it, written back to the positions it came from."""
+    offsets = np.cumsum([0] + [a.size for a in lists[0]])
+    order = np.argsort(idx, kind="stable")
+    sidx = idx[order]
+    bounds = np.searchsorted(sidx, offsets)
+    outs = []
+    for pieces in lists:
+        out = np.empty(idx.size, np.result_type(*pieces))
+        for t, a in enumerate(pieces):
+            s0, s1 = bounds[t], bounds[t + 1]
+            out[order[s0:s1]] = a[sidx[s0:s1] - offsets[t]]
+        outs.append(out)
+    return outs
 
 
 def estimate_threshold(
