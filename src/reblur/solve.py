@@ -19,8 +19,10 @@ quadratic, outliers linear): each step an NNLS on the Cholesky factor of the cac
 Gram matrix plus an exact line search, the cache updated over the pixels that change
 partition only -- so a window that is mostly change costs about what a clean one does
 (an IRLS on the Huber weights, used before, rebuilt the outlier correction at every step,
-over every outlier pixel).  :func:`fista` (accelerated proximal gradient on the joint
-``(w, chi)`` problem) is kept as a slow cross-check for small problems.
+over every outlier pixel).  Several windows share the weights: every step sums their
+parts, and with ``workers`` threads each thread computes the parts of a group of windows
+(``_Windows``).  :func:`fista` (accelerated proximal gradient on the joint ``(w, chi)``
+problem) is kept as a slow cross-check for small problems.
 """
 
 from __future__ import annotations
