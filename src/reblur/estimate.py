@@ -275,14 +275,16 @@ def _build_operators(reference, grid, boxes, base, engine, scale, threads):
     (each single-threaded inside: its warps, transforms and fresh pages), then every
     operator given ``threads`` for its products."""
     n = 1 if threads is None else int(threads)
+    parallel = n > 1 and len(boxes) > 1
 
     def build(box):
         return BlurOperator(reference, grid, box, base=base, engine=engine, scale=scale,
-                            threads=1 if n > 1 and len(boxes) > 1 else threads)
+                            threads=1 if parallel else threads)
 
     ops = thread_map(build, boxes, n)
-    for op in ops:
-        op.threads = n if threads is not None else op.threads
+    if parallel:
+        for op in ops:
+            op.threads = n
     return ops
 
 
