@@ -44,7 +44,8 @@ _PARALLEL_SUM = 2**22
 
 #: :meth:`BlurOperator.combine` (fast engine) sums this many float32 columns in single
 #: precision before adding them into the working-precision result: the error bound then
-#: stays ``~16 eps32`` of the terms whatever the number of poses.
+#: stays ``(_SINGLE_RUN + 1)`` float32 unit roundoffs of the terms whatever the number of
+#: poses.
 _SINGLE_RUN = 16
 
 
@@ -322,11 +323,11 @@ class BlurOperator:
         :data:`_SINGLE_RUN` of them are scaled and summed in float32 (OpenCV's
         ``scaleAdd``, in place) and each run's sum added into the result.  A float64
         temporary per column moved three times the memory, and this sum is the solver's
-        most frequent product (a quarter of the gigapixel estimate's time before).  The
-        rounding, ``~16 eps32`` (``2e-6``) of the terms' magnitudes at most and ``~1e-8``
-        in practice, is of the order of the single-precision spectra of :meth:`rmatvec`
-        and far below the residuals the solver compares (``tests/test_operator.py``
-        checks the bound against the explicit float64 sum)."""
+        most frequent product (13 % of the gigapixel estimate's CPU before).  The
+        rounding, at most 17 float32 unit roundoffs (``1e-6``) of the terms' magnitudes and
+        ``~1e-8`` in practice, is of the order of the single-precision spectra of
+        :meth:`rmatvec` and far below the residuals the solver compares
+        (``tests/test_operator.py`` checks the bound against the explicit float64 sum)."""
         ks = np.asarray(ks, dtype=np.int64)
         values = np.asarray(values, dtype=float)
         order = [int(i) for i in np.argsort(ks, kind="stable") if values[i] != 0.0]
