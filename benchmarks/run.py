@@ -26,6 +26,7 @@ BENCHES = {
     "outskirts": ("benchmarks.outskirts", "main"),
     "scale": ("benchmarks.scale", "main"),
     "first_touch": ("benchmarks.first_touch", "main"),
+    "estimate_profile": ("benchmarks.estimate_profile", "main"),
 }
 
 
