@@ -81,6 +81,9 @@ def profile_case(side: int) -> dict:
     finally:
         E._build_operators, E.active_set, S._gram_add, S._huber_newton = (
             orig["build"], orig["solve"], orig["gram"], orig["newton"])
+    if len(levels) != len(est.info["levels"]):
+        raise RuntimeError(f"{len(levels)} builds for {len(est.info['levels'])} levels: the "
+                           "profile needs the coarse-to-fine estimate (a grid sized to the image)")
     for lv, info in zip(levels, est.info["levels"], strict=True):
         lv.update({k: info[k] for k in ("stride", "side", "n_angles", "n_t", "n_outer",
                                         "n_active")})
