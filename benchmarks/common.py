@@ -69,6 +69,29 @@ def run_case(module: str, *args: str, timeout: float = 1800,
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def commit() -> str:
+    """Short hash of ``HEAD``, with ``+dirty`` when ``src`` has uncommitted changes."""
+
+    def git(*a):
+        return subprocess.run(["git", *a], cwd=REPO, capture_output=True, text=True).stdout
+
+    head = git("rev-parse", "--short", "HEAD").strip() or "unknown"
+    dirty = bool(git("status", "--porcelain", "--untracked-files=no", "src").strip())
+    return head + ("+dirty" if dirty else "")
+
+
+def load_runs(path: Path) -> list[dict]:
+    """The runs recorded in the JSON file ``path`` (empty if there is none)."""
+    return json.loads(path.read_text()) if path.exists() else []
+
+
+def save_runs(path: Path, runs: list[dict]) -> None:
+    """Write ``runs`` to ``path`` through a temporary file (never half-written)."""
+    tmp = path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(runs, indent=1))
+    os.replace(tmp, path)
+
+
 def levir_gray(i: int = 0) -> np.ndarray:
     files = sorted(LEVIR_A.glob("*.png"))
     img = cv2.imread(str(files[i]))[:, :, ::-1]

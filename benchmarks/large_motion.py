@@ -19,10 +19,16 @@ import time
 
 import numpy as np
 
-from benchmarks.common import DATA, peak_rss_mb, psnr, run_case
+from benchmarks.common import DATA, REPO, commit, load_runs, peak_rss_mb, psnr, run_case, save_runs
 
 S = 500
 MARGIN = 300
+#: Every timing run (each fresh process of every series of ``main``), with its commit and
+#: start time: this VM's speed drifts (its host backs fresh memory at a speed that varies
+#: within minutes), so the table's series is one sample; the earlier ones stay in view.
+RUNS = REPO / "docs" / "large_motion_runs.json"
+#: The fields of a timing run kept in :data:`RUNS`.
+_KEEP = ("H", "W", "time_s", "synthesis_s", "sys_s", "user_s", "peak_rss_mb", "unseen")
 
 
 def _scene(rows: int, cols: int, cell: int):
@@ -204,17 +210,25 @@ def main(timing_sides=(5000, 10000, 32000), repeats: int = 5) -> str:
         "(`python -m benchmarks.first_touch`). The synthesis column is the part of the "
         "time spent computing the scene's windows as the estimate reads them (a file "
         f"read in a real run). Each size runs {repeats} times, each in a fresh process; "
-        "the row is the median run, with the range of the times.",
+        "the row is the median run, with the range of the times. Every run is kept in "
+        "`docs/large_motion_runs.json` with its commit and the start of its series; the "
+        "line under the table lists the earlier series of the largest size.",
         "",
         "| image | poses in the grid | roll step (deg) | time (s): median (range) "
         "| of which synthesis (s) | unseen windows (dB) | peak RSS (MB) | kernel time (s) |",
         "|---|---|---|---|---|---|---|---|",
     ]
+    import datetime
+
+    history = load_runs(RUNS)
+    series = dict(commit=commit(), started=datetime.datetime.now().isoformat(timespec="minutes"))
     for side in timing_sides:
         runs = [run_case("benchmarks.large_motion", "--case", str(side), timeout=3600,
                          blas_threads=None) for _ in range(repeats)]
         if any(q["unseen"] != runs[0]["unseen"] for q in runs):
             raise RuntimeError(f"the runs at {side} px disagree: {[q['unseen'] for q in runs]}")
+        history += [{k: q[k] for k in _KEEP} | series | dict(side=side) for q in runs]
+        save_runs(RUNS, history)
         times = sorted(q["time_s"] for q in runs)
         r = sorted(runs, key=lambda q: q["time_s"])[len(runs) // 2]  # the median run
         H, W = r["H"], r["W"]
@@ -224,7 +238,29 @@ def main(timing_sides=(5000, 10000, 32000), repeats: int = 5) -> str:
             + ", ".join(f"{u:.1f}" for u in r["unseen"])
             + f" | {r['peak_rss_mb']:.0f} | {r['sys_s']:.1f} |"
         )
+    lines += _earlier(history, series["started"], max(timing_sides))
     return "\n".join(lines) + "\n"
+
+
+def _earlier(history: list[dict], current: str, side: int, n: int = 6) -> list[str]:
+    """One line on the ``n`` latest earlier series of the ``side`` px row: when, commit,
+    median time (range) and the median run's kernel time."""
+    by: dict[str, list[dict]] = {}
+    for r in history:
+        if r["side"] == side and r["started"] != current:
+            by.setdefault(r["started"], []).append(r)
+    cells = []
+    for started in sorted(by, reverse=True)[:n]:
+        rs = sorted(by[started], key=lambda q: q["time_s"])
+        med = rs[len(rs) // 2]
+        cells.append(f"{started.replace('T', ' ')} at {med['commit']}: {med['time_s']:.1f} s "
+                     f"({rs[0]['time_s']:.1f}-{rs[-1]['time_s']:.1f}), kernel "
+                     f"{med['sys_s']:.1f} s")
+    if not cells:
+        return []
+    H, W = by[next(iter(by))][0]["H"], by[next(iter(by))][0]["W"]
+    return ["", f"Earlier series of the {H} x {W} row (`docs/large_motion_runs.json`; median "
+            "(range), kernel time of the median run): " + "; ".join(cells) + "."]
 
 
 if __name__ == "__main__":

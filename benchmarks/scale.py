@@ -37,34 +37,13 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import REPO, run_case
+from benchmarks.common import REPO, commit, load_runs, run_case, save_runs
 
 SIZES_MP = (25, 100, 400, 1000)
 PLOT = REPO / "docs" / "images" / "scale.png"
 #: Every case ever run (with its commit); the tables show the newest per (mode, size), so
 #: a size can be re-run alone (``--sizes 100``) without losing the others.
 RUNS = REPO / "docs" / "scale_runs.json"
-
-
-def _commit() -> str:
-    import subprocess
-
-    def git(*a):
-        return subprocess.run(["git", *a], cwd=REPO, capture_output=True, text=True).stdout
-
-    head = git("rev-parse", "--short", "HEAD").strip() or "unknown"
-    dirty = bool(git("status", "--porcelain", "--untracked-files=no", "src").strip())
-    return head + ("+dirty" if dirty else "")
-
-
-def _load_runs() -> list[dict]:
-    return json.loads(RUNS.read_text()) if RUNS.exists() else []
-
-
-def _save_runs(runs: list[dict]) -> None:
-    tmp = RUNS.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(runs, indent=1))
-    os.replace(tmp, RUNS)
 
 
 def _newest(runs: list[dict]) -> dict[str, list]:
@@ -281,8 +260,8 @@ def main(sizes=SIZES_MP, dask_up_to: float = 400, cluster_sizes=(100,)) -> str:
 
     from benchmarks.pipeline import make_big
 
-    runs = _load_runs()
-    commit, day = _commit(), datetime.date.today().isoformat()
+    runs = load_runs(RUNS)
+    commit_, day = commit(), datetime.date.today().isoformat()
     for mp in sizes:
         side = _side(mp)
         with tempfile.TemporaryDirectory(dir="/tmp", prefix="reblur-scale-") as dd:
@@ -301,9 +280,9 @@ def main(sizes=SIZES_MP, dask_up_to: float = 400, cluster_sizes=(100,)) -> str:
             for mode in modes:
                 r = run_case("benchmarks.scale", "--case", str(d), "--mode", mode,
                              timeout=3 * 3600, blas_threads=None)
-                r.update(mode=mode, mp=side * side / 1e6, gen_s=gen, commit=commit, date=day)
+                r.update(mode=mode, mp=side * side / 1e6, gen_s=gen, commit=commit_, date=day)
                 runs.append(r)
-                _save_runs(runs)
+                save_runs(RUNS, runs)
                 print(f"[scale] {mp} MP {mode}: {json.dumps(r)}", flush=True)
     rows = _newest(runs)
     _plot(rows)
@@ -431,7 +410,7 @@ def _cli() -> None:
                     help="rewrite the section from docs/scale_runs.json without running")
     a = ap.parse_args()
     if a.table_only:
-        runs = _load_runs()
+        runs = load_runs(RUNS)
         rows = _newest(runs)
         _plot(rows)
         md = _markdown(rows, runs)
