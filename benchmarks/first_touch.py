@@ -5,7 +5,9 @@ what it allocates) pays the kernel's page faults on every new page; one that fre
 allocates again at once reuses pages the kernel still holds.  On some virtual machines the
 first is far slower than writing memory: the host backs guest memory lazily and takes it
 back when the guest frees it.  This is why the estimate keeps its fresh memory small
-(``solve.Scratch``, single-precision spectra; docs/NOTES.md, "Memory of the estimate").
+(``solve.Scratch``, single-precision spectra; docs/NOTES.md, "Memory of the estimate") and
+takes it in small pages (``_memory.small_pages``: a transparent huge page needs a whole free
+2 MB block, probably the kind of memory the host takes back first).
 
 Each case runs in a fresh process: it allocates ``n`` arrays of ``mb`` MB, writes each once
 (``fill``: the first touch) and then again (the second write: memory bandwidth), and
@@ -26,14 +28,16 @@ from benchmarks.common import run_case
 #: (mode, MB per array, arrays, seconds idle before the case).  The second case starts
 #: right after the first freed its 2 GB: pages the kernel still holds.  ``grow-threads``
 #: is ``grow`` with each first write made by :func:`reblur._memory.zeros` (the available
-#: CPUs at once), as the estimate's stacks and spectra are.
+#: CPUs at once), as the estimate's stacks and spectra are; ``grow-small`` is ``grow``
+#: with the arrays allocated inside :func:`reblur._memory.small_pages` (small pages, as
+#: the estimate's are).
 CASES = (("grow", 256, 8, 5.0), ("grow", 256, 8, 0.0), ("reuse", 256, 8, 5.0),
-         ("grow-threads", 256, 8, 5.0))
+         ("grow-threads", 256, 8, 5.0), ("grow-small", 256, 8, 5.0))
 
 
 def case(mode: str, mb: int, n: int) -> dict:
     """Time the first and the second write of ``n`` arrays of ``mb`` MB."""
-    from reblur._memory import zeros
+    from reblur._memory import small_pages, zeros
 
     first = second = 0.0
     keep = []
@@ -42,6 +46,10 @@ def case(mode: str, mb: int, n: int) -> dict:
         t = time.perf_counter()
         if mode == "grow-threads":
             a = zeros(mb * 2**20 // 8, np.float64)
+        elif mode == "grow-small":
+            with small_pages():
+                a = np.empty(mb * 2**20 // 8)
+            a.fill(1.0)
         else:
             a = np.empty(mb * 2**20 // 8)
             a.fill(1.0)
@@ -70,7 +78,9 @@ def main(repeats: int = 3) -> str:
         "the pause before the case (0: right after the previous case freed its memory).  "
         "The idle-0 row is what a page fault costs when the host still backs the page. "
         "`grow-threads` makes each first write with `reblur._memory.zeros`: the "
-        "available CPUs fault the pages in at once.",
+        "available CPUs fault the pages in at once. `grow-small` allocates inside "
+        "`reblur._memory.small_pages` (small pages instead of numpy's transparent huge "
+        "pages, as the motion estimate does).",
         "",
         "| case | idle before (s) | MB written | first write (ms/MB), per run "
         "| second write (ms/MB) | kernel time (s), per run |",

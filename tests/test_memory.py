@@ -74,3 +74,105 @@ def test_thread_map_keeps_order_and_opencv_threads(workers):
     with pytest.raises(ValueError, match="item 3"):
         thread_map(bad, range(6), workers)
     assert cv2.getNumThreads() == before
+
+
+def _thp_eligible(a: np.ndarray) -> int | None:
+    """``THPeligible`` of the mapping holding the middle of ``a`` (``/proc/self/smaps``;
+    numpy advises the 2 MB-aligned part of an allocation, a mapping of its own), None if
+    unknown."""
+    addr = a.ctypes.data + a.nbytes // 2
+    try:
+        lines = open("/proc/self/smaps").read().splitlines()
+    except OSError:
+        return None
+    inside = False
+    for line in lines:
+        head = line.split()[0] if line else ""
+        if "-" in head and ":" not in head:  # a mapping's first line: "start-end perms ..."
+            lo, hi = (int(x, 16) for x in head.split("-"))
+            inside = lo <= addr < hi
+        elif inside and line.startswith("THPeligible:"):
+            return int(line.split()[1])
+    return None
+
+
+def _numpy_setting() -> bool:
+    switch = _memory._hugepage_switch()
+    before = switch(True)
+    switch(before)
+    return bool(before)
+
+
+def test_small_pages_takes_large_arrays_out_of_huge_pages():
+    """Inside ``small_pages`` a large fresh array is not eligible for transparent huge
+    pages, where outside it is (checked in the kernel's own account of the mapping)."""
+    outside = np.empty(64 * 2**20, np.uint8)
+    if _thp_eligible(outside) != 1:
+        pytest.skip("numpy's large arrays are not in huge pages on this system")
+    with _memory.small_pages():
+        inside = np.empty(64 * 2**20, np.uint8)
+        assert _thp_eligible(inside) == 0
+    after = np.empty(64 * 2**20, np.uint8)
+    assert _thp_eligible(after) == 1
+
+
+def test_small_pages_restores_numpy_after_overlapping_blocks():
+    """Overlapping blocks in several threads: numpy's setting is off while any runs and
+    back to what it was when the last ends, whatever the order they end in."""
+    import threading
+
+    before = _numpy_setting()
+    entered, release = threading.Barrier(3), [threading.Event() for _ in range(2)]
+    seen = []
+
+    def worker(i):
+        with _memory.small_pages():
+            entered.wait(10)
+            release[i].wait(10)
+            seen.append(_numpy_setting())
+
+    threads = [threading.Thread(target=worker, args=(i,), daemon=True) for i in range(2)]
+    for t in threads:
+        t.start()
+    try:
+        entered.wait(10)
+        assert _numpy_setting() is False
+        release[0].set()  # the first to enter ends first
+        threads[0].join(10)
+        assert _numpy_setting() is False  # the other block still runs
+        release[1].set()
+        threads[1].join(10)
+        assert seen == [False, False]
+        assert _numpy_setting() is before
+    finally:
+        for ev in release:
+            ev.set()
+        _memory._hugepage_switch()(before)
+
+
+def test_estimate_runs_in_small_pages(monkeypatch):
+    """``estimate_motion`` switches numpy's huge pages off for its work and back after,
+    also when it fails."""
+    from reblur import PoseGrid, estimate_motion
+
+    calls = []
+
+    def switch(value):
+        calls.append(value)
+        return "previous"
+
+    monkeypatch.setattr(_memory, "_hugepage_switch", lambda: switch)
+    rng = np.random.default_rng(3)
+    f = rng.random((64, 64))
+    grid = PoseGrid((64, 64), tx=range(-1, 2), ty=range(-1, 2))
+    estimate_motion(f, f, grid, boxes=[(8, 8, 48, 48)])
+    assert calls == [False, "previous"]
+    calls.clear()
+
+    def fail(*a, **k):
+        raise RuntimeError("solver failed")
+
+    monkeypatch.setattr("reblur.estimate._solve", fail)
+    with pytest.raises(RuntimeError, match="solver failed"):
+        estimate_motion(f, f, grid, boxes=[(8, 8, 48, 48)])
+    assert calls == [False, "previous"]

@@ -7,17 +7,30 @@ first touched (``python -m benchmarks.first_touch``).  The faults of different t
 served in parallel (its ``grow-threads`` row: 0.9-1.7 ms per MB on 2 CPUs, against 2.1-2.8
 for one thread in the same run), so a large array that is about to be filled is first
 zeroed by all CPUs at once.
+
+On that machine fresh memory also costs less in small pages than in transparent huge pages,
+which numpy asks for on every allocation of 4 MB or more (``grow-small`` against ``grow``
+in ``python -m benchmarks.first_touch``).  Probably because a huge page needs a whole free
+2 MB block, and whole free blocks are what the host takes back, while small pages also come
+from partly used blocks it still backs. :func:`small_pages` turns numpy's request off for
+the duration of a piece of work that allocates much short-lived memory: the motion
+estimate at 1 Gpx (``python -m benchmarks.large_motion --case 32000``, each run started
+after 10 s of idle, alternated) took 4.95-5.22 s with 1.0 s of kernel time, against
+5.92-6.18 s with 2.9 s in huge pages (docs/NOTES.md, "Eleventh stop").
 """
 
 from __future__ import annotations
 
 import os
+import threading
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 
 import cv2
 import numpy as np
 
-__all__ = ["available_cpus", "parts", "split_sum", "thread_map", "zeros"]
+__all__ = ["available_cpus", "parts", "small_pages", "split_sum", "thread_map", "zeros"]
 
 #: Arrays below this size are zeroed by the calling thread alone.
 _PARALLEL_BYTES = 32 * 2**20
@@ -29,6 +42,53 @@ def available_cpus() -> int:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:  # not on Linux
         return max(1, os.cpu_count() or 1)
+
+
+def _hugepage_switch():
+    """numpy's switch of its huge-page request (``_set_madvise_hugepage``: takes the new
+    setting, returns the previous one), or None where this numpy has none."""
+    try:
+        from numpy._core import multiarray
+    except ImportError:  # pragma: no cover (numpy < 2)
+        from numpy.core import multiarray
+    return getattr(multiarray, "_set_madvise_hugepage", None)
+
+
+_pages_lock = threading.Lock()
+_pages_users = 0  # small_pages contexts open in this process (any thread)
+_pages_saved: object = True  # numpy's setting before the first of them
+
+
+@contextmanager
+def small_pages() -> Iterator[None]:
+    """Allocate numpy's large arrays in small pages while the block runs.
+
+    numpy asks the kernel for transparent huge pages (``madvise``) on every allocation of
+    4 MB or more.  Where fresh memory is expensive to back (a virtual machine whose host
+    takes freed memory back), huge pages made the first touch of the estimate's ~1 GB of
+    short-lived stacks and spectra cost three times the kernel time of small pages (module
+    notes).
+    The setting is numpy's and process-wide: it is switched off when the first of
+    overlapping blocks (in any thread) starts and restored when the last ends; arrays
+    allocated meanwhile by other threads also get small pages (a performance hint only).
+    A no-op where numpy has no such switch.
+    """
+    global _pages_users, _pages_saved
+    switch = _hugepage_switch()
+    if switch is None:  # pragma: no cover
+        yield
+        return
+    with _pages_lock:
+        if _pages_users == 0:
+            _pages_saved = switch(False)
+        _pages_users += 1
+    try:
+        yield
+    finally:
+        with _pages_lock:
+            _pages_users -= 1
+            if _pages_users == 0:
+                switch(_pages_saved)
 
 
 def zeros(shape, dtype, threads: int | None = None) -> np.ndarray:

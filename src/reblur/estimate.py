@@ -9,7 +9,7 @@ from collections.abc import Sequence
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from ._memory import available_cpus, thread_map
+from ._memory import available_cpus, small_pages, thread_map
 from .grid import PoseGrid
 from .operator import BlurOperator
 from .result import MotionEstimate
@@ -182,7 +182,7 @@ def estimate_motion(
         threads = _default_threads()
     if int(threads) < 1:
         raise ValueError(f"threads must be >= 1, got {threads}")
-    with threadpool_limits(int(threads), user_api="blas"):
+    with threadpool_limits(int(threads), user_api="blas"), small_pages():
         if coarse_to_fine:
             w, info, ops, gs, grid_used = _rz_coarse_to_fine(
                 reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, occlusion,
