@@ -612,3 +612,43 @@ def test_operators_built_in_threads_equal_the_serial_build(levir_gray):
         np.testing.assert_array_equal(op.stack, ref.stack)
         np.testing.assert_array_equal(op.spec, ref.spec)
         np.testing.assert_array_equal(op.valid, ref.valid)
+
+
+class _CountingReads:
+    """A lazily read image (no ``chunks``) that counts how often each pixel is read."""
+
+    def __init__(self, a):
+        self.a, self.shape, self.dtype, self.ndim = a, a.shape, a.dtype, a.ndim
+        self.times = np.zeros(a.shape[:2], np.int32)
+
+    def __getitem__(self, key):
+        self.times[key[:2]] += 1
+        return np.asarray(self.a[key])
+
+
+def test_lazy_reference_is_read_once_per_pixel(levir_gray, monkeypatch):
+    """A lazily read reference goes through a chunk cache: the coarse-to-fine estimate,
+    whose levels read overlapping regions, reads no pixel of it twice, and returns
+    exactly what the in-memory reference gives."""
+    import reblur.estimate as E
+
+    H, W = levir_gray.shape
+    path = random_camera_path(4, center=((W - 1) / 2, (H - 1) / 2), t_max=6.0, rz_max=1.0)
+    boxes = [(150, 150, 240, 240), (634, 634, 240, 240)]
+    obs = np.zeros((H, W))
+    for b in boxes:
+        g, _ = blur_along_path(levir_gray, path, b, dtype=np.float32)
+        obs[b[0] : b[0] + b[2], b[1] : b[1] + b[3]] = g.reshape(b[2], b[3])
+    grid = PoseGrid.from_ranges((H, W), t_max=10, rz_max=2.0, rz_step=0.05)
+    kw = dict(boxes=boxes, coarse_to_fine=True, max_bases=6)
+    plain = estimate_motion(levir_gray, obs, grid, **kw)
+    assert len(plain.info["levels"]) >= 3
+    lazy = _CountingReads(levir_gray)
+    cached = estimate_motion(lazy, obs, grid, **kw)
+    np.testing.assert_array_equal(cached.weights, plain.weights)
+    assert lazy.times.max() == 1
+    # without the cache the levels read some pixels several times
+    direct = _CountingReads(levir_gray)
+    monkeypatch.setattr(E, "_cached_reads", lambda r: r)
+    estimate_motion(direct, obs, grid, **kw)
+    assert direct.times.max() >= 3

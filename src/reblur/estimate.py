@@ -11,6 +11,7 @@ from threadpoolctl import threadpool_limits
 
 from ._memory import available_cpus, small_pages, thread_map
 from .grid import PoseGrid
+from .io import ChunkCache
 from .operator import BlurOperator
 from .result import MotionEstimate
 from .robust import huber_line, mad
@@ -176,6 +177,7 @@ def estimate_motion(
         raise ValueError("refit_photometry needs solver='active-set'")
     if coarse_to_fine and not only_rz:
         raise ValueError("coarse_to_fine refines the roll axis only: use a grid varying rz alone")
+    reference = _cached_reads(reference)
     levels = []
     scratch = Scratch()  # the solver's work memory, shared by every solve below
     if threads is None:
@@ -219,6 +221,31 @@ def estimate_motion(
     return MotionEstimate(
         weights=w, grid=grid, chi=chis, boxes=[b.as_tuple() for b in boxes], info=info
     )
+
+
+#: Bytes of reference chunks an estimate keeps (:func:`_cached_reads`).
+_READ_CACHE_BYTES = 256 * 2**20
+#: Chunk size (px) of the reads of a lazy reference that has no tile-like chunks.
+_READ_CHUNK = 256
+
+
+def _cached_reads(reference):
+    """A lazily read ``reference`` behind a :class:`~reblur.io.ChunkCache` for the estimate.
+
+    The coarse-to-fine levels read overlapping regions around each window (the first two
+    levels the reach of the whole roll range, ~1.7k px square for a 128 px part at 1 Gpx;
+    the last level the reach of its angles around the full window): through the cache,
+    each chunk of the reference is read and decoded once.  The chunks are the array's own
+    when they are tiles, else :data:`_READ_CHUNK` px squares.  numpy arrays (and readers
+    already cached) are returned as they are: slicing them is free.
+    """
+    if isinstance(reference, (np.ndarray, ChunkCache)):
+        return reference
+    ch = getattr(reference, "chunks", None)
+    tiles = (ch is not None and len(ch) >= 2 and min(int(ch[0]), int(ch[1])) >= 64
+             and int(ch[0]) * int(ch[1]) <= 2**24)
+    chunks = (int(ch[0]), int(ch[1])) if tiles else (_READ_CHUNK, _READ_CHUNK)
+    return ChunkCache(reference, max_bytes=_READ_CACHE_BYTES, chunks=chunks)
 
 
 #: Default cap on the solver's BLAS threads (:func:`estimate_motion`): its products are
