@@ -8,15 +8,17 @@ served in parallel (its ``grow-threads`` row: 0.9-1.7 ms per MB on 2 CPUs, again
 for one thread in the same run), so a large array that is about to be filled is first
 zeroed by all CPUs at once.
 
-On that machine fresh memory also costs less in small pages than in transparent huge pages,
-which numpy asks for on every allocation of 4 MB or more (``grow-small`` against ``grow``
-in ``python -m benchmarks.first_touch``).  Probably because a huge page needs a whole free
-2 MB block, and whole free blocks are what the host takes back, while small pages also come
-from partly used blocks it still backs. :func:`small_pages` turns numpy's request off for
-the duration of a piece of work that allocates much short-lived memory: the motion
+On that machine a process's first memory also costs less in small pages than in the
+transparent huge pages numpy asks for on every allocation of 4 MB or more: the motion
 estimate at 1 Gpx (``python -m benchmarks.large_motion --case 32000``, each run started
-after 10 s of idle, alternated) took 4.95-5.22 s with 1.0 s of kernel time, against
-5.92-6.18 s with 2.9 s in huge pages (docs/NOTES.md, "Eleventh stop").
+after 10 s of idle, alternated) took 4.95-5.22 s with 1.0 s of kernel time in small pages,
+against 5.92-6.18 s with 2.9 s in huge pages (docs/NOTES.md, "Eleventh stop"); 800 MB
+written once, 0.27 s against 1.96 s.  Probably because a huge page needs a whole free 2 MB
+block, and whole free blocks are what the host takes back, while small pages also come
+from partly used blocks it still backs.  (``grow-small`` in
+``python -m benchmarks.first_touch``, 2 GB kept, gains less and varies with the host.)
+:func:`small_pages` turns numpy's request off while a piece of work that allocates much
+short-lived memory runs.
 """
 
 from __future__ import annotations
