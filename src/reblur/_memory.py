@@ -12,8 +12,8 @@ On that machine a process's first memory also costs less in small pages than in 
 transparent huge pages numpy asks for on every allocation of 4 MB or more: the motion
 estimate at 1 Gpx (``python -m benchmarks.large_motion --case 32000``, each run started
 after 10 s of idle, alternated) took 4.95-5.22 s with 1.0 s of kernel time in small pages,
-against 5.92-6.18 s with 2.9 s in huge pages (docs/NOTES.md, "Eleventh stop"); 800 MB
-written once, 0.27 s against 1.96 s.  Probably because a huge page needs a whole free 2 MB
+against 5.92-6.18 s with 2.9 s in huge pages (docs/NOTES.md, "Eleventh stop").  Probably
+because a huge page needs a whole free 2 MB
 block, and whole free blocks are what the host takes back, while small pages also come
 from partly used blocks it still backs.  (``grow-small`` in
 ``python -m benchmarks.first_touch``, 2 GB kept, gains less and varies with the host.)
