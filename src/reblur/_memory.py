@@ -13,9 +13,8 @@ transparent huge pages numpy asks for on every allocation of 4 MB or more: the m
 estimate at 1 Gpx (``python -m benchmarks.large_motion --case 32000``, each run started
 after 10 s of idle, alternated) took 4.95-5.22 s with 1.0 s of kernel time in small pages,
 against 5.92-6.18 s with 2.9 s in huge pages (docs/NOTES.md, "Eleventh stop").  Probably
-because a huge page needs a whole free 2 MB
-block, and whole free blocks are what the host takes back, while small pages also come
-from partly used blocks it still backs.  (``grow-small`` in
+because a huge page needs a whole free 2 MB block, and whole free blocks are what the host
+takes back, while small pages also come from partly used blocks it still backs.  (``grow-small`` in
 ``python -m benchmarks.first_touch``, 2 GB kept, gains less and varies with the host.)
 :func:`small_pages` turns numpy's request off while a piece of work that allocates much
 short-lived memory runs.
