@@ -415,7 +415,9 @@ def test_line_search_finds_the_minimiser_of_the_huber_objective():
 def test_batch_grows_with_the_active_set():
     """Poses enter ``batch`` at a time, or a quarter of the active set when that is more:
     from a warm start of 40 poses with ``batch=1``, some outer iteration adds 10 or more
-    (the counts are observed through the callback), and the solve still fits the blur."""
+    (the counts are observed through the callback); the solve passes the KKT test from
+    the explicit matrix, at the scale of the gradient at ``w = 0`` (the solver's, for a
+    warm start as for a cold one), and still fits the blur."""
     import cv2
 
     rng = np.random.default_rng(12)
@@ -435,7 +437,14 @@ def test_batch_grows_with_the_active_set():
     steps = np.diff([40] + sizes)
     assert steps.max() >= 10
     assert info["converged"]
-    assert np.linalg.norm(op.matvec(w) - g) <= 1e-5 * np.linalg.norm(g)
+    A = np.stack([op.column(k)[:, :, 0].ravel() for k in range(grid.size)], axis=1)
+    m = op.valid.ravel()
+    A, gv = A[m].astype(float), g[:, :, 0].ravel()[m]
+    grad = 1e-6 - A.T @ (2 * (gv - A @ w.ravel()))  # eq. 3: squared loss, lam = 1e-6
+    scale = np.abs(A.T @ (2 * gv)).max()
+    on = w.ravel() > 0
+    assert np.all(np.abs(grad[on]) <= 1e-6 * scale) and np.all(grad[~on] >= -1e-6 * scale)
+    assert np.linalg.norm(op.matvec(w) - g) <= 1e-3 * np.linalg.norm(g)
 
 
 def test_coarse_to_fine_solves_the_centres_before_the_full_windows(levir_gray):
@@ -652,3 +661,41 @@ def test_lazy_reference_is_read_once_per_pixel(levir_gray, monkeypatch):
     monkeypatch.setattr(E, "_cached_reads", lambda r: r)
     estimate_motion(direct, obs, grid, **kw)
     assert direct.times.max() >= 3
+
+
+@pytest.mark.parametrize("one_sided", [False, True])
+def test_kkt_scale_is_the_gradient_at_zero_for_any_start(one_sided):
+    """The KKT test's scale is the data term's largest gradient at ``w = 0``, computed
+    here from the explicit matrix: the same for a cold start and for a warm start (whose
+    own gradient is far smaller: scaled by it, the test was stricter the better the
+    start)."""
+    import cv2
+
+    rng = np.random.default_rng(44)
+    f = cv2.GaussianBlur(rng.random((90, 90)), (0, 0), 1.3)
+    grid = PoseGrid((90, 90), tx=np.arange(-3, 4), ty=np.arange(-3, 4), rz=[-1.0, 0.0, 1.0])
+    op = BlurOperator(f, grid, (12, 12, 66, 66))
+    w_true = np.zeros(grid.shape)
+    w_true[1, 3, 3], w_true[2, 2, 4] = 0.6, 0.4
+    g = op.matvec(w_true) + rng.normal(0, 0.01, op.dimsd)
+    g[:10, :20] += 0.4  # a change: outliers of the Huber loss
+    lam, delta = 0.05, 0.025
+    s = np.ones(op.dimsd) if one_sided else None
+    A = np.stack([op.column(k)[:, :, 0].ravel() for k in range(grid.size)], axis=1)
+    m = op.valid.ravel()
+    A, gv = A[m].astype(float), g[:, :, 0].ravel()[m]
+    if s is None:
+        psi0 = 2 * np.clip(gv, -delta, delta)
+    else:
+        psi0 = np.where(gv > delta, 2 * delta, 2 * gv)
+    scale = np.abs(A.T @ psi0).max()
+    kw = dict(lam=lam, signs=None if s is None else [s])
+    _, cold = active_set([op], [g], **kw)
+    warm_w, warm = active_set([op], [g], w0=w_true, **kw)
+    assert cold["kkt_scale"] == pytest.approx(scale, rel=1e-5)
+    assert warm["kkt_scale"] == pytest.approx(scale, rel=1e-5)
+    # the warm start's own gradient scale is far smaller than the problem's
+    r0 = gv - A @ w_true.ravel()
+    psi_w = 2 * np.clip(r0, -delta, delta) if s is None else np.where(r0 > delta, 2 * delta,
+                                                                        2 * r0)
+    assert np.abs(A.T @ psi_w).max() < 0.1 * scale
