@@ -14,10 +14,10 @@ estimate at 1 Gpx (``python -m benchmarks.large_motion --case 32000``, each run 
 after 10 s of idle, alternated) took 4.95-5.22 s with 1.0 s of kernel time in small pages,
 against 5.92-6.18 s with 2.9 s in huge pages (docs/NOTES.md, "Eleventh stop").  Probably
 because a huge page needs a whole free 2 MB block, and whole free blocks are what the host
-takes back, while small pages also come from partly used blocks it still backs.  (``grow-small`` in
-``python -m benchmarks.first_touch``, 2 GB kept, gains less and varies with the host.)
-:func:`small_pages` turns numpy's request off while a piece of work that allocates much
-short-lived memory runs.
+takes back, while small pages also come from partly used blocks it still backs.  (The
+``grow-small`` row of ``python -m benchmarks.first_touch``, 2 GB kept, gains less and
+varies with the host.)  :func:`small_pages` turns numpy's request off while a piece of
+work that allocates much short-lived memory runs.
 """
 
 from __future__ import annotations
@@ -69,6 +69,7 @@ def small_pages() -> Iterator[None]:
     takes freed memory back), huge pages made the first touch of the estimate's ~1 GB of
     short-lived stacks and spectra cost three times the kernel time of small pages (module
     notes).
+
     The setting is numpy's and process-wide: it is switched off when the first of
     overlapping blocks (in any thread) starts and restored when the last ends; arrays
     allocated meanwhile by other threads also get small pages (a performance hint only).
