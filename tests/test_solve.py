@@ -179,17 +179,24 @@ def test_uint8_input_is_scaled(levir_gray, paper_grid):
     assert mass_near_truth(est.weights, w_true) >= 0.9
 
 
-def test_coarse_to_fine_matches_the_direct_solve(levir_gray):
-    """Coarse to fine over the roll angles (and, on coarse levels, every 2nd/4th translation)
-    must reach the optimum of the direct solve over the whole fine grid."""
-    H, W = levir_gray.shape
+def _two_windows_rolled(ref):
+    """Two 240 px windows of ``ref`` blurred along a camera path with 1 deg of roll (the
+    rest of the observation zero), and a grid of 81 roll angles for them."""
+    H, W = ref.shape
     path = random_camera_path(4, center=((W - 1) / 2, (H - 1) / 2), t_max=6.0, rz_max=1.0)
     boxes = [(150, 150, 240, 240), (634, 634, 240, 240)]
     obs = np.zeros((H, W))
     for b in boxes:
-        g, _ = blur_along_path(levir_gray, path, b, dtype=np.float32)
+        g, _ = blur_along_path(ref, path, b, dtype=np.float32)
         obs[b[0] : b[0] + b[2], b[1] : b[1] + b[3]] = g.reshape(b[2], b[3])
     grid = PoseGrid.from_ranges((H, W), t_max=10, rz_max=2.0, rz_step=0.05)  # 81 angles
+    return obs, grid, boxes
+
+
+def test_coarse_to_fine_matches_the_direct_solve(levir_gray):
+    """Coarse to fine over the roll angles (and, on coarse levels, every 2nd/4th translation)
+    must reach the optimum of the direct solve over the whole fine grid."""
+    obs, grid, boxes = _two_windows_rolled(levir_gray)
     direct = estimate_motion(levir_gray, obs, grid, boxes=boxes, coarse_to_fine=False)
     c2f = estimate_motion(levir_gray, obs, grid, boxes=boxes, coarse_to_fine=True, max_bases=6)
     assert len(c2f.info["levels"]) >= 3
@@ -641,14 +648,7 @@ def test_lazy_reference_is_read_once_per_pixel(levir_gray, monkeypatch):
     exactly what the in-memory reference gives."""
     import reblur.estimate as E
 
-    H, W = levir_gray.shape
-    path = random_camera_path(4, center=((W - 1) / 2, (H - 1) / 2), t_max=6.0, rz_max=1.0)
-    boxes = [(150, 150, 240, 240), (634, 634, 240, 240)]
-    obs = np.zeros((H, W))
-    for b in boxes:
-        g, _ = blur_along_path(levir_gray, path, b, dtype=np.float32)
-        obs[b[0] : b[0] + b[2], b[1] : b[1] + b[3]] = g.reshape(b[2], b[3])
-    grid = PoseGrid.from_ranges((H, W), t_max=10, rz_max=2.0, rz_step=0.05)
+    obs, grid, boxes = _two_windows_rolled(levir_gray)
     kw = dict(boxes=boxes, coarse_to_fine=True, max_bases=6)
     plain = estimate_motion(levir_gray, obs, grid, **kw)
     assert len(plain.info["levels"]) >= 3
