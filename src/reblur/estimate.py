@@ -11,7 +11,7 @@ from threadpoolctl import threadpool_limits
 
 from ._memory import available_cpus, small_pages, thread_map
 from .grid import PoseGrid
-from .io import ChunkCache
+from .io import ChunkCache, tile_chunks
 from .operator import BlurOperator
 from .result import MotionEstimate
 from .robust import huber_line, mad
@@ -241,10 +241,7 @@ def _cached_reads(reference):
     """
     if isinstance(reference, (np.ndarray, ChunkCache)):
         return reference
-    ch = getattr(reference, "chunks", None)
-    tiles = (ch is not None and len(ch) >= 2 and min(int(ch[0]), int(ch[1])) >= 64
-             and int(ch[0]) * int(ch[1]) <= 2**24)
-    chunks = (int(ch[0]), int(ch[1])) if tiles else (_READ_CHUNK, _READ_CHUNK)
+    chunks = tile_chunks(reference) or (_READ_CHUNK, _READ_CHUNK)
     return ChunkCache(reference, max_bytes=_READ_CACHE_BYTES, chunks=chunks)
 
 

@@ -51,6 +51,7 @@ __all__ = [
     "LazyBands",
     "ChunkCache",
     "chunk_cached",
+    "tile_chunks",
     "DEFAULT_MAX_PIXELS",
     "MIN_SIDE",
     "open_image",
@@ -345,6 +346,19 @@ class ChunkCache:
         return out[(slice(None), slice(None), *key[2:])] if len(key) > 2 else out
 
 
+def tile_chunks(image) -> tuple[int, int] | None:
+    """The ``(rows, cols)`` chunk size of ``image`` when its chunks are tiles (at least
+    64 px on each side, at most 2**24 px): what a :class:`ChunkCache` can keep whole.
+    None for numpy arrays, row strips and arrays without chunks."""
+    chunks = getattr(image, "chunks", None)
+    if isinstance(image, np.ndarray) or not chunks or len(chunks) < 2:
+        return None
+    ch, cw = int(chunks[0]), int(chunks[1])
+    if min(ch, cw) < 64 or ch * cw > 2**24:
+        return None
+    return ch, cw
+
+
 def chunk_cached(image, tile_size: int, halo: int):
     """``image`` read through a :class:`ChunkCache` sized for a tiled pass, when it is a
     chunked on-disk array whose chunks are tiles (not single rows); anything else (numpy
@@ -354,12 +368,10 @@ def chunk_cached(image, tile_size: int, halo: int):
     row -- two tile rows, twice the halo and a chunk row on each side -- within 64 MB to
     256 MB.
     """
-    chunks = getattr(image, "chunks", None)
-    if isinstance(image, (np.ndarray, ChunkCache)) or not chunks or len(chunks) < 2:
+    tiles = None if isinstance(image, ChunkCache) else tile_chunks(image)
+    if tiles is None:
         return image
-    ch, cw = int(chunks[0]), int(chunks[1])
-    if min(ch, cw) < 64 or ch * cw > 2**24:
-        return image
+    ch, cw = tiles
     px = int(np.prod(image.shape[2:], dtype=np.int64)) * np.dtype(image.dtype).itemsize
     rows = 2 * int(tile_size) + 4 * int(halo) + 2 * ch
     budget = min(max(rows * int(image.shape[1]) * px, 64 * 2**20), 256 * 2**20)
