@@ -224,6 +224,36 @@ def _slope(mp, t) -> float:
     return float(np.polyfit(np.log(mp), np.log(t), 1)[0])
 
 
+def _affine(mp, t) -> tuple[float, float]:
+    """Fit ``t ~ F + b mp`` by least squares on relative errors (weights ``1 / t``).
+
+    Returns the size-independent time ``F`` (s) and the per-pixel rate ``b`` (s / MP).
+    """
+    t = np.asarray(t, float)
+    b, F = np.polyfit(np.asarray(mp, float), t, 1, w=1.0 / t)
+    return float(F), float(b)
+
+
+def _fixed_budget(mp, b: float, slope: float = 0.9) -> float:
+    """The size-independent time ``F`` at which ``F + b mp`` has log-log slope ``slope``
+    over the sizes ``mp``.
+
+    The slope of ``F + b mp`` is 1 at ``F = 0`` and falls monotonically as ``F`` grows (each
+    point's local slope ``b mp / (F + b mp)`` falls, the more so the smaller the size), so
+    a bisection finds it.
+    """
+    mp = np.asarray(mp, float)
+    if not 0.0 < slope < 1.0:
+        raise ValueError("slope must lie in (0, 1)")
+    lo, hi = 0.0, b * mp.max()
+    while _slope(mp, hi + b * mp) > slope:
+        hi *= 2.0
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if _slope(mp, mid + b * mp) > slope else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
 def _plot(rows: dict) -> None:
     import matplotlib
 
@@ -242,6 +272,11 @@ def _plot(rows: dict) -> None:
         mp = np.array([r["mp"] for r in rows["local"]])
         t0 = rows["local"][0]["time_s"] / rows["local"][0]["mp"]
         ax.loglog(mp, t0 * mp, color="0.7", lw=0.8, label="slope 1 (linear in pixels)")
+        if len(mp) >= 2:
+            F, b = _affine(mp, [r["time_s"] for r in rows["local"]])
+            x = np.geomspace(mp.min(), mp.max(), 50)
+            ax.loglog(x, F + b * x, color="C0", lw=0.8, ls=(0, (2, 2)),
+                      label=f"fit {F:.1f} s + {1000 * b:.0f} ms/MP")
     ax.set_xlabel("image size (megapixels)")
     ax.set_ylabel("wall time (s)")
     ax.grid(True, which="both", alpha=0.3)
@@ -318,6 +353,36 @@ def _earlier(runs: list[dict], shown: set, n: int = 2) -> list[str]:
     return [""] + out if out else []
 
 
+def _fixed_costs(local: dict) -> list[str]:
+    """Lines splitting the local path's time into a size-independent part and a per-pixel
+    rate, and what the slope target leaves for the former."""
+    sizes = sorted(local)
+    mps = [local[k]["mp"] for k in sizes]
+    ts = [local[k]["time_s"] for k in sizes]
+    F, b = _affine(mps, ts)
+    worst = max(abs(F + b * m - t) / t for m, t in zip(mps, ts, strict=True))
+    budget = _fixed_budget(mps, b, 0.9)
+    out = ["", f"Time is affine in pixels: a least-squares fit (relative errors) gives "
+           f"T = {F:.1f} s + {1000 * b:.0f} ms per MP, within {100 * worst:.0f} % of every "
+           f"row; at that per-pixel rate a slope of 0.9 over these sizes leaves at most "
+           f"{budget:.1f} s for the work that does not grow with the image."]
+    secs = [local[k].get("seconds") or {} for k in sizes]
+    if all("tiles" in s for s in secs):
+        tiles = [s["tiles"] for s in secs]
+        pre = [sum(local[k]["timings"].get(n, 0.0) for n in
+                   ("align", "photometry", "estimate", "refine")) for k in sizes]
+        fit = [s.get("fit", 0.0) for s in secs]
+        rest = [t - p - f for t, p, f in zip(ts, pre, fit, strict=True)]
+        out[-1] += (
+            f"  The tile pass alone (`seconds.tiles`) has slope {_slope(mps, tiles):.2f}.  "
+            "Before it, the stages that estimate the motion (align, photometry, estimate, "
+            "refine: " + ", ".join(f"{p:.1f}" for p in pre) + " s) and the sampled fit of "
+            "the decision (" + ", ".join(f"{f:.1f}" for f in fit) + " s); with both at zero "
+            f"cost the whole run's slope would be {_slope(mps, rest):.2f}."
+        )
+    return out
+
+
 def _markdown(rows: dict, runs: list[dict] | None = None) -> str:
     local = {round(r["mp"]): r for r in rows.get("local", [])}
     io = {round(r["mp"]): r for r in rows.get("io", [])}
@@ -370,6 +435,7 @@ def _markdown(rows: dict, runs: list[dict] | None = None) -> str:
         tiles = [local[k]["timings"]["reblur_decide"] for k in sorted(local)]
         lines += ["", f"Log-log slope of time against pixels: {_slope(mps, ts):.2f} (whole run), "
                   f"{_slope(mps, tiles):.2f} (reblur + decide stage alone)."]
+        lines += _fixed_costs(local)
     if runs:
         lines += _earlier(runs, {r["commit"] for r in local.values()})
     for _mp, r in sorted(clus.items()):

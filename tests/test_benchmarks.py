@@ -1,0 +1,61 @@
+"""The cost curve's arithmetic (``benchmarks/scale.py``): the affine split of the time and
+the size-independent time a log-log slope allows, against closed forms."""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+from conftest import REPO
+
+if str(REPO) not in sys.path:  # the benchmarks live beside src/, not in the package
+    sys.path.insert(0, str(REPO))
+from benchmarks.scale import _affine, _fixed_budget, _fixed_costs, _slope  # noqa: E402
+
+SIZES = np.array([25.0, 100.0, 400.0, 1000.0])
+
+
+def test_affine_fit_recovers_fixed_time_and_rate():
+    F, b = _affine(SIZES, 3.7 + 0.081 * SIZES)
+    assert F == pytest.approx(3.7, rel=1e-9)
+    assert b == pytest.approx(0.081, rel=1e-9)
+
+
+@pytest.mark.parametrize("slope", [0.7, 0.9, 0.95])
+def test_fixed_budget_two_sizes_matches_the_closed_form(slope):
+    # two sizes N1 < N2, r = N2 / N1: log((F + b N2) / (F + b N1)) / log(r) = s  gives
+    # F = b (N2 - N1 r^s) / (r^s - 1)
+    n1, n2, b = 25.0, 1000.0, 0.074
+    rs = (n2 / n1) ** slope
+    expected = b * (n2 - n1 * rs) / (rs - 1.0)
+    assert _fixed_budget([n1, n2], b, slope) == pytest.approx(expected, rel=1e-9)
+
+
+def test_fixed_budget_gives_the_slope_over_four_sizes():
+    b = 0.074
+    F = _fixed_budget(SIZES, b, 0.9)
+    # an independent log-log fit of the affine times at that budget
+    s = np.polyfit(np.log(SIZES), np.log(F + b * SIZES), 1)[0]
+    assert s == pytest.approx(0.9, abs=1e-9)
+    # more fixed time, a smaller slope; none, exactly linear
+    assert _slope(SIZES, 2 * F + b * SIZES) < 0.9
+    assert _slope(SIZES, b * SIZES) == pytest.approx(1.0, abs=1e-12)
+    with pytest.raises(ValueError):
+        _fixed_budget(SIZES, b, 1.0)
+
+
+def test_fixed_costs_lines_report_the_split():
+    b, F = 0.07, 4.0
+    local = {}
+    for mp in SIZES:
+        tiles = b * mp
+        local[int(mp)] = dict(
+            mp=mp, time_s=F + tiles,
+            timings=dict(align=1.5, photometry=0.1, estimate=1.6, refine=0.3),
+            seconds=dict(fit=0.5, tiles=tiles))
+    text = " ".join(_fixed_costs(local))
+    assert "T = 4.0 s + 70 ms per MP, within 0 % of every row" in text
+    assert f"leaves at most {_fixed_budget(SIZES, b, 0.9):.1f} s" in text
+    assert "tile pass alone (`seconds.tiles`) has slope 1.00" in text
+    assert "would be 1.00" in text  # the rest is the tile pass alone: linear
