@@ -362,10 +362,19 @@ def _fixed_costs(local: dict) -> list[str]:
     F, b = _affine(mps, ts)
     worst = max(abs(F + b * m - t) / t for m, t in zip(mps, ts, strict=True))
     budget = _fixed_budget(mps, b, 0.9)
+    # the budget is proportional to the rate: F + b' N has slope 0.9 iff F / b' = ratio
+    ratio = budget / b
+    top = max(mps)
     out = ["", f"Time is affine in pixels: a least-squares fit (relative errors) gives "
            f"T = {F:.1f} s + {1000 * b:.0f} ms per MP, within {100 * worst:.0f} % of every "
            f"row; at that per-pixel rate a slope of 0.9 over these sizes leaves at most "
            f"{budget:.1f} s for the work that does not grow with the image."]
+    if abs(top - 1000) < 1:  # the gigapixel row, whose target is 4 minutes
+        out[-1] += (
+            f"  Conversely, with {F:.1f} s of it, a slope of 0.9 needs at least "
+            f"{1000 * F / ratio:.0f} ms per MP, {F + top * F / ratio:.0f} s at 1 Gpx (the "
+            f"target there is 240 s); both targets together allow at most "
+            f"{240 * ratio / (top + ratio):.1f} s of it, at any per-pixel rate.")
     secs = [local[k].get("seconds") or {} for k in sizes]
     if all("tiles" in s for s in secs):
         tiles = [s["tiles"] for s in secs]

@@ -59,3 +59,32 @@ def test_fixed_costs_lines_report_the_split():
     assert f"leaves at most {_fixed_budget(SIZES, b, 0.9):.1f} s" in text
     assert "tile pass alone (`seconds.tiles`) has slope 1.00" in text
     assert "would be 1.00" in text  # the rest is the tile pass alone: linear
+
+
+def _rate_for_slope(F, sizes, slope):
+    """The per-pixel rate b at which F + b N has log-log slope ``slope``: a bisection on
+    b (the slope rises with b), independent of ``_fixed_budget``'s bisection on F."""
+    lo, hi = 1e-9, 1e3
+    for _ in range(200):
+        mid = np.sqrt(lo * hi)
+        s = np.polyfit(np.log(sizes), np.log(F + mid * sizes), 1)[0]
+        lo, hi = (lo, mid) if s > slope else (mid, hi)
+    return np.sqrt(lo * hi)
+
+
+def test_fixed_costs_lines_state_what_both_targets_need():
+    F, b = 4.4, 0.081
+    local = {int(mp): dict(mp=mp, time_s=F + b * mp, timings={}, seconds={})
+             for mp in SIZES}
+    text = " ".join(_fixed_costs(local))
+    need = _rate_for_slope(F, SIZES, 0.9)
+    assert f"needs at least {1000 * need:.0f} ms per MP, {F + 1000 * need:.0f} s at 1 Gpx" in text
+    # the largest fixed time for which the rate giving slope 0.9 keeps 1 Gpx within 240 s
+    lo, hi = 0.0, 240.0
+    for _ in range(100):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if mid + 1000 * _rate_for_slope(mid, SIZES, 0.9) < 240 else (lo, mid)
+    assert f"allow at most {lo:.1f} s of it" in text
+    # no gigapixel row, no statement about the 4-minute target
+    small = {k: v for k, v in local.items() if k < 1000}
+    assert "240 s" not in " ".join(_fixed_costs(small))
