@@ -245,6 +245,8 @@ def _fixed_budget(mp, b: float, slope: float = 0.9) -> float:
     mp = np.asarray(mp, float)
     if not 0.0 < slope < 1.0:
         raise ValueError("slope must lie in (0, 1)")
+    if not b > 0.0:
+        raise ValueError("the per-pixel rate must be positive")
     lo, hi = 0.0, b * mp.max()
     while _slope(mp, hi + b * mp) > slope:
         hi *= 2.0
@@ -272,8 +274,8 @@ def _plot(rows: dict) -> None:
         mp = np.array([r["mp"] for r in rows["local"]])
         t0 = rows["local"][0]["time_s"] / rows["local"][0]["mp"]
         ax.loglog(mp, t0 * mp, color="0.7", lw=0.8, label="slope 1 (linear in pixels)")
-        if len(mp) >= 2:
-            F, b = _affine(mp, [r["time_s"] for r in rows["local"]])
+        F, b = _affine(mp, [r["time_s"] for r in rows["local"]]) if len(mp) >= 2 else (0, 0)
+        if b > 0 and F > 0:
             x = np.geomspace(mp.min(), mp.max(), 50)
             ax.loglog(x, F + b * x, color="C0", lw=0.8, ls=(0, (2, 2)),
                       label=f"fit {F:.1f} s + {1000 * b:.0f} ms/MP")
@@ -360,6 +362,8 @@ def _fixed_costs(local: dict) -> list[str]:
     mps = [local[k]["mp"] for k in sizes]
     ts = [local[k]["time_s"] for k in sizes]
     F, b = _affine(mps, ts)
+    if not (F > 0 and b > 0):  # not sub-linear through a fixed cost: nothing to split
+        return ["", f"Least-squares affine fit: T = {F:.1f} s + {1000 * b:.0f} ms per MP."]
     worst = max(abs(F + b * m - t) / t for m, t in zip(mps, ts, strict=True))
     budget = _fixed_budget(mps, b, 0.9)
     # the budget is proportional to the rate: F + b' N has slope 0.9 iff F / b' = ratio
@@ -384,10 +388,10 @@ def _fixed_costs(local: dict) -> list[str]:
         rest = [t - p - f for t, p, f in zip(ts, pre, fit, strict=True)]
         out[-1] += (
             f"  The tile pass alone (`seconds.tiles`) has slope {_slope(mps, tiles):.2f}.  "
-            "Before it, the stages that estimate the motion (align, photometry, estimate, "
-            "refine: " + ", ".join(f"{p:.1f}" for p in pre) + " s) and the sampled fit of "
-            "the decision (" + ", ".join(f"{f:.1f}" for f in fit) + " s); with both at zero "
-            f"cost the whole run's slope would be {_slope(mps, rest):.2f}."
+            "Before it run the stages that estimate the motion (align, photometry, "
+            "estimate, refine: " + ", ".join(f"{p:.1f}" for p in pre) + " s) and the "
+            "decision's sampled fit (" + ", ".join(f"{f:.1f}" for f in fit) + " s); with "
+            f"both at zero cost the whole run's slope would be {_slope(mps, rest):.2f}."
         )
     return out
 

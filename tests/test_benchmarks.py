@@ -43,6 +43,8 @@ def test_fixed_budget_gives_the_slope_over_four_sizes():
     assert _slope(SIZES, b * SIZES) == pytest.approx(1.0, abs=1e-12)
     with pytest.raises(ValueError):
         _fixed_budget(SIZES, b, 1.0)
+    with pytest.raises(ValueError):
+        _fixed_budget(SIZES, 0.0, 0.9)
 
 
 def test_fixed_costs_lines_report_the_split():
@@ -88,3 +90,12 @@ def test_fixed_costs_lines_state_what_both_targets_need():
     # no gigapixel row, no statement about the 4-minute target
     small = {k: v for k, v in local.items() if k < 1000}
     assert "240 s" not in " ".join(_fixed_costs(small))
+
+
+def test_fixed_costs_without_a_fixed_cost_only_state_the_fit():
+    # time growing faster than the pixels: a negative intercept, no budget to speak of
+    local = {int(mp): dict(mp=mp, time_s=-2.0 + 0.1 * mp, timings={}, seconds={})
+             for mp in SIZES}
+    text = " ".join(_fixed_costs(local))
+    assert "T = -2.0 s + 100 ms per MP" in text
+    assert "leaves at most" not in text
