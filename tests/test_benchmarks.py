@@ -58,7 +58,8 @@ def test_fixed_costs_lines_report_the_split():
             seconds=dict(fit=0.5, tiles=tiles))
     text = " ".join(_fixed_costs(local))
     assert "T = 4.0 s + 70 ms per MP, within 0 % of every row" in text
-    assert f"leaves at most {_fixed_budget(SIZES, b, 0.9):.1f} s" in text
+    # the slope of F + b N depends on F / b alone: the budget is b / (the rate for F = 1)
+    assert f"leaves at most {b / _rate_for_slope(1.0, SIZES, 0.9):.1f} s" in text
     assert "tile pass alone (`seconds.tiles`) has slope 1.00" in text
     assert "would be 1.00" in text  # the rest is the tile pass alone: linear
 
