@@ -4,10 +4,13 @@ The observation is ``obs(x) = mean_k ref(H_k^{-1} x)`` over the sub-pose homogra
 continuous camera path (reference -> observation, see :mod:`reblur.testbed.camera`).  Each
 term is a BICUBIC perspective warp (OpenCV's cubic convolution kernel, a = -0.75, through
 ``cv2.remap`` on sample positions computed here in float64; reblur's own model uses bilinear
-warps on a pose grid), accumulated in float64.  Any window of the observation is
-rendered from only the reference region it needs (the window corners mapped through every
-inverse homography, plus a margin for the cubic's support), so observations of any size are
-made a tile at a time; a pixel of a tile equals the same pixel of a whole-image render.
+warps on a pose grid), accumulated in float64.  Note that the a = -0.75 kernel reproduces
+constants exactly but linear ramps only up to a sub-pixel phase error (at most ~0.04 px,
+odd about half-pixel positions); it is part of this generator's "optics", not of the scene.
+Any window of the observation is rendered from only the reference region it needs (the
+window corners mapped through every inverse homography, plus a margin for the cubic's
+support), so observations of any size are made a tile at a time; a pixel of a tile equals
+the same pixel of a whole-image render, bit for bit.
 
 Windows are ``box = (y0, y1, x0, x1)``, half-open, in observation pixels.  A ``source`` is
 anything with ``.shape`` and 2-D slicing (a numpy array, a memory map, a zarr array or a

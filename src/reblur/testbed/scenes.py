@@ -318,7 +318,7 @@ def _place(rng, scene, shape: dict, margin: float, taken: list[Box], min_range: 
     r = probe.radius
     lo_y, lo_x = margin + r, margin + r
     if h - lo_y <= lo_y or w - lo_x <= lo_x:
-        raise ValueError("scene too small for the change objects: lower size_px or margin")
+        return None
     cx, cy = rng.uniform(lo_x, w - lo_x), rng.uniform(lo_y, h - lo_y)
     obj = ChangeObject(cx=cx, cy=cy, delta=0.0, local_range=0.0, **shape)
     b = obj.bbox
@@ -400,7 +400,8 @@ def paste_changes(
                 break
         else:
             raise ValueError(f"could not place {n_changes} non-overlapping changes with local "
-                             f"range >= {min_range}: lower n_changes, size_px or min_range")
+                             f"range >= {min_range} in a {scene.shape[:2]} scene with margin "
+                             f"{margin}: lower n_changes, size_px, margin or min_range")
     return ChangedScene(scene, tuple(objects))
 
 
