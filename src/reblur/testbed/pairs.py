@@ -22,7 +22,7 @@ import tifffile
 
 from .camera import CameraPath, compose, random_camera_path, viewpoint_homography
 from .render import Box, iter_tiles, render_window, valid_window
-from .scenes import ChangedScene, CroppedScene, paste_changes, truth_window
+from .scenes import ChangedScene, CroppedScene, change_boxes, paste_changes, truth_window
 from .sensor import apply_sensor, output_dtype
 
 __all__ = ["PairPlan", "RealismPair", "make_pair", "plan_pair", "write_pair"]
@@ -64,7 +64,29 @@ class RealismPair:
 
 @dataclass(frozen=True)
 class PairPlan:
-    """Everything needed to produce any tile of a pair (see :func:`plan_pair`)."""
+    """Everything needed to produce any tile of a pair (see :func:`plan_pair`).
+
+    Attributes
+    ----------
+    scene : array-like
+        The unchanged scene (the reference before the sensor model).
+    changed : ChangedScene
+        The scene with the change objects (what the observation is rendered from).
+    path : CameraPath
+        The camera-shake path.
+    view : numpy.ndarray
+        ``3 x 3`` viewpoint homography.
+    homographies : numpy.ndarray
+        ``(n_sub, 3, 3)`` total mappings ``H_k @ H_view``.
+    sensor : dict
+        Keywords of :func:`~reblur.testbed.sensor.apply_sensor`.
+    seed : int
+        Seed of the per-tile noise streams.
+    info : dict
+        JSON-able description.
+    boxes : list of Box
+        :func:`~reblur.testbed.scenes.change_boxes` of ``changed`` and ``homographies``.
+    """
 
     scene: Any
     changed: ChangedScene
@@ -74,6 +96,7 @@ class PairPlan:
     sensor: dict
     seed: int
     info: dict
+    boxes: list[Box]
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -95,7 +118,7 @@ class PairPlan:
 
     def truth_tile(self, box: Box) -> np.ndarray:
         """Change mask of a box (boolean)."""
-        return truth_window(self.changed, self.homographies, box)
+        return truth_window(self.changed, self.homographies, box, self.boxes)
 
     def valid_tile(self, box: Box) -> np.ndarray:
         """Validity mask of a box (boolean)."""
@@ -180,7 +203,8 @@ def plan_pair(
             "n_sub": len(path.poses), "poses": path.poses.tolist(), "view": view.tolist(),
             "homographies": total.tolist(), "objects": _object_info(changed),
             "convention": "homographies map reference (x, y) to observation; H_k @ H_view"}
-    return PairPlan(base, changed, path, view, total, sensor, int(seed), info)
+    return PairPlan(base, changed, path, view, total, sensor, int(seed), info,
+                    change_boxes(changed, total))
 
 
 def make_pair(

@@ -27,6 +27,7 @@ __all__ = [
     "ChangedScene",
     "CroppedScene",
     "UpsampledScene",
+    "change_boxes",
     "levir_image",
     "load_image",
     "paste_changes",
@@ -414,7 +415,28 @@ def _object_obs_box(o: ChangeObject, hs: np.ndarray) -> Box:
             int(np.floor(pts[0].min())) - 1, int(np.ceil(pts[0].max())) + 2)
 
 
-def truth_window(scene: ChangedScene, homographies: np.ndarray, box: Box) -> np.ndarray:
+def change_boxes(scene: ChangedScene, homographies: np.ndarray) -> list[Box]:
+    """Observation-frame boxes holding each change object under every sub-pose homography.
+
+    Parameters
+    ----------
+    scene : ChangedScene
+        The scene with its change objects.
+    homographies : numpy.ndarray
+        ``(n, 3, 3)`` reference -> observation homographies.
+
+    Returns
+    -------
+    list of Box
+        One ``(y0, y1, x0, x1)`` per object (unclipped).
+    """
+    hs = _check_homographies(homographies)
+    return [_object_obs_box(o, hs) for o in scene.objects]
+
+
+def truth_window(
+    scene: ChangedScene, homographies: np.ndarray, box: Box, boxes: list[Box] | None = None
+) -> np.ndarray:
     """Ground truth of a window of the observation: half-maximum footprint of the changes.
 
     A pixel ``x`` is changed when ``mean_k 1[H_k^{-1} x in an object] >= 0.5``, the
@@ -428,6 +450,9 @@ def truth_window(scene: ChangedScene, homographies: np.ndarray, box: Box) -> np.
         ``(n, 3, 3)`` reference -> observation homographies.
     box : Box
         Observation window ``(y0, y1, x0, x1)``.
+    boxes : list of Box, optional
+        :func:`change_boxes` of the same scene and homographies (computed when omitted;
+        pass it when rendering many windows).
 
     Returns
     -------
@@ -436,13 +461,17 @@ def truth_window(scene: ChangedScene, homographies: np.ndarray, box: Box) -> np.
     """
     hs = _check_homographies(homographies)
     y0, y1, x0, x1 = box
+    boxes = change_boxes(scene, hs) if boxes is None else boxes
+    if len(boxes) != len(scene.objects):
+        raise ValueError("boxes must be change_boxes(scene, homographies), one per object")
     out = np.zeros((y1 - y0, x1 - x0), dtype=bool)
     near = []
-    for o in scene.objects:
-        b = _object_obs_box(o, hs)
+    for o, b in zip(scene.objects, boxes, strict=True):
         b = (max(b[0], y0), min(b[1], y1), max(b[2], x0), min(b[3], x1))
         if b[1] > b[0] and b[3] > b[2]:
             near.append((o, b))
+    if not near:
+        return out
     inv = _inverses(hs)
     objs = [o for o, _ in near]
     for _, (r0, r1, c0, c1) in near:
