@@ -125,6 +125,10 @@ def test_tilt_is_a_true_perspective_and_view_moves_corners_differently():
     moved = view @ corners
     disp = moved[:2] / moved[2] - corners[:2]
     assert np.ptp(disp[0]) > 1.0 and np.ptp(disp[1]) > 1.0
+    centre = view @ [299.5, 199.5, 1.0]
+    assert np.all(np.abs(centre[:2] / centre[2] - [299.5, 199.5]) <= 10.0 + 1e-9)
+    flat = tb.viewpoint_homography(shape, np.random.default_rng(1), 10.0, 0.0, 0.0)
+    assert np.allclose(flat[:2, :2], np.eye(2)) and np.allclose(flat[2], [0, 0, 1])
 
 
 def test_random_path_is_continuous_bounded_and_seeded():

@@ -275,6 +275,12 @@ def viewpoint_homography(
 ) -> np.ndarray:
     """A random perspective viewpoint change, reference pixel -> nominal observation pixel.
 
+    The camera turns by a random tilt/pan (``|rx|, |ry| <= perspective``) and roll
+    (``|rz| <= angle_deg``) about its centre, ``K R K^-1``; the image shift this turn gives
+    the image centre (``f tan(angle)``, hundreds of pixels on large images) is then replaced
+    by a random shift ``|tx|, |ty| <= shift_px``.  So the image centre moves by exactly
+    ``(tx, ty)``, while the corners move differently (rotation and keystone).
+
     Parameters
     ----------
     shape : tuple of int
@@ -296,11 +302,16 @@ def viewpoint_homography(
     numpy.ndarray
         ``3 x 3`` float64 homography.
     """
-    _check_shape(shape)
+    h, w = _check_shape(shape)
     lims = np.array([shift_px, angle_deg, perspective], dtype=np.float64)
     if np.any(lims < 0) or not np.all(np.isfinite(lims)):
         raise ValueError("shift_px, angle_deg and perspective must be finite and >= 0")
     tx, ty = rng.uniform(-shift_px, shift_px, size=2)
     rx, ry = rng.uniform(-perspective, perspective, size=2)
     rz = rng.uniform(-angle_deg, angle_deg)
-    return pose_homography(shape, (tx, ty, 0.0, rx, ry, rz), focal)
+    turn = pose_homography(shape, (0.0, 0.0, 0.0, rx, ry, rz), focal)
+    c = np.array([(w - 1) / 2.0, (h - 1) / 2.0, 1.0])
+    moved = turn @ c
+    shift = c[:2] - moved[:2] / moved[2] + [tx, ty]
+    view = np.array([[1.0, 0.0, shift[0]], [0.0, 1.0, shift[1]], [0.0, 0.0, 1.0]]) @ turn
+    return view / view[2, 2]
