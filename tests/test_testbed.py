@@ -143,7 +143,8 @@ def test_random_path_is_continuous_bounded_and_seeded():
     assert np.all(np.abs(path.poses) <= limits + 1e-12)
     assert np.all(np.ptp(path.poses, axis=0) > 0)
     assert np.all(np.abs(path.poses[:, :2] - np.rint(path.poses[:, :2])) > 1e-6)
-    assert np.max(np.abs(np.diff(path.poses[:, 0]))) < 3.0 * 2 * np.pi * 1.5 * 2 / 64
+    curvature = np.abs(np.diff(path.poses, n=2, axis=0)).max(axis=0)
+    assert np.all(curvature < 0.05 * np.ptp(path.poses, axis=0))  # smooth, not jittery
     with pytest.raises(ValueError, match="n_sub"):
         tb.random_camera_path(shape, np.random.default_rng(0), n_sub=16)
 
@@ -430,3 +431,21 @@ def test_gopro_pair_is_the_mean_of_the_frames():
         tb.gopro_pair(2, 7)
     with pytest.raises(ValueError, match="k must be"):
         tb.gopro_pair(12, 0)
+
+
+def test_rgb_jpeg_pair_written_equals_in_memory(tmp_path):
+    _data_or_skip()
+    img = tb.levir_image("test_7", "B", gray=False)
+    kwargs = dict(size=(300, 280), bits=8, noise_dn=1.0, n_changes=2, seed=14, jpeg_quality=85,
+                  changes={"size_px": (10.0, 30.0)})
+    mem = tb.make_pair(img, **kwargs)
+    tb.write_pair(tmp_path, img, **kwargs)
+    assert mem.observed.shape == (300, 280, 3) and mem.observed.dtype == np.uint8
+    np.testing.assert_array_equal(tifffile.imread(tmp_path / "observed.tif"), mem.observed)
+
+
+def test_make_pair_refuses_huge_in_memory_pairs():
+    _data_or_skip()
+    big = tb.upsampled(tb.levir_image("test_7", "B"), 4.1)
+    with pytest.raises(ValueError, match="write_pair"):
+        tb.make_pair(big, n_changes=1)
