@@ -403,9 +403,10 @@ def test_completeness_matches_reference():
 @pytest.mark.parametrize("band_elements", [1 << 16, 1000])  # one band; 8-row bands
 @pytest.mark.parametrize("bands", [1, 3])
 def test_change_statistic_matches_reference(bands, band_elements, monkeypatch):
-    import reblur.decide
+    import reblur.decide.statistic
 
-    monkeypatch.setattr(reblur.decide, "_STAT_BAND", band_elements)
+    # change_statistic reads the band size from its own module
+    monkeypatch.setattr(reblur.decide.statistic, "_STAT_BAND", band_elements)
     rng = np.random.default_rng(21 + bands)
     shape = (90, 117)
     for k in range(6):

@@ -1,0 +1,414 @@
+"""Stage 4 of the change decision, regions (:func:`_decide_core`; local up to the extent of
+a change region).  A component tree over the levels ``threshold * levels``: at each level
+``S > level`` is opened with a disc of ``open_radius`` (removes the thin bands that
+parallax and residual mis-registration leave along edges) and labelled (8-connectivity).
+A component is dropped if smaller than ``min_area`` or if it holds no *strong* pixel
+(``S >= strong_factor * threshold``: hysteresis, a region needs strong evidence somewhere
+and then keeps its weaker surroundings down to the threshold); **accepted** if it looks
+like an object: solidity (area / convex-hull area) ``>= min_solidity`` and aspect
+``area / (2 r_in)^2 <= max_aspect`` (``r_in``: radius of the largest inscribed disc; an
+``a x b`` rectangle has aspect ``a / b``); otherwise (a branching network of roads or
+vegetation edges, or several objects merged through weak bridges) passed to the next,
+stricter level, where it may split into object-like parts.  What is still not object-like
+at the last level is dropped.  Accepted regions are trimmed to their half-energy contour
+(``S >= boundary_fraction * median(S in region)``: an absolute threshold lies far down the
+flank of a strong change and would bleed outwards), pieces below ``min_area`` go, each
+region is closed on its own with a disc of ``close_radius`` (an object whose inside partly
+matches the background -- a low-contrast object, a roof like the ground -- is found with
+bays cut into it; the closing fills those narrower than the disc), enclosed holes up to
+``max_hole_area`` are filled, and unknown pixels are never change.  Also here: the
+connected components, the region records and the tile-edge reach tests of the tiled driver.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any, NamedTuple
+
+import cv2
+import numpy as np
+import scipy.ndimage as ndi
+from skimage.morphology import convex_hull_image
+
+from .params import DecisionParams
+
+
+def _disc(r: int) -> np.ndarray:
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+
+
+def _shape_ok(sub: np.ndarray, area: int, p: DecisionParams) -> bool:
+    # the hull lies inside the bounding box: area / box >= min_solidity settles the
+    # solidity test without the (slow) hull
+    if p.min_solidity > 0 and area < p.min_solidity * sub.size:
+        hull = int(np.count_nonzero(convex_hull_image(sub)))
+        if hull and area / hull < p.min_solidity:
+            return False
+    r_in = float(ndi.distance_transform_edt(np.pad(sub, 1)).max())
+    return area / (4.0 * r_in * r_in) <= p.max_aspect
+
+
+class _Components(NamedTuple):
+    """Connected components of a mask (:func:`_components`).
+
+    Attributes
+    ----------
+    lab : (h, w) int32 ndarray
+        0 for the background, 1..n for the components.
+    n : int
+        Number of components.
+    area : (n + 1,) int ndarray
+        Pixel count per label (``area[0]``: 0).
+    ys, xs, lv : (k,) int ndarray
+        Row, column and label of every foreground pixel, in raster order.
+    """
+
+    lab: np.ndarray
+    n: int
+    area: np.ndarray
+    ys: np.ndarray
+    xs: np.ndarray
+    lv: np.ndarray
+
+
+def _components(mask: np.ndarray, connectivity: int = 8, pixels: bool = True) -> _Components:
+    """Connected components of a 2-D mask, labelled by OpenCV (which releases the GIL).
+
+    The same partition as ``scipy.ndimage.label`` with the full 3 x 3 (``connectivity=8``)
+    or the cross (``4``) structure; the numbering may differ, so callers never rely on it.
+    Areas (and boxes, :func:`_boxes`) come from the foreground pixels only
+    (``cv2.findNonZero``; the components are a small part of a tile): OpenCV's own
+    statistics pass is several times slower than the labelling.
+
+    Parameters
+    ----------
+    mask : (h, w) bool or uint8 ndarray
+        Foreground: non-zero pixels.
+    connectivity : {8, 4}
+    pixels : bool
+        Also list the foreground pixels (``ys``, ``xs``, ``lv``); False for a dense
+        foreground (e.g. the background of a mask), whose areas come from a count over the
+        whole label image instead.
+
+    Returns
+    -------
+    _Components
+    """
+    m = np.ascontiguousarray(mask)
+    if m.dtype == bool:
+        m = m.view(np.uint8)
+    n, lab = cv2.connectedComponents(m, connectivity=connectivity, ltype=cv2.CV_32S)
+    n = int(n) - 1
+    if not pixels:
+        e = np.zeros(0, np.int32)
+        area = np.bincount(lab.ravel(), minlength=n + 1)
+        area[0] = 0
+        return _Components(lab, n, area, e, e, e)
+    pts = cv2.findNonZero(m) if n else None
+    if pts is None:
+        e = np.zeros(0, np.int32)
+        return _Components(lab, n, np.zeros(n + 1, np.intp), e, e, e)
+    pts = pts.reshape(-1, 2)
+    xs, ys = pts[:, 0], pts[:, 1]
+    lv = lab[ys, xs]
+    area = np.bincount(lv, minlength=n + 1)
+    area[0] = 0
+    return _Components(lab, n, area, ys, xs, lv)
+
+
+def _boxes(cc: _Components, labels) -> dict[int, tuple[slice, slice]]:
+    """Tight bounding boxes (as slices) of some labels of ``cc``, from their pixels only."""
+    labels = np.asarray(labels, np.intp).reshape(-1)
+    if labels.size == 0:
+        return {}
+    sel = np.zeros(cc.n + 1, bool)
+    sel[labels] = True
+    pick = sel[cc.lv]
+    lv, ys, xs = cc.lv[pick], cc.ys[pick], cc.xs[pick]
+    big = np.iinfo(np.int32).max
+    y0 = np.full(cc.n + 1, big, np.int32)
+    x0 = np.full(cc.n + 1, big, np.int32)
+    y1 = np.zeros(cc.n + 1, np.int32)
+    x1 = np.zeros(cc.n + 1, np.int32)
+    np.minimum.at(y0, lv, ys)
+    np.minimum.at(x0, lv, xs)
+    np.maximum.at(y1, lv, ys)
+    np.maximum.at(x1, lv, xs)
+    return {int(k): (slice(int(y0[k]), int(y1[k]) + 1), slice(int(x0[k]), int(x1[k]) + 1))
+            for k in labels}
+
+
+def _union_box(
+    boxes: list[tuple[int, int, int, int]], margin: int, shape: tuple[int, ...]
+) -> tuple[slice, slice]:
+    """Union of ``(y0, x0, y1, x1)`` boxes grown by ``margin``, clipped to ``shape``."""
+    y0 = max(min(b[0] for b in boxes) - margin, 0)
+    x0 = max(min(b[1] for b in boxes) - margin, 0)
+    y1 = min(max(b[2] for b in boxes) + margin, shape[0])
+    x1 = min(max(b[3] for b in boxes) + margin, shape[1])
+    return slice(y0, y1), slice(x0, x1)
+
+
+def _labelled(
+    S: np.ndarray, lab: np.ndarray, comps: _Components | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Labels and values of the labelled pixels only (candidates are a small fraction)."""
+    if comps is not None:
+        return comps.lv, S[comps.ys, comps.xs].astype(np.float64)
+    sel = lab > 0
+    return lab[sel], S[sel].astype(np.float64)
+
+
+def _label_max(
+    S: np.ndarray, lab: np.ndarray, n: int, comps: _Components | None = None
+) -> np.ndarray:
+    """``ndimage.maximum(S, lab, 1..n)`` over the labelled pixels only (``comps``: their
+    positions and labels, from :func:`_components` of ``lab``)."""
+    lv, v = _labelled(S, lab, comps)
+    out = np.full(n + 1, -np.inf)
+    np.maximum.at(out, lv, v)
+    return out[1:]
+
+
+def _label_median(
+    S: np.ndarray, lab: np.ndarray, n: int, comps: _Components | None = None
+) -> np.ndarray:
+    """``ndimage.median(S, lab, 1..n)`` (mean of the two middle values for an even count)
+    over the labelled pixels only: one sort of the candidates, not of the whole tile."""
+    lv, v = _labelled(S, lab, comps)
+    order = np.lexsort((v, lv))
+    v = v[order]
+    counts = np.bincount(lv, minlength=n + 1)[1:]
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    lo = start + (counts - 1) // 2
+    hi = start + counts // 2
+    return (v[lo] + v[hi]) / 2.0
+
+
+def _decide_core(
+    S: np.ndarray, known: np.ndarray, threshold: float, p: DecisionParams,
+    stop: Callable[[_Components], bool] | None = None,
+) -> tuple[np.ndarray | None, np.ndarray, dict[str, int]]:
+    """Region decision on an array; returns (mask, level-0 candidate mask, counts).
+
+    ``stop``, called with the components of the level-0 candidates, may end the decision
+    there: the mask is then None (and the counts cover nothing).
+
+    Level 0 looks at the whole array; every later level only at the window holding the
+    regions passed on to it (grown by the opening's reach, so the opening, which never
+    adds pixels, gives the same result there as on the whole array), and the boundary cut
+    and the hole filling only at the window of the accepted regions.  Connected components
+    come from OpenCV with their areas and boxes (no pass over the whole array per label).
+    """
+    strong = p.strong_factor * threshold
+    shape = S.shape
+    accepted = np.zeros(shape, bool)
+    counts = {"accepted": 0, "small": 0, "weak": 0, "not_object": 0}
+    levels = p.levels if p.region_tests else (1.0,)
+    candidates = None
+    kernel = _disc(p.open_radius) if p.open_radius > 0 else None
+    pending = known
+    win: tuple[slice, slice] = (slice(0, shape[0]), slice(0, shape[1]))
+    kept: list[tuple[int, int, int, int]] = []  # boxes of the accepted regions
+    for li, level in enumerate(levels):
+        Sw = S[win]
+        m = (Sw > threshold * level) & pending[win]
+        if kernel is not None:
+            m = cv2.morphologyEx(m.view(np.uint8), cv2.MORPH_OPEN, kernel)
+        if candidates is None:  # level 0: the window is the whole array
+            candidates = m.view(bool)
+        cc = _components(m)
+        if li == 0 and stop is not None and stop(cc):
+            return None, candidates, counts
+        lab, n = cc.lab, cc.n
+        if n == 0:
+            break
+        area = cc.area[1:]
+        smax = _label_max(Sw, lab, n, cc)
+        small = area < p.min_area
+        weak = ~small & (smax < strong)
+        counts["small"] += int(np.count_nonzero(small))
+        counts["weak"] += int(np.count_nonzero(weak))
+        last = li == len(levels) - 1
+        oy, ox = win[0].start, win[1].start
+        nxt = None
+        passed: list[tuple[int, int, int, int]] = []
+        tested = np.flatnonzero(~(small | weak))
+        boxes = _boxes(cc, tested + 1)
+        for i in tested:
+            lbl = int(i) + 1
+            sl = boxes[lbl]
+            sub = lab[sl] == lbl
+            full = (slice(sl[0].start + oy, sl[0].stop + oy),
+                    slice(sl[1].start + ox, sl[1].stop + ox))
+            box = (full[0].start, full[1].start, full[0].stop, full[1].stop)
+            if not p.region_tests or _shape_ok(sub, int(area[i]), p):
+                accepted[full] |= sub
+                kept.append(box)
+                counts["accepted"] += 1
+            elif last:
+                counts["not_object"] += 1
+            else:
+                if nxt is None:
+                    nxt = np.zeros(shape, bool)
+                nxt[full] |= sub
+                passed.append(box)
+        if nxt is None:
+            break
+        pending = nxt
+        win = _union_box(passed, int(p.open_radius) + 1, shape)
+    if candidates is None:
+        candidates = np.zeros(shape, bool)
+    if not kept:
+        return accepted, candidates, counts
+    # from here on every accepted pixel lies in the window of the accepted regions
+    win = _union_box(kept, 0, shape)
+    if p.boundary_fraction > 0:
+        # object boundary at a fixed fraction of the region's own level: the absolute
+        # threshold sits far down the flank of a strong change and would bleed outwards
+        acc = accepted[win]
+        Sw = S[win]
+        cc = _components(acc)
+        lab, n = cc.lab, cc.n
+        level = _label_median(Sw, lab, n, cc)
+        cut = np.concatenate([[np.inf], np.maximum(p.boundary_fraction * level, threshold)])
+        acc &= Sw >= cut[lab]
+        cc = _components(acc)
+        big = cc.area >= p.min_area
+        big[0] = False
+        acc[...] = big[cc.lab]
+        if not big.any():
+            return accepted, candidates, counts
+        win = _union_box([(b[0].start + win[0].start, b[1].start + win[1].start,
+                           b[0].stop + win[0].start, b[1].stop + win[1].start)
+                          for b in _boxes(cc, np.flatnonzero(big)).values()], 0, shape)
+    if p.close_radius > 0:
+        _close_regions(accepted, win, p.close_radius)
+    if p.max_hole_area > 0:
+        # a hole (a background component clear of the array's border) lies inside the
+        # box of the accepted pixels; one pixel of margin keeps the outside connected
+        win = _union_box([(win[0].start, win[1].start, win[0].stop, win[1].stop)], 1, shape)
+        acc = accepted[win]
+        cc = _components(~acc, connectivity=4, pixels=False)
+        bg = cc.lab
+        fill = cc.area <= p.max_hole_area
+        fill[0] = False
+        fill[np.concatenate([bg[0], bg[-1], bg[:, 0], bg[:, -1]])] = False
+        acc |= fill[bg]
+    accepted[win] &= known[win]
+    return accepted, candidates, counts
+
+
+def _close_regions(mask: np.ndarray, win: tuple[slice, slice], radius: int) -> None:
+    """Close every connected region of ``mask[win]`` on its own with a disc of ``radius``,
+    in place.
+
+    A closing by a convex element stays inside the region's convex hull, hence inside its
+    bounding box: each region is closed in its box (padded so that the array's border does
+    not act as foreground), and regions never merge, however close.
+    """
+    sub = mask[win]
+    cc = _components(sub)
+    if cc.n == 0:
+        return
+    kernel = _disc(radius)
+    pad = radius + 1
+    for lbl, sl in _boxes(cc, np.arange(1, cc.n + 1)).items():
+        reg = np.pad((cc.lab[sl] == lbl).view(np.uint8), pad)
+        closed = cv2.morphologyEx(reg, cv2.MORPH_CLOSE, kernel)[pad:-pad, pad:-pad]
+        sub[sl] |= closed.view(bool)
+
+
+def _region_records(
+    mask: np.ndarray, S: np.ndarray, y0: int, x0: int, core=None
+) -> list[dict[str, Any]]:
+    """Connected regions of ``mask`` (8-conn), full-image coordinates.
+
+    Regions are listed in the raster order of their first pixel (as ``ndimage.label``
+    numbers them).  With ``core=(cy0, cx0, ch, cw)`` (array coordinates) only regions whose
+    first pixel in raster order lies in the core are listed, so tiles list each region once.
+    """
+    cc = _components(mask)
+    lab = cc.lab
+    # first pixel of every label in raster order (the foreground pixels are in raster order)
+    lbls, first = np.unique(cc.lv, return_index=True)
+    order = np.argsort(first, kind="stable")
+    boxes = _boxes(cc, lbls)
+    out = []
+    for lbl, k in zip(lbls[order].tolist(), first[order].tolist(), strict=True):
+        ay, ax = int(cc.ys[k]), int(cc.xs[k])
+        if core is not None:
+            cy0, cx0, ch, cw = core
+            if not (cy0 <= ay < cy0 + ch and cx0 <= ax < cx0 + cw):
+                continue
+        sl = boxes[lbl]
+        sub = lab[sl] == lbl
+        area = int(cc.area[lbl])
+        # centroid as the mean of the pixel indices: exact integer sums over the box
+        sy = int(np.arange(sub.shape[0]) @ np.count_nonzero(sub, axis=1))
+        sx = int(np.arange(sub.shape[1]) @ np.count_nonzero(sub, axis=0))
+        vals = S[sl][sub]
+        out.append(
+            {
+                "area": area,
+                "bbox": [sl[0].start + y0, sl[1].start + x0, sl[0].stop + y0, sl[1].stop + x0],
+                "centroid": [
+                    float(np.float64(sy) / area + sl[0].start + y0),
+                    float(np.float64(sx) / area + sl[1].start + x0),
+                ],
+                "mean_stat": float(vals.mean()),
+                "max_stat": float(vals.max()),
+            }
+        )
+    for k, r in enumerate(out, 1):
+        r["label"] = k
+    return out
+
+
+def _clear_of(
+    mask: np.ndarray | None, band: list[tuple[slice, slice]], core: tuple[slice, slice],
+    cc: _Components | None = None,
+) -> bool:
+    """No 8-connected component of ``mask`` has pixels both in ``core`` and in ``band``.
+
+    Parameters
+    ----------
+    mask : (h, w) bool ndarray or None
+        None when its components ``cc`` are given.
+    band : list of (slice, slice)
+        Strips of the array (the tile edges that are not image borders).
+    core : (slice, slice)
+        The tile's core.
+    cc : _Components, optional
+        The 8-connected components of ``mask``, if already known.
+    """
+    return not _reaching(mask, band, core, cc)
+
+
+def _reaching(
+    mask: np.ndarray | None, band: list[tuple[slice, slice]], core: tuple[slice, slice],
+    cc: _Components | None = None,
+) -> list[int]:
+    """Indices of the strips of ``band`` that an 8-connected component of ``mask`` joins
+    to ``core`` (empty: the core is clear of the band; see :func:`_clear_of`)."""
+    if not band:
+        return []
+    if cc is None:
+        cc = _components(mask)
+    lab, n = cc.lab, cc.n
+    if n == 0:
+        return []
+    touch = np.zeros((len(band), n + 1), bool)
+    for i, sl in enumerate(band):
+        touch[i, lab[sl].ravel()] = True
+    touch[:, 0] = False
+    any_touch = touch.any(axis=0)
+    cy, cx = core
+    joined = np.zeros(n + 1, bool)
+    for lbl, (ys, xs) in _boxes(cc, np.flatnonzero(any_touch)).items():
+        ya, yb = max(ys.start, cy.start), min(ys.stop, cy.stop)
+        xa, xb = max(xs.start, cx.start), min(xs.stop, cx.stop)
+        if ya < yb and xa < xb and np.any(lab[ya:yb, xa:xb] == lbl):
+            joined[lbl] = True
+    return [i for i in range(len(band)) if np.any(touch[i] & joined)]
+
