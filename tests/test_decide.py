@@ -148,7 +148,8 @@ def test_threshold_override(colour, colour_result):
     same, _ = decide(obs, reb, unknown, photometry=ph, threshold=info["threshold"])
     assert np.array_equal(same, colour_result[0])
     # a threshold between the faint square's level and the strong ones drops the faint one
-    S = change_statistic(obs, ph.apply(reb), ~unknown, ph.sigma)
+    S = change_statistic(obs, ph.apply(reb), ~unknown, ph.sigma,
+                         tolerance=DecisionParams().tolerance)
     faint = float(np.median(S[255:285, 65:95]))
     mid, _ = decide(obs, reb, unknown, photometry=ph, threshold=1.2 * faint)
     assert not mid[250:290, 60:100].any()
@@ -158,7 +159,8 @@ def test_threshold_override(colour, colour_result):
 def test_hysteresis_needs_strong_evidence(colour):
     obs, reb, truth, unknown = colour
     ph = fit_photometry(obs, reb, ~unknown, field_block=96)
-    S = change_statistic(obs, ph.apply(reb), ~unknown, ph.sigma)
+    S = change_statistic(obs, ph.apply(reb), ~unknown, ph.sigma,
+                         tolerance=DecisionParams().tolerance)
     faint = float(np.median(S[255:285, 65:95]))
     t = 0.6 * faint  # the faint square is above the threshold but nowhere at 2 t
     weak, info = decide(obs, reb, unknown, photometry=ph, threshold=t)
@@ -350,7 +352,9 @@ def test_input_validation(colour):
     with pytest.raises(ValueError, match="boundary_fraction"):
         DecisionParams(boundary_fraction=1.0)
     p = DecisionParams()
-    assert p.local_radius == 8 + 2 * 3 + 2  # window radius + opening + gradient + 1
+    # window radius + per-pixel reach (the 3 x 3 stencils, the widest tolerance of the
+    # ladder: a disc of contrast_radius) + opening + 1
+    assert p.local_radius == 8 + max(1, p.contrast_radius) + 2 * 3 + 1
     assert p.halo(100) == p.local_radius + 100
 
 
@@ -455,7 +459,8 @@ def test_statistic_reused_on_a_larger_halo_equals_computing_it_whole():
         reused = _tile_statistic(obs[sl], reb[sl], known[sl], ph, p, large, (H, W),
                                  (stat(small), small))
         whole = change_statistic(obs[sl], reb[sl], known[sl], ph.sigma, smooth=p.smooth,
-                                 truncate=p.truncate, edge_k=ph.edge_k, curv_k=ph.curv_k)
+                                 truncate=p.truncate, edge_k=ph.edge_k, curv_k=ph.curv_k,
+                                 tolerance=p.tolerance)
         np.testing.assert_allclose(reused, whole, rtol=1e-6, atol=1e-7)
         # the earlier values near its inner edges are not exact, so they were recomputed
         sy, sx = small[0] - y, small[1] - x

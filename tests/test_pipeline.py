@@ -172,12 +172,12 @@ def test_pass1_threshold_from_the_tile_pass_statistic(levir_gray):
     o3 = obs[:, :, None]
     known = valid
     cores = [(slice(y, y + h), slice(x, x + wd)) for y, x, h, wd in boxes]
+    p = DecisionParams()
     photometry = fit_photometry([o3[c] for c in cores], [reb[c] for c in cores],
                                 [known[c] for c in cores], boxes=boxes, image_shape=(H, W),
-                                rng=0)
-    p = DecisionParams()
+                                rng=0, tolerance=p.tolerance)
     S = change_statistic(o3, photometry.apply(reb, full), known, photometry.sigma,
                          smooth=p.smooth, truncate=p.truncate, edge_k=photometry.edge_k,
-                         curv_k=photometry.curv_k)
-    want, _ = estimate_threshold([S[c][known[c]] for c in cores])
+                         curv_k=photometry.curv_k, tolerance=p.tolerance)
+    want, _ = estimate_threshold([S[c][known[c]] for c in cores], minimum=p.min_threshold)
     assert dec.threshold == pytest.approx(want, rel=2e-4)

@@ -8,10 +8,11 @@ pre-match -> window selection and motion estimate (:mod:`reblur.select`,
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,6 +28,8 @@ from .decide import (
     fit_photometry,
     tile_boxes,
 )
+from .decide.calibrate import calibrate_tolerance, unchanged_pixels
+from .decide.photometry import with_model_error
 from .estimate import estimate_motion, intensity_scale
 from .grid import PoseGrid
 from .io import chunk_cached
@@ -216,6 +219,7 @@ def reblur_and_decide(
     scheduler=None,
     work_dir=None,
     progress: Callable[[float], None] | None = None,
+    calibration: Sequence[tuple[Sequence[int], np.ndarray | None]] | None = None,
 ) -> Decided:
     """Reblur the reference and decide change, streaming over tiles.
 
@@ -230,6 +234,11 @@ def reblur_and_decide(
     On-disk images are read through a chunk cache (:func:`reblur.io.chunk_cached`):
     neighbouring windows share chunks.  Nothing full-size is held but the output masks (and
     the reblurred image if ``keep_reblurred``).
+
+    With ``calibration`` (the estimation windows ``(y0, x0, h, w)`` and the estimate's
+    change term on each, or None), the tolerance of the statistic is measured on the
+    windows' unchanged pixels (:func:`reblur.decide.calibrate.calibrate_tolerance`)
+    between the photometric fit and the model-error fit.
 
     Pass 2 runs on a local thread pool of ``workers`` threads, or with ``scheduler`` as a
     Dask graph (:func:`reblur.dask_backend.decide_tiles`; ``work_dir`` holds its zarr
@@ -273,12 +282,17 @@ def reblur_and_decide(
     if not any(k[c].any() for k, c in zip(known, cores, strict=True)):
         raise ValueError("the reference covers no pixel of the observation")
     # the photometric model is fitted on the windows themselves
-    photometry = fit_photometry(
-        [o[c] for (o, _, _), c in zip(loaded, cores, strict=True)],
-        [r[c] for (_, r, _), c in zip(loaded, cores, strict=True)],
-        [k[c] for k, c in zip(known, cores, strict=True)],
-        boxes=picked, image_shape=(H, W), rng=0, edge_error=edge_error,
-    )
+    sample = ([o[c] for (o, _, _), c in zip(loaded, cores, strict=True)],
+              [r[c] for (_, r, _), c in zip(loaded, cores, strict=True)],
+              [k[c] for k, c in zip(known, cores, strict=True)])
+    photometry = fit_photometry(*sample, boxes=picked, image_shape=(H, W), rng=0,
+                                edge_error=False)
+    cinfo: dict[str, Any] = {"calibrated": False, "shift": p.shift_tolerance,
+                             "contrast": p.contrast_tolerance}
+    if calibration and p.tolerance_ladder:
+        p, cinfo = _calibrate_tolerance(p, calibration, load, photometry, (H, W))
+    if edge_error:
+        photometry = with_model_error(photometry, *sample, boxes=picked, tolerance=p.tolerance)
     if threshold is None:
         stats: list = [None] * len(picked)
 
@@ -287,11 +301,12 @@ def reblur_and_decide(
             k = known[i]
             S = change_statistic(o, photometry.apply(r, grown[i]), k, photometry.sigma,
                                  smooth=p.smooth, truncate=p.truncate,
-                                 edge_k=photometry.edge_k, curv_k=photometry.curv_k)
+                                 edge_k=photometry.edge_k, curv_k=photometry.curv_k,
+                                 tolerance=p.tolerance)
             stats[i] = S[cores[i]][k[cores[i]]]
 
         run_tiles(sample_statistic, list(range(len(picked))), workers)
-        threshold, tinfo = estimate_threshold(stats)
+        threshold, tinfo = estimate_threshold(stats, minimum=p.min_threshold)
     else:
         tinfo = {"method": "given"}
     threshold = float(threshold)
@@ -348,7 +363,10 @@ def reblur_and_decide(
         threshold_info=tinfo,
         photometry=photometry.to_dict(),
         params=p.to_dict(),
-        statistic="local RMS of robust per-band z-scores of observed - matched reblurred",
+        statistic="local RMS of robust per-band z-scores of observed - matched reblurred, "
+        "outside the model's tolerance interval",
+        tolerance=p.tolerance.to_dict(),
+        calibration=cinfo,
         n_tiles=-(-H // tile_size) * -(-W // tile_size),
         incomplete_tiles=incomplete,
         halo=halo,
@@ -356,6 +374,44 @@ def reblur_and_decide(
         seconds={"fit": round(t_pass1, 3), "tiles": round(time.perf_counter() - t_pass2, 3)},
     )
     return Decided(change, unknown, reblurred, threshold, info, regions)
+
+
+#: Fewest unchanged window pixels the contrast tolerance is calibrated on (its target
+#: fraction, 2e-4, is then at least a dozen pixels).
+_MIN_CALIBRATION_PIXELS = 50_000
+
+
+def _calibrate_tolerance(p: DecisionParams, windows, load, photometry, shape):
+    """``p`` with its tolerance measured on the estimation ``windows``."""
+    margin = p.smooth_radius + p.pixel_reach + 2
+    obs, mat, kn, ev = [], [], [], []
+    for box, chi in windows:
+        box = tuple(int(v) for v in box)
+        g = pad_box(box, p.local_radius, shape)
+        o, r, u = load(g)
+        core = (slice(box[0] - g[0], box[0] - g[0] + box[2]),
+                slice(box[1] - g[1], box[1] - g[1] + box[3]))
+        k = ~u
+        ev_w = np.zeros_like(k)
+        c = None if chi is None or np.shape(chi)[:2] != k[core].shape else chi
+        ev_w[core] = unchanged_pixels(k[core], c, margin)
+        obs.append(o)
+        mat.append(photometry.apply(r, g))
+        kn.append(k)
+        ev.append(ev_w)
+    n = sum(int(np.count_nonzero(e)) for e in ev)
+    if n < _MIN_CALIBRATION_PIXELS:
+        return p, {"calibrated": False, "shift": p.shift_tolerance,
+                   "contrast": p.contrast_tolerance,
+                   "reason": f"{n} unchanged pixels in the estimation windows (fewer than "
+                   f"{_MIN_CALIBRATION_PIXELS}): the tolerance is the default"}
+    tol, info = calibrate_tolerance(
+        obs, mat, kn, ev, photometry.sigma, ladder=p.ladder, threshold=p.min_threshold,
+        target=p.calibration_target, smooth=p.smooth, truncate=p.truncate)
+    info.update(calibrated=True, shift=tol.shift, contrast=tol.contrast, windows=len(obs))
+    floor = max(p.min_threshold, info["floor"])
+    return dataclasses.replace(p, shift_tolerance=tol.shift, contrast_tolerance=tol.contrast,
+                               min_threshold=floor), info
 
 
 def align_coarse(reference, observed, shakes=(8.0, 16.0, 32.0, 64.0)):
@@ -508,6 +564,17 @@ def _estimate_stage(
 
     return Estimated(base=H0, gain=gain, offset=offset, grid=grid, motion=motion, crop=crop,
                      align_info=align_info, refine_info=refine_info, timings=timings)
+
+
+def _windows_of(motion) -> list[tuple[tuple[int, ...], np.ndarray | None]]:
+    """The estimation windows and the estimate's change term on each (None where it is
+    missing or of another shape)."""
+    chis = list(getattr(motion, "chi", None) or [])
+    out = []
+    for i, box in enumerate(getattr(motion, "boxes", None) or []):
+        chi = chis[i] if i < len(chis) else None
+        out.append((tuple(int(v) for v in box), chi))
+    return out
 
 
 def detect_changes(
@@ -677,6 +744,7 @@ def detect_changes(
         keep_reblurred=keep, change_out=change_out, unknown_out=unknown_out,
         scheduler=scheduler, work_dir=work_dir,
         progress=(lambda f: report("reblur + decide", f)) if progress else None,
+        calibration=_windows_of(motion),
     )
     timings["reblur_decide"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all

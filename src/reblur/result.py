@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from .grid import PoseGrid
+from .grid import PoseGrid, map_points
 
 __all__ = ["MotionEstimate", "CropChoice", "ChangeResult"]
 
@@ -47,6 +47,38 @@ class MotionEstimate:
                 dict(tx=self.grid.tx[ix], ty=self.grid.ty[iy], tz=tz, rx=rx, ry=ry, rz=rz, weight=w)
             )
         return sorted(out, key=lambda d: -d["weight"])
+
+    def source_points(self, xy: np.ndarray, base: np.ndarray | None = None) -> np.ndarray:
+        """Where the model says observation points come from in the reference.
+
+        The weighted mean over the poses of ``(H_pose @ base)^-1 xy``: the centroid of the
+        blur kernel at each point, with the weights normalised to sum to 1 (a gain the
+        weights carry does not move it).  Compared with the true kernel centroid (e.g.
+        :func:`reblur.testbed.true_centroid`) it measures the geometry's residual.
+
+        Parameters
+        ----------
+        xy : (n, 2) array_like
+            Observation points ``(x, y)``.
+        base : (3, 3) ndarray, optional
+            The alignment composed before every pose (:attr:`ChangeResult.alignment`).
+
+        Returns
+        -------
+        (n, 2) ndarray
+            Reference points ``(x, y)``.
+        """
+        pts = np.asarray(xy, dtype=float).reshape(-1, 2)
+        base = np.eye(3) if base is None else np.asarray(base, float)
+        acc = np.zeros_like(pts)
+        total = 0.0
+        for b, iy, ix, w in self.grid.nonzero(self.weights):
+            H = self.grid.homography((b, iy, ix)) @ base
+            acc += w * map_points(np.linalg.inv(H), pts)
+            total += w
+        if total <= 0:
+            raise ValueError("the motion has no pose with weight")
+        return acc / total
 
 
 @dataclass

@@ -8,10 +8,12 @@ as a stream of tiles, one module each:
    ``g ~ a * m + b`` by Huber IRLS, optionally as a smooth field; the residual scale
    ``sigma`` is the unit of the statistic.
 2. **Statistic** (:mod:`.statistic`, :func:`change_statistic`; local): the RMS of the
-   per-band z-scores over a Gaussian window, the residual scale grown on edges and fine
-   texture (:func:`fit_model_error`).
+   per-band z-scores over a Gaussian window, of the residual left outside the model's
+   tolerance interval (:mod:`.tolerance`: a fraction of a pixel of misregistration, a few
+   percent of the local range of blur-shape error), the residual scale grown on edges
+   and fine texture (:func:`fit_model_error`).
 3. **Threshold** (:mod:`.threshold`, :func:`estimate_threshold`; global, from a sample of
-   the statistic).
+   the statistic, never below ``DecisionParams.min_threshold``).
 4. **Regions** (:mod:`.regions`; local up to the extent of a change region): a component
    tree with hysteresis and object-shape tests, then trimming, closing and hole filling.
 
@@ -25,6 +27,7 @@ from __future__ import annotations
 
 # the public names (``__all__``) and, as redundant aliases, the private ones the tests and
 # other modules import from ``reblur.decide``
+from .calibrate import calibrate_tolerance, unchanged_pixels
 from .params import DecisionParams
 from .photometry import Photometry, fit_photometry
 from .regions import _boxes as _boxes
@@ -39,6 +42,7 @@ from .statistic import gaussian_zero as gaussian_zero
 from .threshold import estimate_threshold
 from .tile import _tile_statistic as _tile_statistic
 from .tile import decide, decide_tile, tile_boxes
+from .tolerance import ModelTolerance, tolerance_interval, tolerant_reference
 
 __all__ = [
     "Photometry",
@@ -50,4 +54,9 @@ __all__ = [
     "decide_tile",
     "decide",
     "tile_boxes",
+    "ModelTolerance",
+    "calibrate_tolerance",
+    "unchanged_pixels",
+    "tolerance_interval",
+    "tolerant_reference",
 ]

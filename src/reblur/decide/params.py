@@ -15,6 +15,8 @@ import dataclasses
 from dataclasses import dataclass
 from typing import Any
 
+from .tolerance import ModelTolerance
+
 
 @dataclass(frozen=True)
 class DecisionParams:
@@ -43,7 +45,9 @@ class DecisionParams:
         Accepted regions are trimmed to ``S >= boundary_fraction * median(S in region)``
         (0: no trimming).  ``S`` is an RMS, so ``1/sqrt(2)`` is the half-energy contour,
         which lies on the edge of a sharp step; about 0.5 suits edges blurred over more
-        than the statistic's window.
+        than the statistic's window: the observation is blurred, so a change's edge is a
+        ramp over the blur's extent and its half-amplitude contour (the truth convention
+        of a blurred change) lies at half the inside value.
     close_radius : int
         Radius of the disc with which each accepted region is closed (on its own, so
         neighbouring regions never merge) before the hole filling: bays narrower than
@@ -53,6 +57,33 @@ class DecisionParams:
     region_tests : bool
         False skips the shape tests and the component tree (one level, area and
         hysteresis only): the pixel-level decision, for comparison.
+    shift_tolerance : float
+        Misregistration (pixels, at most 1) the statistic tolerates: the observation is
+        compared with every value the reblurred reference takes under such a shift
+        (:mod:`reblur.decide.tolerance`).  Used as given where nothing calibrates it
+        (:func:`decide`, :func:`decide_tile`, or an empty ``tolerance_ladder``);
+        :func:`reblur.detect_changes` measures the tolerance instead.  The default,
+        0.25 px, is the geometry's error on the independent test bed.
+    contrast_tolerance : float
+        Relative accuracy of the blur model: the tolerance interval is widened by this
+        fraction of the local range of the reference (over ``contrast_radius``); used
+        as given like ``shift_tolerance``.
+    contrast_radius : int
+        Radius (pixels) of the disc of the local range.
+    tolerance_ladder : tuple of (shift, contrast)
+        Tolerances tried in order, tight to loose, by the calibration on the estimation
+        windows (:mod:`reblur.decide.calibrate`): the first at which their unchanged
+        pixels stay under ``min_threshold`` but for ``calibration_target`` of them
+        replaces ``shift_tolerance`` and ``contrast_tolerance``.  Its top, (1 px, 0.08),
+        keeps a change of 10 % of the local range above the tolerance even where the
+        range is that of the change's own surroundings.  Empty: no calibration.
+    calibration_target : float
+        Fraction of the windows' unchanged pixels allowed above ``min_threshold``.
+    min_threshold : float
+        Lower bound of the estimated threshold, in units of the statistic (an RMS of
+        noise z-scores over ``4 pi smooth^2`` pixels: 1 for pure noise, whose 1e-6 tail
+        lies near 1.5).  With the tolerance on, the bulk of the statistic is mostly 0 on
+        clean data, and a threshold fitted to its spread alone would fall into the noise.
     """
 
     smooth: float = 2.0
@@ -63,14 +94,28 @@ class DecisionParams:
     levels: tuple[float, ...] = (1.0, 1.25, 1.5, 2.0, 2.5, 3.0)
     min_solidity: float = 0.65
     max_aspect: float = 8.0
-    boundary_fraction: float = 0.7071
+    boundary_fraction: float = 0.6
     close_radius: int = 8
     max_hole_area: int = 1024
     region_tests: bool = True
+    shift_tolerance: float = 0.25
+    contrast_tolerance: float = 0.0
+    contrast_radius: int = 3
+    min_threshold: float = 2.0
+    tolerance_ladder: tuple[tuple[float, float], ...] = (
+        (0.25, 0.0), (0.5, 0.02), (0.5, 0.03), (1.0, 0.03), (1.0, 0.05), (1.0, 0.08))
+    calibration_target: float = 2e-4
 
     def __post_init__(self):
         lv = tuple(float(v) for v in self.levels)
         object.__setattr__(self, "levels", lv)
+        lad = tuple((float(a), float(b)) for a, b in self.tolerance_ladder)
+        object.__setattr__(self, "tolerance_ladder", lad)
+        for a, b in lad:  # each rung must be a valid tolerance
+            ModelTolerance(shift=a, contrast=b, radius=int(self.contrast_radius))
+        if not 0.0 <= self.calibration_target < 1.0:
+            raise ValueError(f"calibration_target must lie in [0, 1), got "
+                             f"{self.calibration_target}")
         if not lv or lv[0] != 1.0 or any(b <= a for a, b in zip(lv, lv[1:], strict=False)):
             raise ValueError(f"levels must increase from 1.0, got {self.levels}")
         if self.smooth < 0 or self.truncate <= 0:
@@ -83,6 +128,28 @@ class DecisionParams:
             raise ValueError(f"boundary_fraction must lie in [0, 1), got {self.boundary_fraction}")
         if not 0.0 <= self.min_solidity <= 1.0 or self.max_aspect < 1.0:
             raise ValueError("min_solidity must lie in [0, 1] and max_aspect be >= 1")
+        if not self.min_threshold >= 0.0:
+            raise ValueError(f"min_threshold must be >= 0, got {self.min_threshold}")
+        _ = self.tolerance  # validates shift_tolerance, contrast_tolerance, contrast_radius
+
+    @property
+    def tolerance(self) -> ModelTolerance:
+        """The model's tolerance of the statistic (:mod:`reblur.decide.tolerance`)."""
+        return ModelTolerance(shift=float(self.shift_tolerance),
+                              contrast=float(self.contrast_tolerance),
+                              radius=int(self.contrast_radius))
+
+    @property
+    def ladder(self) -> list[ModelTolerance]:
+        """The rungs of ``tolerance_ladder`` as tolerances."""
+        return [ModelTolerance(shift=a, contrast=b, radius=int(self.contrast_radius))
+                for a, b in self.tolerance_ladder]
+
+    @property
+    def pixel_reach(self) -> int:
+        """How far the per-pixel residual looks: the 3 x 3 stencils of the model error and
+        the tolerance interval."""
+        return max([1, self.tolerance.reach] + [t.reach for t in self.ladder])
 
     @property
     def smooth_radius(self) -> int:
@@ -91,8 +158,9 @@ class DecisionParams:
 
     @property
     def local_radius(self) -> int:
-        """Reach of the pixel-local steps: statistic window + opening (2 r) + 1."""
-        return self.smooth_radius + 2 * int(self.open_radius) + 2  # + 1 for the gradient
+        """Reach of the pixel-local steps: statistic window + per-pixel residual + opening
+        (2 r) + 1."""
+        return self.smooth_radius + self.pixel_reach + 2 * int(self.open_radius) + 1
 
     def halo(self, max_region_extent: int = 256) -> int:
         """Tile halo for exact tiled results with regions reaching ``max_region_extent`` px."""
@@ -101,6 +169,7 @@ class DecisionParams:
     def to_dict(self) -> dict[str, Any]:
         d = dataclasses.asdict(self)
         d["levels"] = list(self.levels)
+        d["tolerance_ladder"] = [list(r) for r in self.tolerance_ladder]
         return d
 
 

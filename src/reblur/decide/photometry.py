@@ -26,7 +26,9 @@ import scipy.sparse.linalg as spla
 
 from ..robust import huber_line, mad
 from ._common import _box, _channels, _float, _robust_scale
+from .params import DecisionParams
 from .statistic import fit_model_error
+from .tolerance import ModelTolerance
 
 
 def _grid_coords(f: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -316,6 +318,7 @@ def fit_photometry(
     smoothness: float = 0.01,
     edge_error: bool = True,
     rng=None,
+    tolerance: ModelTolerance | None = None,
 ) -> Photometry:
     """Fit the per-band photometric model robustly, from a whole image or from a sample.
 
@@ -355,6 +358,10 @@ def fit_photometry(
     edge_error : bool
         Also fit the model error ``edge_k`` and ``curv_k`` (:func:`fit_model_error`) on
         full-resolution input (not when ``scale != 1``).
+    tolerance : ModelTolerance, optional
+        The model's tolerance the statistic will use (:mod:`reblur.decide.tolerance`): the
+        model error is fitted on what it leaves.  Default: ``DecisionParams().tolerance``
+        (``ModelTolerance()`` for none).
 
     Returns
     -------
@@ -420,22 +427,34 @@ def fit_photometry(
         field_block=field_block, field_gain=fg, field_offset=fo, info=info,
     )
     if edge_error and scale == 1.0:
-        # gradients need full-resolution data: tiles or the whole image
-        if isinstance(observed, np.ndarray) or not isinstance(observed, Sequence):
-            tiles = [(observed, reblurred, valid, None)]
-        else:
-            vs = valid if valid is not None else [None] * len(observed)
-            tiles = list(zip(observed, reblurred, vs, boxes, strict=True))
-        os_, ms_, ks_ = [], [], []
-        for o, r, v, b in tiles:
-            o = _channels(_float(o))
-            k = np.all(np.isfinite(o), axis=2)
-            if v is not None:
-                k &= np.asarray(v, bool)
-            os_.append(o)
-            ms_.append(_channels(ph.apply(r, b)))
-            ks_.append(k)
-        ek, ck = fit_model_error(os_, ms_, ks_, sigma)
-        ph = dataclasses.replace(ph, edge_k=ek, curv_k=ck)
+        ph = with_model_error(ph, observed, reblurred, valid, boxes=boxes, tolerance=tolerance)
     return ph
+
+
+def with_model_error(ph: Photometry, observed, reblurred, valid=None, *, boxes=None,
+                     tolerance: ModelTolerance | None = None) -> Photometry:
+    """``ph`` with its model error (``edge_k``, ``curv_k``) fitted by
+    :func:`fit_model_error` on full-resolution data (one array, or tiles with their
+    ``boxes``, as for :func:`fit_photometry`), outside the model's ``tolerance`` (default:
+    ``DecisionParams().tolerance``)."""
+    if tolerance is None:
+        tolerance = DecisionParams().tolerance
+    # gradients need full-resolution data: tiles or the whole image
+    if isinstance(observed, np.ndarray) or not isinstance(observed, Sequence):
+        tiles = [(observed, reblurred, valid, None)]
+    else:
+        vs = valid if valid is not None else [None] * len(observed)
+        bs = boxes if boxes is not None else [None] * len(observed)
+        tiles = list(zip(observed, reblurred, vs, bs, strict=True))
+    os_, ms_, ks_ = [], [], []
+    for o, r, v, b in tiles:
+        o = _channels(_float(o))
+        k = np.all(np.isfinite(o), axis=2)
+        if v is not None:
+            k &= np.asarray(v, bool)
+        os_.append(o)
+        ms_.append(_channels(ph.apply(r, b)))
+        ks_.append(k)
+    ek, ck = fit_model_error(os_, ms_, ks_, ph.sigma, tolerance=tolerance)
+    return dataclasses.replace(ph, edge_k=ek, curv_k=ck)
 

@@ -20,6 +20,7 @@ import numpy as np
 import scipy.ndimage as ndi
 
 from ._common import _channels, _float
+from .tolerance import ModelTolerance, tolerant_reference
 
 
 def change_statistic(
@@ -32,6 +33,7 @@ def change_statistic(
     truncate: float = 4.0,
     edge_k=None,
     curv_k=None,
+    tolerance: ModelTolerance | None = None,
 ) -> np.ndarray:
     """Local RMS of the robust per-band z-scores of ``observed - matched``.
 
@@ -55,6 +57,11 @@ def change_statistic(
         Residual scale of each band (:attr:`Photometry.sigma`).
     smooth, truncate : float
         Gaussian window (standard deviation in pixels, radius in standard deviations).
+    edge_k, curv_k : (C,) array_like, optional
+        Model-error coefficients (:func:`fit_model_error`).
+    tolerance : ModelTolerance, optional
+        The residual is taken from the model's tolerance interval around ``matched``
+        (:func:`reblur.decide.tolerance.tolerant_reference`) instead of ``matched`` itself.
 
     Returns
     -------
@@ -92,12 +99,13 @@ def change_statistic(
     e = np.zeros((h, w), f32) if C > 1 else np.empty((h, w), f32)
     for c in range(C):
         mc = m[:, :, c]
+        mt = tolerant_reference(o[:, :, c], mc, tolerance)
         g32 = _grad2_f32(mc) if ks[c] > 0 else None
         l32 = _laplacian_f32(mc) if kc[c] > 0 else None
         s2 = f32(s[c] * s[c])
         for sl in bands:
             t = o[sl, :, c].astype(f32)
-            t -= mc[sl]
+            t -= mt[sl]
             t *= t
             var: Any = None
             if g32 is not None:
@@ -212,7 +220,8 @@ def _laplacian_f32(a: np.ndarray) -> np.ndarray:
 
 def fit_model_error(observed, matched, known, sigma, *, bins: int = 8,
                     max_samples: int = 400_000, k_max: float = 0.5, c_max: float = 0.5,
-                    rng=0) -> tuple[np.ndarray, np.ndarray]:
+                    rng=0, tolerance: ModelTolerance | None = None,
+                    ) -> tuple[np.ndarray, np.ndarray]:
     """Model error of the reblur: the ``edge_k`` and ``curv_k`` of :func:`change_statistic`.
 
     The residual is modelled as ``N(0, sigma^2 + a |grad m|^2 + b (lap m)^2)`` per band.
@@ -239,6 +248,9 @@ def fit_model_error(observed, matched, known, sigma, *, bins: int = 8,
         Caps of ``edge_k`` and ``curv_k``.
     rng : int or numpy.random.Generator
         Seed of the sampling.
+    tolerance : ModelTolerance, optional
+        Fit the error left outside the model's tolerance interval (the residual of
+        :func:`change_statistic` with the same ``tolerance``).
 
     Returns
     -------
@@ -262,9 +274,11 @@ def fit_model_error(observed, matched, known, sigma, *, bins: int = 8,
         if k.all():  # the erosion (border value 1) keeps every pixel: no masked copies
             k = None
         else:
-            k = ndi.binary_erosion(k, np.ones((3, 3), bool), border_value=1)
+            reach = max(1, tolerance.reach if tolerance is not None else 0)
+            k = ndi.binary_erosion(k, np.ones((3, 3), bool), iterations=reach, border_value=1)
         for c in range(C):
-            for j, v in enumerate((o[:, :, c], m[:, :, c], _grad2_f32(m[:, :, c]),
+            mt = tolerant_reference(o[:, :, c], m[:, :, c], tolerance)
+            for j, v in enumerate((o[:, :, c], mt, _grad2_f32(m[:, :, c]),
                                    _laplacian_f32(m[:, :, c]))):
                 acc[c][j].append(v.ravel() if k is None else v[k])
     ek, ck = np.zeros(C), np.zeros(C)

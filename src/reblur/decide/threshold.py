@@ -23,7 +23,7 @@ from ..robust import MAD_TO_SIGMA
 
 def estimate_threshold(
     stat_samples, *, method: str = "auto", k: float = 4.0, bins: int = 512,
-    broad: float = 0.4,
+    broad: float = 0.4, minimum: float = 0.0,
 ) -> tuple[float, dict[str, Any]]:
     """Decision threshold of the change statistic from a sample of its values.
 
@@ -51,6 +51,9 @@ def estimate_threshold(
         Histogram bins of Otsu's method.
     broad : float
         Relative width ``MAD / median`` from which the bulk counts as broad (``"auto"``).
+    minimum : float
+        Lower bound of the result (``DecisionParams.min_threshold``); ``info["floored"]``
+        says whether it applied.
 
     Returns
     -------
@@ -94,7 +97,8 @@ def estimate_threshold(
     if hi <= lo:  # constant statistic: nothing stands out
         info["otsu"] = lo
         info["note"] = "constant statistic"
-        return float(np.nextafter(hi, np.inf)), info
+        info["floored"] = bool(minimum > hi)
+        return max(float(np.nextafter(hi, np.inf)), float(minimum)), info
     counts, edges = np.histogram(np.minimum(x, hi), bins=int(bins), range=(lo, hi))
     centers = 0.5 * (edges[:-1] + edges[1:])
     otsu = float(threshold_otsu(hist=(counts, centers)))
@@ -106,5 +110,7 @@ def estimate_threshold(
     else:
         chosen = method
     info["chosen"] = chosen
-    return float(otsu if chosen == "otsu" else bound), info
+    t = float(otsu if chosen == "otsu" else bound)
+    info["floored"] = bool(minimum > t)
+    return max(t, float(minimum)), info
 

@@ -73,9 +73,10 @@ def _tile_statistic(o, matched, known, photometry: Photometry, p: DecisionParams
     """:func:`change_statistic` over a padded tile, reusing ``previous = (S, box)`` (an
     earlier tile inside this one, same inputs) where its values are exact.
 
-    A value depends on the inputs within ``smooth_radius + 1`` pixels (the Gaussian window
-    and the 3x3 stencils of the model error), so the earlier values are exact except
-    within that reach of its edges that are not image borders; the rest of the tile is
+    A value depends on the inputs within ``smooth_radius + pixel_reach`` pixels (the
+    Gaussian window, the 3x3 stencils of the model error and the tolerance interval), so
+    the earlier values are exact except within that reach of its edges that are not image
+    borders; the rest of the tile is
     computed in (at most four) strips, each from its window grown by the reach, cropped.
     """
 
@@ -83,14 +84,15 @@ def _tile_statistic(o, matched, known, photometry: Photometry, p: DecisionParams
         sl = (slice(y0, y1), slice(x0, x1))
         return change_statistic(o[sl], matched[sl], known[sl], photometry.sigma,
                                 smooth=p.smooth, truncate=p.truncate,
-                                edge_k=photometry.edge_k, curv_k=photometry.curv_k)
+                                edge_k=photometry.edge_k, curv_k=photometry.curv_k,
+                                tolerance=p.tolerance)
 
     by0, bx0, bh, bw = box
     if previous is None:
         return compute(0, bh, 0, bw)
     S0, (py0, px0, ph, pw) = previous
     H, W = image_shape if image_shape is not None else (None, None)
-    r = p.smooth_radius + 1
+    r = p.smooth_radius + p.pixel_reach
     # the exact part of the earlier statistic, in this tile's coordinates
     ey0 = py0 - by0 + (r if py0 > 0 else 0)
     ex0 = px0 - bx0 + (r if px0 > 0 else 0)
@@ -315,12 +317,14 @@ def decide(
         raise ValueError("no known pixel: every pixel is unknown or non-finite")
     if photometry is None:
         photometry = fit_photometry(o, r, known, field_block=field_block, rng=rng,
-                                    edge_error=edge_error)
+                                    edge_error=edge_error, tolerance=p.tolerance)
     matched = photometry.apply(r)
     S = change_statistic(o, matched, known, photometry.sigma, smooth=p.smooth, truncate=p.truncate,
-                         edge_k=photometry.edge_k, curv_k=photometry.curv_k)
+                         edge_k=photometry.edge_k, curv_k=photometry.curv_k,
+                         tolerance=p.tolerance)
     if threshold is None:
-        threshold, tinfo = estimate_threshold(S[known], method=threshold_method)
+        threshold, tinfo = estimate_threshold(S[known], method=threshold_method,
+                                              minimum=p.min_threshold)
     else:
         threshold = float(threshold)
         tinfo = {"method": "given"}

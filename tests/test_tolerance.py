@@ -1,0 +1,132 @@
+"""The model's tolerance interval (reblur.decide.tolerance) against explicit references."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.ndimage as ndi
+
+from reblur.decide import (
+    DecisionParams,
+    ModelTolerance,
+    change_statistic,
+    decide,
+    estimate_threshold,
+    tolerance_interval,
+    tolerant_reference,
+)
+
+
+def _smooth_image(shape=(48, 56), seed=0):
+    rng = np.random.default_rng(seed)
+    return ndi.gaussian_filter(rng.random(shape), 1.2).astype(np.float32)
+
+
+def _dense_shift_extremes(m: np.ndarray, rho: float, n: int = 21):
+    """Min and max over a dense n x n lattice of shifts in [-rho, rho]^2 of the bilinear
+    interpolant (scipy, edge replicated): an explicit slow reference."""
+    lo = np.full(m.shape, np.inf)
+    hi = np.full(m.shape, -np.inf)
+    for dy in np.linspace(-rho, rho, n):
+        for dx in np.linspace(-rho, rho, n):
+            s = ndi.shift(m.astype(np.float64), (dy, dx), order=1, mode="nearest")
+            lo = np.minimum(lo, s)
+            hi = np.maximum(hi, s)
+    return lo, hi
+
+
+@pytest.mark.parametrize("rho", [0.3, 0.5, 1.0])
+def test_shift_interval_is_the_extremes_over_all_shifts(rho):
+    m = _smooth_image()
+    lo, hi = tolerance_interval(m, ModelTolerance(shift=rho))
+    rlo, rhi = _dense_shift_extremes(m, rho)
+    # the lattice includes the nine vertices, where the extremes lie: equal up to rounding
+    inner = (slice(2, -2), slice(2, -2))
+    np.testing.assert_allclose(lo[inner], rlo[inner], atol=2e-6)
+    np.testing.assert_allclose(hi[inner], rhi[inner], atol=2e-6)
+
+
+def test_contrast_widening_is_a_fraction_of_the_local_range():
+    m = _smooth_image(seed=1)
+    tol = ModelTolerance(shift=0.0, contrast=0.1, radius=2)
+    lo, hi = tolerance_interval(m, tol)
+    # explicit: range over a disc of radius 2, by brute force
+    yy, xx = np.mgrid[-2:3, -2:3]
+    disc = (yy ** 2 + xx ** 2) <= 4
+    mx = ndi.maximum_filter(m, footprint=disc, mode="nearest")
+    mn = ndi.minimum_filter(m, footprint=disc, mode="nearest")
+    np.testing.assert_allclose(hi - m, 0.1 * (mx - mn), atol=1e-6)
+    np.testing.assert_allclose(m - lo, 0.1 * (mx - mn), atol=1e-6)
+
+
+def test_tolerant_reference_is_the_nearest_point_of_the_interval():
+    rng = np.random.default_rng(2)
+    m = _smooth_image(seed=2)
+    o = m + rng.normal(0, 0.05, m.shape).astype(np.float32)
+    tol = ModelTolerance(shift=0.5, contrast=0.05)
+    lo, hi = tolerance_interval(m, tol)
+    t = tolerant_reference(o, m, tol)
+    inside = (o >= lo) & (o <= hi)
+    assert np.array_equal(t[inside], o[inside])
+    assert np.array_equal(t[o < lo], lo[o < lo])
+    assert np.array_equal(t[o > hi], hi[o > hi])
+    # no tolerance: the reference itself
+    assert tolerant_reference(o, m, ModelTolerance()) is m
+    assert tolerant_reference(o, m, None) is m
+
+
+def test_a_subpixel_shift_is_not_change_but_a_real_change_is():
+    """The observation is the reference moved by 0.4 px (linear interpolation) plus a
+    square of 0.3: with the tolerance, only the square remains."""
+    m = _smooth_image((96, 96), seed=3) * 0.8
+    o = ndi.shift(m.astype(np.float64), (0.4, -0.3), order=1, mode="nearest").astype(np.float32)
+    o[40:60, 40:60] += 0.3
+    known = np.ones(m.shape, bool)
+    sigma = [0.01]
+    plain = change_statistic(o, m, known, sigma)
+    tol = change_statistic(o, m, known, sigma, tolerance=ModelTolerance(shift=0.5))
+    outside = np.ones(m.shape, bool)
+    outside[30:70, 30:70] = False  # the square and the window (radius 8) around it
+    outside[:3] = outside[-3:] = False
+    outside[:, :3] = outside[:, -3:] = False
+    assert plain[outside].max() > 2.0  # without it, the shift alone crosses the floor
+    assert tol[outside].max() < 1e-6
+    assert tol[45:55, 45:55].min() > 20.0  # 0.3 / 0.01, minus nothing on smooth ground
+
+
+def test_threshold_floor():
+    x = np.random.default_rng(4).normal(0.3, 0.05, 10_000)
+    t, info = estimate_threshold(x, minimum=2.0)
+    assert t == 2.0 and info["floored"]
+    t2, info2 = estimate_threshold(x + 5.0, minimum=2.0)
+    assert t2 > 5.0 and not info2["floored"]
+
+
+def test_params_validate_the_tolerance():
+    with pytest.raises(ValueError, match="shift tolerance"):
+        DecisionParams(shift_tolerance=1.5)
+    with pytest.raises(ValueError, match="contrast tolerance"):
+        DecisionParams(contrast_tolerance=0.7)
+    with pytest.raises(ValueError, match="min_threshold"):
+        DecisionParams(min_threshold=-1)
+    p = DecisionParams(contrast_radius=5)
+    assert p.pixel_reach == 5
+    assert p.local_radius == p.smooth_radius + 5 + 2 * p.open_radius + 1
+
+
+def test_noise_free_misregistered_pair_flags_nothing():
+    """A clean (noise-free) pair whose only difference is a 0.3 px shift and a slightly
+    different blur: with the default tolerance nothing is change; the square is."""
+    rng = np.random.default_rng(5)
+    ref = ndi.gaussian_filter(rng.random((256, 256)), 2.0)
+    ref = (ref - ref.min()) / np.ptp(ref)
+    m = ndi.gaussian_filter(ref, 1.0).astype(np.float32)
+    o = ndi.gaussian_filter(ndi.shift(ref, (0.3, 0.2), order=3, mode="nearest"), 1.1)
+    o = o.astype(np.float32)
+    o[100:140, 120:160] += 0.2
+    change, _ = decide(o, m)
+    truth = np.zeros(m.shape, bool)
+    truth[100:140, 120:160] = True
+    near = ndi.binary_dilation(truth, iterations=4)
+    assert change[~near].mean() == 0.0
+    assert change[truth].mean() > 0.9
