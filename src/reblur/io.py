@@ -16,7 +16,8 @@ float32/float64; gray, gray+alpha, RGB, RGBA (alpha is dropped) and multi-band i
 
 Every problem with an input raises :class:`InputError` (a ``ValueError``) whose message is
 one line naming the file and the problem: missing file, unreadable, truncated or not an
-image, smaller than :data:`MIN_SIDE` pixels on a side, more than ``max_pixels`` pixels
+image, data the format would silently read as zeros or grey (a zarr chunk never written, a
+TIFF tile or strip with offset or byte count 0, a JPEG whose data ends early), smaller than :data:`MIN_SIDE` pixels on a side, more than ``max_pixels`` pixels
 (a decompression-bomb guard checked from the header, before any pixel is decoded), NaN or
 Inf pixels (refused: a float image is scanned window by window, never loaded whole).
 
@@ -613,6 +614,42 @@ def _jpeg_header(path: Path, data: bytes) -> tuple[int, int]:
     return size
 
 
+def _check_jpeg_data(path: Path) -> None:
+    """Refuse a JPEG whose compressed data ends early or is corrupt.
+
+    libjpeg only *warns* when the entropy-coded data stops before the last block ("premature
+    end of data segment": a truncated file with an end marker appended) and decodes the rest
+    as flat grey; imagecodecs, OpenCV and Pillow all accept the result.  GDAL's JPEG driver
+    turns these warnings into errors (``GDAL_ERROR_ON_LIBJPEG_WARNING``), so the file is
+    decoded once through it, in strips of rows (a bounded amount of memory), as a check.
+    """
+    import rasterio
+    from rasterio.windows import Window
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with rasterio.Env(GDAL_ERROR_ON_LIBJPEG_WARNING=True, CPL_LOG="/dev/null"):
+                src = rasterio.open(path, driver="JPEG")
+    except Exception:  # noqa: BLE001 - not for GDAL to say: the decoder below decides
+        return
+    with src:
+        rows = max(1, (64 * 2**20) // max(1, src.width * src.count))
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                with rasterio.Env(GDAL_ERROR_ON_LIBJPEG_WARNING=True, CPL_LOG="/dev/null"):
+                    for y in range(0, src.height, rows):
+                        src.read(window=Window(0, y, src.width, min(rows, src.height - y)))
+        except MemoryError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - any libjpeg complaint means corrupt data
+            cause = exc.__cause__ or exc
+            msg = str(cause).splitlines()[0] if str(cause) else type(cause).__name__
+            why = msg.split("libjpeg:", 1)[1].strip() if "libjpeg:" in msg else msg
+            raise _fail(path, f"JPEG data is truncated or corrupt ({why})") from exc
+
+
 # ---------------------------------------------------------------------------- readers
 def _read_codec(path: Path, fmt: str, max_pixels: int) -> Image:
     import imagecodecs
@@ -634,6 +671,8 @@ def _read_codec(path: Path, fmt: str, max_pixels: int) -> Image:
             )
     if fmt == "png" and b"IEND" not in data[-16:]:
         raise _fail(path, "PNG file is truncated (no IEND chunk at the end)")
+    if fmt == "jpeg":
+        _check_jpeg_data(path)
     try:
         if fmt == "png":
             arr = imagecodecs.png_decode(data)
@@ -723,6 +762,12 @@ def _read_tiff(path: Path, max_pixels: int, lazy: bool | None) -> Image:
             cnts = np.asarray(getattr(p, "databytecounts", ()) or (), dtype=np.int64)
             if offs.size and (offs + cnts).max() > size:
                 raise _fail(path, "TIFF file is truncated (image data runs past the end of file)")
+            if offs.size != cnts.size or (cnts.size and (cnts <= 0).any()):
+                # libtiff and tifffile read such a tile or strip as zeros
+                n = int((cnts <= 0).sum())
+                raise _fail(path, f"TIFF image lacks data for {n:,} of its {cnts.size:,} tiles "
+                                  "or strips (offset or byte count 0): missing data would read "
+                                  "as zeros")
         extrasamples = tuple(getattr(page, "extrasamples", ()) or ())
         alpha = bands in (2, 4) and bool(extrasamples) and extrasamples[-1] in (1, 2)
         nbytes = hw[0] * hw[1] * bands * dtype.itemsize
@@ -797,6 +842,7 @@ def _read_zarr(path: Path, max_pixels: int, lazy: bool | None) -> Image:
             node = node[names[0]]
         else:
             raise _fail(path, f"zarr group holds {len(names)} arrays; expected one (or '0')")
+    _check_zarr_chunks(path, node)
     shape = tuple(int(s) for s in node.shape)
     if len(shape) == 3 and shape[2] == 1:
         node = LazyBands(node, bands=(0,))
@@ -806,8 +852,36 @@ def _read_zarr(path: Path, max_pixels: int, lazy: bool | None) -> Image:
     nbytes = int(np.prod(shape)) * np.dtype(node.dtype).itemsize
     if lazy is None:
         lazy = nbytes > LAZY_BYTES
-    arr = np.asarray(node[...]) if not lazy else node
+    if lazy:
+        return Image(node, path, "zarr")
+    try:
+        arr = np.asarray(node[...])
+    except MemoryError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any codec or store failure means corrupt data
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise _fail(path, f"cannot decode zarr chunk data ({msg})") from exc
     return Image(arr, path, "zarr")
+
+
+def _check_zarr_chunks(path: Path, node) -> None:
+    """Refuse a zarr array some of whose chunks were never written (or were deleted).
+
+    zarr reads a missing chunk as the array's fill value, which would pass for image content
+    (a flat area hiding real changes), so every chunk must be present in the store.
+    """
+    try:
+        total, written = int(node.nchunks), int(node.nchunks_initialized)
+    except Exception as exc:  # noqa: BLE001 - an unlistable store is an unreadable one
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise _fail(path, f"cannot list the chunks of the zarr store ({msg})") from exc
+    if written < total:
+        raise _fail(
+            path,
+            f"zarr store lacks {total - written:,} of its {total:,} chunks (missing or never "
+            f"written; they would read as the fill value {node.fill_value}, not as image "
+            "data); write every chunk (zarr: write_empty_chunks=True)",
+        )
 
 
 def _sniff(path: Path) -> str:
