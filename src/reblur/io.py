@@ -17,8 +17,9 @@ float32/float64; gray, gray+alpha, RGB, RGBA (alpha is dropped) and multi-band i
 Every problem with an input raises :class:`InputError` (a ``ValueError``) whose message is
 one line naming the file and the problem: missing file, unreadable, truncated or not an
 image, data the format would silently read as zeros or grey (a zarr chunk never written, a
-TIFF tile or strip with offset or byte count 0, a JPEG whose data ends early), smaller than :data:`MIN_SIDE` pixels on a side, more than ``max_pixels`` pixels
-(a decompression-bomb guard checked from the header, before any pixel is decoded), NaN or
+TIFF tile or strip with offset or byte count 0, a JPEG whose data ends early), smaller
+than :data:`MIN_SIDE` pixels on a side, more than ``max_pixels`` pixels (a
+decompression-bomb guard checked from the header, before any pixel is decoded), NaN or
 Inf pixels (refused: a float image is scanned window by window, never loaded whole).
 
 Writing
