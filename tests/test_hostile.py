@@ -6,6 +6,7 @@ all at once or not at all; two runs into one output directory cannot mix their f
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -128,3 +129,228 @@ def test_truncated_jpeg_with_end_marker_is_refused(tmp_path, good_pair, progress
     with pytest.raises(InputError, match=r"JPEG data is truncated or corrupt \(.*premature end"):
         open_image(p)
     assert_refused(p, good_pair[1], tmp_path / "res", r"JPEG data is truncated or corrupt")
+
+
+# ---------------------------------------------------------------------------- output sets
+#: ``python -c`` driver: runs the CLI with one report writer patched (argv[1] says how).
+DRIVER = """
+import errno, os, sys, time
+import reblur.report as R
+
+mode, marker = sys.argv[1], sys.argv[2]
+if mode == "enospc":
+    def fail(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    R.write_json = fail
+elif mode == "slow":
+    def slow(f):
+        def wrapped(*args, **kwargs):
+            open(marker, "a").close()
+            time.sleep(0.4)
+            return f(*args, **kwargs)
+        return wrapped
+    R.write_png, R.write_tiff, R.write_json = map(slow, (R.write_png, R.write_tiff, R.write_json))
+from reblur.cli import main
+sys.argv = ["reblur", *sys.argv[3:]]
+main()
+"""
+
+
+def scene(rng, side=256) -> tuple[np.ndarray, np.ndarray]:
+    """A reference of flat shapes and an observation shifted by (2, 1) px, blurred along x,
+    with one painted change: a pair reblur detects in a few seconds."""
+    img = np.full((side, side, 3), 90.0)
+    for _ in range(160):
+        x, y = (int(v) for v in rng.integers(0, side, 2))
+        s = int(rng.integers(4, 18))
+        col = [float(c) for c in rng.integers(0, 255, 3)]
+        if rng.random() < 0.5:
+            cv2.rectangle(img, (x, y), (x + s, y + int(s * 0.7)), col, -1)
+        else:
+            cv2.circle(img, (x, y), s // 2, col, -1)
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    obs = cv2.blur(np.roll(img, (2, 1), (0, 1)), (3, 1))
+    obs[60:80, 60:90] = (250, 20, 20)
+    return img.astype(np.uint8), obs.astype(np.uint8)
+
+
+@pytest.fixture
+def pair(tmp_path):
+    ref, obs = scene(np.random.default_rng(21))
+    d = tmp_path / "in"
+    d.mkdir()
+    write_png(d / "ref.png", ref)
+    write_png(d / "obs.png", obs)
+    return d / "ref.png", d / "obs.png"
+
+
+FAST = ("--t-max", 3, "--rz-max", 0, "-q")
+
+
+def detect_args(pair, out, *extra) -> list:
+    return ["detect", *pair, "--out", out, *FAST, *extra]
+
+
+def drive(mode: str, marker: Path, *args) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", DRIVER, mode, str(marker), *map(str, args)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def assert_complete(out: Path) -> dict:
+    """``out`` holds exactly the files its report.json lists, each readable."""
+    import json
+
+    rep = json.loads((out / "report.json").read_text())
+    names = sorted(rep["files"].values())
+    assert sorted(p.name for p in out.iterdir()) == names
+    for n in names:
+        assert (out / n).stat().st_size > 0
+    assert cv2.imread(str(out / "changes.png"), cv2.IMREAD_UNCHANGED).shape == (256, 256)
+    return rep
+
+
+def test_disk_full_mid_write_leaves_no_output(tmp_path, pair):
+    out = tmp_path / "res"
+    proc = drive("enospc", tmp_path / "m", *detect_args(pair, out))
+    stdout, stderr = proc.communicate(timeout=120)
+    res = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
+    assert_one_line_error(res, r"res: cannot write the results \(No space left on device\); "
+                               r"nothing was written")
+    assert not out.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in"]  # no temporary, no lock
+    # with --overwrite, earlier results stay exactly as they were
+    out.mkdir()
+    (out / "report.json").write_text('{"earlier": true}')
+    (out / "changes.png").write_bytes(b"earlier")
+    proc = drive("enospc", tmp_path / "m", *detect_args(pair, out, "--overwrite"))
+    stdout, stderr = proc.communicate(timeout=120)
+    res = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
+    assert_one_line_error(res, r"No space left on device")
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == {
+        "report.json": b'{"earlier": true}', "changes.png": b"earlier"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in", "res"]
+
+
+def _kill_during_write(tmp_path: Path, args: list, delay: float) -> int:
+    """Start a run whose writers are slowed, SIGKILL it ``delay`` s into the write phase."""
+    import signal
+    import time
+
+    marker = tmp_path / f"writing-{delay}"
+    proc = drive("slow", marker, *args)
+    t_end = time.monotonic() + 120
+    while not marker.exists():
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < t_end
+        time.sleep(0.02)
+    time.sleep(delay)
+    proc.send_signal(signal.SIGKILL)
+    proc.communicate(timeout=30)
+    assert proc.returncode == -signal.SIGKILL
+    return proc.pid
+
+
+def test_killed_runs_leave_no_or_complete_results_and_are_cleaned(tmp_path, pair):
+    out = tmp_path / "res"
+    for delay in (0.1, 1.0):  # during the first file, and a few files later
+        pid = _kill_during_write(tmp_path, detect_args(pair, out), delay)
+        assert not out.exists()
+        # the killed run's temporary is left; the one before it was removed by this run
+        left = [p.name for p in tmp_path.iterdir() if p.name.startswith(".res.reblur-tmp-")]
+        assert [n.split("-")[2] for n in left] == [str(pid)]
+    # a temporary of a live process is not touched (this test's own pid)
+    live = tmp_path / f".res.reblur-tmp-{os.getpid()}-keep"
+    live.mkdir()
+    res = run(*detect_args(pair, out))
+    assert res.returncode == 0, res.stderr
+    assert_complete(out)
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith("writing-")) == [
+        live.name, "in", "res"]
+    # killed while overwriting: the earlier complete set stays, byte for byte
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    _kill_during_write(tmp_path, detect_args(pair, out, "--overwrite"), 0.5)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_overwrite_into_a_folder_with_other_files(tmp_path, pair):
+    """A folder that also holds a file of the user's (here: the inputs) is filled file by
+    file; the other file stays, stale results go, the set is complete."""
+    ref, obs = pair
+    out = ref.parent
+    (out / "changes.tif").write_bytes(b"stale result of an older run")
+    res = run(*detect_args(pair, out))
+    assert_one_line_error(res, r"already holds results \(changes\.tif\)")
+    res = run(*detect_args(pair, out, "--overwrite"))
+    assert res.returncode == 0, res.stderr
+    inputs = {ref.name: ref.read_bytes(), obs.name: obs.read_bytes()}
+    for p in (ref, obs):
+        p.rename(tmp_path / p.name)
+    assert_complete(out)
+    assert not (out / "changes.tif").exists()
+    assert {n: (tmp_path / n).read_bytes() for n in inputs} == inputs
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["in", *inputs])
+
+
+def test_second_run_into_a_locked_folder_is_refused(tmp_path, pair):
+    import fcntl
+
+    from reblur.outdir import lock_path
+
+    out = tmp_path / "res"
+    lock = lock_path(out)
+    assert lock == tmp_path / ".res.reblur-lock"
+    with open(lock, "w") as fh:
+        fh.write("4242\n")
+        fh.flush()
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        res = run(*detect_args(pair, out))
+        assert_one_line_error(res, r"res: another reblur run \(pid 4242\) is writing into this "
+                                   r"output directory")
+        assert not out.exists()
+        assert lock.read_text() == "4242\n"
+    lock.unlink()
+
+
+def test_two_concurrent_runs_do_not_mix(tmp_path, pair):
+    """Two runs started together: one writes, the other is refused (locked, or the folder
+    already holds the first one's results)."""
+    out = tmp_path / "res"
+    procs = [subprocess.Popen([sys.executable, "-m", "reblur", *map(str, detect_args(pair, out))],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for _ in range(2)]
+    results = [p.communicate(timeout=120) + (p.returncode,) for p in procs]
+    codes = sorted(r[2] for r in results)
+    assert codes == [0, 1], results
+    refused = next(r for r in results if r[2] == 1)
+    assert re.fullmatch(r"reblur: error: .*(another reblur run|already holds results).*\n",
+                        refused[1]), refused
+    assert_complete(out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in", "res"]
+
+
+def test_output_set_inside_the_folder_when_the_parent_is_not_writable(tmp_path, monkeypatch):
+    """Root ignores permissions, so an unwritable parent is simulated: the temporary folder
+    and the lock then live inside the output folder and the files are moved in one by one."""
+    import reblur.outdir as od
+
+    monkeypatch.setattr(od, "_in_parent", lambda out: False)
+    out = tmp_path / "res"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    (out / "old.txt").write_text("earlier result")
+    names = ("a.txt", "old.txt", "report.json")
+    with pytest.raises(od.OutputDirError, match=r"already holds results \(old\.txt\)"):
+        with od.output_set(out, names):
+            pass
+    with pytest.raises(RuntimeError, match="boom"):
+        with od.output_set(out, names, overwrite=True) as stage:
+            assert stage.parent == out and (out / ".reblur-lock").is_file()
+            (stage / "a.txt").write_text("new")
+            raise RuntimeError("boom")
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt", "old.txt"]
+    with od.output_set(out, names, overwrite=True, last=("report.json",)) as stage:
+        (stage / "a.txt").write_text("new")
+        (stage / "report.json").write_text("{}")
+    assert {p.name: p.read_text() for p in out.iterdir()} == {
+        "notes.txt": "mine", "a.txt": "new", "report.json": "{}"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["res"]
