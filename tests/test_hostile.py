@@ -354,3 +354,70 @@ def test_output_set_inside_the_folder_when_the_parent_is_not_writable(tmp_path, 
     assert {p.name: p.read_text() for p in out.iterdir()} == {
         "notes.txt": "mine", "a.txt": "new", "report.json": "{}"}
     assert sorted(p.name for p in tmp_path.iterdir()) == ["res"]
+
+
+# ---------------------------------------------------------------------------- bombs
+def _png_bomb(w: int, h: int, depth: int, colour: int) -> bytes:
+    """A PNG of a header and an empty end chunk: no pixel data to decode."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return (struct.pack(">I", len(body)) + kind + body
+                + struct.pack(">I", zlib.crc32(kind + body)))
+
+    ihdr = struct.pack(">IIBBBBB", w, h, depth, colour, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IEND", b"")
+
+
+def _jpeg_bomb(w: int, h: int, precision: int, comps: int) -> bytes:
+    """SOI, a frame header, a scan header with no data, EOI."""
+    import struct
+
+    sof = struct.pack(">BHHB", precision, h, w, comps) + b"".join(
+        bytes((i + 1, 0x11, 0)) for i in range(comps))
+    sos = bytes((comps,)) + b"".join(bytes((i + 1, 0)) for i in range(comps)) + b"\x00\x3f\x00"
+    return (b"\xff\xd8" + b"\xff\xc1" + struct.pack(">H", 2 + len(sof)) + sof
+            + b"\xff\xda" + struct.pack(">H", 2 + len(sos)) + sos + b"\xff\xd9")
+
+
+def _jxl_bomb(side: int) -> bytes:
+    """A bare JPEG XL codestream whose SizeHeader says side x side (nothing else)."""
+    bits = 0 | (3 << 1) | ((side - 1) << 3) | (1 << 33)  # not small, 30-bit height, ratio 1:1
+    return b"\xff\x0a" + bits.to_bytes(10, "little")
+
+
+@pytest.mark.parametrize("name, data, pattern", [
+    # 9e8 pixels pass the pixel limits; RGBA 16-bit makes them 7.2 GB
+    ("rgba16.png", _png_bomb(30_000, 30_000, 16, 6), r"would decode to 7,200,000,000 bytes"),
+    ("rgb12.jpg", _jpeg_bomb(30_000, 30_000, 12, 3), r"would decode to 5,400,000,000 bytes"),
+    ("big.jxl", _jxl_bomb(30_000), r"would decode to 14,400,000,000 bytes"),
+], ids=["png", "jpeg", "jxl"])
+def test_bytes_checked_from_the_header_before_decoding(tmp_path, name, data, pattern):
+    import time
+
+    p = tmp_path / name
+    p.write_bytes(data)
+    t0 = time.perf_counter()
+    with pytest.raises(InputError, match=pattern):
+        open_image(p)
+    assert time.perf_counter() - t0 < 5
+    # the same header at a size that fits passes the checks and fails only on decoding
+    small = {"rgba16.png": _png_bomb(64, 64, 16, 6), "rgb12.jpg": _jpeg_bomb(64, 64, 12, 3),
+             "big.jxl": _jxl_bomb(64)}[name]
+    p.write_bytes(small)
+    with pytest.raises(InputError) as err:
+        open_image(p)
+    assert "would decode to" not in str(err.value)
+
+
+def test_other_formats_sized_from_their_header(tmp_path):
+    import imagecodecs
+
+    a = textured(np.random.default_rng(14), 48, 80)
+    for name, data in (("a.webp", imagecodecs.webp_encode(a, lossless=True)),
+                       ("a.jxl", imagecodecs.jpegxl_encode(a, lossless=True))):
+        (tmp_path / name).write_bytes(data)
+        np.testing.assert_array_equal(open_image(tmp_path / name).read(), a)
+        with pytest.raises(InputError, match=r"3,840 pixels \(80x48\), more than the limit"):
+            open_image(tmp_path / name, max_pixels=3000)
