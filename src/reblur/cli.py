@@ -5,7 +5,9 @@ function with its options passed 1:1 as keywords, and writes with :mod:`reblur.r
 
 Errors never show a traceback (unless ``-v``): every failure prints one line
 ``reblur: error: <what went wrong>`` on stderr and exits non-zero (2 for usage errors,
-1 otherwise).  Nothing is written to the output directory unless the command succeeds.
+1 otherwise).  Nothing is written to the output directory unless the command succeeds:
+each command writes its files into a temporary sibling directory that replaces the output
+directory at the end, holding its lock meanwhile (:func:`reblur.outdir.output_set`).
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from .io import (
     reconcile_bands,
     zarr_masks,
 )
+from .outdir import output_set
 
 __all__ = ["main"]
 
@@ -254,12 +257,26 @@ def _open_pair(reference: Path, observed: Path, max_pixels: int) -> tuple[Image,
     return reconcile_bands(ref, obs)
 
 
-def _finish_outputs(out: Path, files: dict[str, str]) -> None:
-    """Remove result files of an earlier run that this run did not rewrite."""
-    from .report import remove_outputs
+#: Files moved into an output directory last (and removed first) when it is filled file by file.
+REPORT_NAMES = ("report.html", "report.json")
 
-    for p in remove_outputs(out, keep=files.values()):
-        log.info("removed stale %s", p)
+
+def _writing(out: Path):
+    """Turn a failure to write the results into one line naming the output directory."""
+    import contextlib
+
+    @contextlib.contextmanager
+    def guard():
+        try:
+            yield
+        except OSError as exc:
+            if exc.errno is None:
+                raise
+            raise click.ClickException(
+                f"{out}: cannot write the results ({exc.strerror or exc}); nothing was written"
+            ) from exc
+
+    return guard()
 
 
 # ---------------------------------------------------------------------------- commands
@@ -319,11 +336,25 @@ def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float
     reblurred.tif, overlay.png, motion.png, report.json, report.html, and for large or
     georeferenced inputs changes.tif (and changes.geojson).  Prints one summary line.
     """
-    from .report import OUTPUT_NAMES, summary_line, write_report
+    from .report import OUTPUT_NAMES, summary_line
 
     t0 = time.perf_counter()
     inputs = [reference, observed] + ([truth] if truth is not None else [])
     out_dir = _check_output_dir(out, inputs, OUTPUT_NAMES, overwrite)
+    with output_set(out_dir, OUTPUT_NAMES, overwrite=overwrite, last=REPORT_NAMES) as stage:
+        summary = _detect(stage, out_dir, reference, observed, truth, max_pixels, quiet, t0,
+                          dict(t_max=t_max, rz_max=rz_max, rz_step=rz_step, lam=lam,
+                               tile_size=tile_size, threshold=threshold, workers=workers,
+                               scheduler=scheduler))
+    click.echo(summary_line(summary, out))
+
+
+def _detect(stage: Path, out_dir: Path, reference: Path, observed: Path, truth: Path | None,
+            max_pixels: int, quiet: bool, t0: float, options: dict[str, Any]) -> dict[str, Any]:
+    """The work of ``reblur detect``: every output is written into ``stage``, the temporary
+    directory that becomes ``out_dir``."""
+    from .report import write_report
+
     ref, obs = _open_pair(reference, observed, max_pixels)
     truth_mask = (read_mask(truth, obs.shape[:2], max_pixels=max_pixels, what="truth mask")
                   if truth is not None else None)
@@ -333,35 +364,34 @@ def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float
     import reblur
 
     progress = None if quiet else _Progress()
-    options = dict(t_max=t_max, rz_max=rz_max, rz_step=rz_step, lam=lam, tile_size=tile_size,
-                   threshold=threshold, workers=workers, scheduler=scheduler)
     # full-size masks of large inputs (and every mask written by Dask workers) go to a zarr
-    # store in the output directory, never to memory; it is removed once the outputs exist
+    # store in the temporary output directory, never to memory; it is removed once the
+    # outputs exist
     large = obs.n_pixels > LARGE_MASK_PIXELS
-    work = (out_dir / f".reblur-work-{os.getpid()}"
-            if scheduler is not None or large else None)
+    work = (stage / f".reblur-work-{os.getpid()}"
+            if options["scheduler"] is not None or large else None)
     try:
         masks = {}
         if large:
             masks = dict(zip(("change_out", "unknown_out"),
-                             zarr_masks(work, obs.shape[:2], tile_size), strict=True))
+                             zarr_masks(work, obs.shape[:2], options["tile_size"]), strict=True))
         try:
             result = reblur.detect_changes(ref.array, obs.array, progress=progress,
                                            work_dir=work, **masks, **options)
         finally:
             if progress is not None:
                 progress.close()
-        files, summary = write_report(
-            result, out_dir, reference=ref, observed=obs, truth=truth_mask,
-            options=dict(options, max_pixels=max_pixels, command="detect",
-                         truth=str(truth) if truth is not None else None),
-            timings=dict(open=t_open),
-        )
+        with _writing(out_dir):
+            _, summary = write_report(
+                result, stage, reference=ref, observed=obs, truth=truth_mask,
+                options=dict(options, max_pixels=max_pixels, command="detect",
+                             truth=str(truth) if truth is not None else None),
+                timings=dict(open=t_open),
+            )
     finally:
         if work is not None:
             shutil.rmtree(work, ignore_errors=True)
-    _finish_outputs(out_dir, files)
-    click.echo(summary_line(summary, out))
+    return summary
 
 
 @main.command(short_help="Run detection on the embedded demo pair.")
@@ -385,15 +415,16 @@ def demo(out: Path, overwrite: bool, quiet: bool) -> None:
     obs = Image.from_array(observed, "demo observed")
     import reblur
 
-    progress = None if quiet else _Progress()
-    try:
-        result = reblur.detect_changes(ref.array, obs.array, progress=progress)
-    finally:
-        if progress is not None:
-            progress.close()
-    files, summary = write_report(result, out_dir, reference=ref, observed=obs,
-                                  truth=truth, options=dict(command="demo"))
-    _finish_outputs(out_dir, files)
+    with output_set(out_dir, OUTPUT_NAMES, overwrite=overwrite, last=REPORT_NAMES) as stage:
+        progress = None if quiet else _Progress()
+        try:
+            result = reblur.detect_changes(ref.array, obs.array, progress=progress)
+        finally:
+            if progress is not None:
+                progress.close()
+        with _writing(out_dir):
+            _, summary = write_report(result, stage, reference=ref, observed=obs,
+                                      truth=truth, options=dict(command="demo"))
     click.echo(summary_line(summary, out))
     click.echo(f"open {out / 'report.html'} for the full report")
 
@@ -434,11 +465,25 @@ def simulate(image: Path, out: Path, after: Path | None, seed: int, t_max: float
     """
     import numpy as np
 
+    inputs = [image] + ([after] if after is not None else [])
+    out_dir = _check_output_dir(out, inputs, SIMULATE_NAMES, overwrite)
+    with output_set(out_dir, SIMULATE_NAMES, overwrite=overwrite, last=("path.json",)) as stage:
+        pair = _simulate(stage, out_dir, image, after, seed, t_max, rz_max, shift_frac,
+                         rot_deg, n_changes, moving, noise, max_pixels)
+    frac = float(np.mean(pair.truth))
+    click.echo(f"simulated {pair.observed.shape[1]}x{pair.observed.shape[0]} pair, "
+               f"{100 * frac:.2f} % changed -> {out}")
+
+
+def _simulate(stage: Path, out_dir: Path, image: Path, after: Path | None, seed: int,
+              t_max: float, rz_max: float, shift_frac: float, rot_deg: float, n_changes: int,
+              moving: bool, noise: float, max_pixels: int):
+    """The work of ``reblur simulate``: every file is written into ``stage``."""
+    import numpy as np
+
     from .io import write_json, write_png, write_tiff
     from .simulate import make_pair
 
-    inputs = [image] + ([after] if after is not None else [])
-    out_dir = _check_output_dir(out, inputs, SIMULATE_NAMES, overwrite)
     before = open_image(image, max_pixels=max_pixels).read()
     later = open_image(after, max_pixels=max_pixels).read() if after is not None else None
     if later is not None and later.shape != before.shape:
@@ -451,18 +496,16 @@ def simulate(image: Path, out: Path, after: Path | None, seed: int, t_max: float
                    if (shift_frac or rot_deg) else None),
         n_changes=n_changes, moving=moving, noise_sigma=noise,
     )
-    out_dir.mkdir(parents=True, exist_ok=True)
-    write_tiff(out_dir / "reference.tif", np.asarray(pair.reference, np.float32))
-    write_tiff(out_dir / "observed.tif", np.asarray(pair.observed, np.float32))
-    write_png(out_dir / "truth.png", np.asarray(pair.truth, bool))
-    write_png(out_dir / "unknown.png", np.asarray(pair.unknown, bool))
     meta = dict(pair.meta(), image=str(image), after=str(after) if after else None,
                 options=dict(seed=seed, t_max=t_max, rz_max=rz_max, shift_frac=shift_frac,
                              rot_deg=rot_deg, changes=n_changes, moving=moving, noise=noise))
-    write_json(out_dir / "path.json", meta)
-    frac = float(np.mean(pair.truth))
-    click.echo(f"simulated {pair.observed.shape[1]}x{pair.observed.shape[0]} pair, "
-               f"{100 * frac:.2f} % changed -> {out}")
+    with _writing(out_dir):
+        write_tiff(stage / "reference.tif", np.asarray(pair.reference, np.float32))
+        write_tiff(stage / "observed.tif", np.asarray(pair.observed, np.float32))
+        write_png(stage / "truth.png", np.asarray(pair.truth, bool))
+        write_png(stage / "unknown.png", np.asarray(pair.unknown, bool))
+        write_json(stage / "path.json", meta)
+    return pair
 
 
 @main.command(short_help="Score a change mask against the truth (JSON on stdout).")

@@ -16,8 +16,12 @@ float32/float64; gray, gray+alpha, RGB, RGBA (alpha is dropped) and multi-band i
 
 Every problem with an input raises :class:`InputError` (a ``ValueError``) whose message is
 one line naming the file and the problem: missing file, unreadable, truncated or not an
-image, smaller than :data:`MIN_SIDE` pixels on a side, more than ``max_pixels`` pixels
-(a decompression-bomb guard checked from the header, before any pixel is decoded), NaN or
+image, data the format would silently read as zeros or grey (a zarr chunk never written, a
+TIFF tile or strip with offset or byte count 0, a JPEG whose data ends early), smaller
+than :data:`MIN_SIDE` pixels on a side, more than ``max_pixels`` pixels or, for a format
+decoded in memory (PNG, JPEG, WebP, JPEG XL, ...), more than :data:`IN_MEMORY_MAX_BYTES`
+decoded bytes (decompression-bomb guards checked from the header -- size, bands and bit
+depth -- before any pixel is decoded; a format whose header cannot be read is refused), NaN or
 Inf pixels (refused: a float image is scanned window by window, never loaded whole).
 
 Writing
@@ -79,6 +83,10 @@ LAZY_BYTES = 512 * 2**20
 
 #: PNG/JPEG/other codecs decode the whole image into memory: refuse more pixels than this.
 IN_MEMORY_MAX_PIXELS = 2**30
+
+#: ... and more decoded bytes than this (what 2**30 RGBA pixels of 8 bits take), read from the
+#: header (size, bands and bit depth) before anything is decoded.
+IN_MEMORY_MAX_BYTES = 2**32
 
 #: Rec. 709 luminance weights (as ``skimage.color.rgb2gray``).
 LUMINANCE = (0.2125, 0.7154, 0.0721)
@@ -581,8 +589,16 @@ def _png_header(path: Path, data: bytes) -> tuple[int, int]:
     return h, w
 
 
-def _jpeg_header(path: Path, data: bytes) -> tuple[int, int]:
-    """Frame size from the first SOF marker; check the image is complete (EOI after SOS)."""
+def _png_layout(data: bytes) -> tuple[int, int]:
+    """``(bands, bytes per sample)`` a PNG decodes to, from its IHDR (palette: RGBA)."""
+    depth, colour = data[24], data[25]
+    bands = {0: 1, 2: 3, 3: 4, 4: 2, 6: 4}.get(colour, 4)
+    return bands, 2 if depth == 16 else 1
+
+
+def _jpeg_header(path: Path, data: bytes) -> tuple[int, int, int, int]:
+    """``(height, width, components, bytes per sample)`` from the first SOF marker; check
+    the image is complete (EOI after SOS)."""
     i, n = 2, len(data)
     size = None
     while i + 4 <= n:
@@ -601,7 +617,8 @@ def _jpeg_header(path: Path, data: bytes) -> tuple[int, int]:
             if i + 9 > n:
                 break
             h, w = struct.unpack(">HH", data[i + 5 : i + 9])
-            size = (h, w)
+            comps = data[i + 9] if i + 10 <= n else 4
+            size = (h, w, comps, 2 if data[i + 4] > 8 else 1)
         if marker == 0xDA:  # start of scan: entropy-coded data follows
             break
         i += 2 + seg_len
@@ -613,6 +630,124 @@ def _jpeg_header(path: Path, data: bytes) -> tuple[int, int]:
     return size
 
 
+def _check_jpeg_data(path: Path) -> None:
+    """Refuse a JPEG whose compressed data ends early or is corrupt.
+
+    libjpeg only *warns* when the entropy-coded data stops before the last block ("premature
+    end of data segment": a truncated file with an end marker appended) and decodes the rest
+    as flat grey; imagecodecs, OpenCV and Pillow all accept the result.  GDAL's JPEG driver
+    turns these warnings into errors (``GDAL_ERROR_ON_LIBJPEG_WARNING``), so the file is
+    decoded once through it, in strips of rows (a bounded amount of memory), as a check.
+    """
+    import rasterio
+    from rasterio.windows import Window
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with rasterio.Env(GDAL_ERROR_ON_LIBJPEG_WARNING=True, CPL_LOG="/dev/null"):
+                src = rasterio.open(path, driver="JPEG")
+    except Exception:  # noqa: BLE001 - not for GDAL to say: the decoder below decides
+        return
+    with src:
+        rows = max(1, (64 * 2**20) // max(1, src.width * src.count))
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                with rasterio.Env(GDAL_ERROR_ON_LIBJPEG_WARNING=True, CPL_LOG="/dev/null"):
+                    for y in range(0, src.height, rows):
+                        src.read(window=Window(0, y, src.width, min(rows, src.height - y)))
+        except MemoryError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - any libjpeg complaint means corrupt data
+            cause = exc.__cause__ or exc
+            msg = str(cause).splitlines()[0] if str(cause) else type(cause).__name__
+            why = msg.split("libjpeg:", 1)[1].strip() if "libjpeg:" in msg else msg
+            raise _fail(path, f"JPEG data is truncated or corrupt ({why})") from exc
+
+
+_PIL_BYTES = {"1": 1, "L": 1, "P": 4, "PA": 4, "LA": 2, "La": 2, "RGB": 3, "YCbCr": 3,
+              "LAB": 3, "HSV": 3, "RGBA": 4, "RGBa": 4, "RGBX": 4, "CMYK": 4, "I": 4, "F": 4,
+              "I;16": 2, "I;16L": 2, "I;16B": 2, "I;16N": 2}
+
+
+def _jxl_size(data: bytes) -> tuple[int, int] | None:
+    """``(height, width)`` from a JPEG XL SizeHeader (bare codestream or ISOBMFF container)."""
+    if data.startswith(b"\x00\x00\x00\x0cJXL \r\n\x87\n"):
+        i, code = 12, None
+        while i + 8 <= len(data) and code is None:
+            size, kind = struct.unpack(">I4s", data[i : i + 8])
+            head = 8
+            if size == 1 and i + 16 <= len(data):
+                size, head = struct.unpack(">Q", data[i + 8 : i + 16])[0], 16
+            elif size == 0:
+                size = len(data) - i
+            if kind == b"jxlc":
+                code = data[i + head : i + size]
+            elif kind == b"jxlp":
+                code = data[i + head + 4 : i + size]
+            if size < head:
+                return None
+            i += size
+        data = code or b""
+    if not data.startswith(b"\xff\x0a") or len(data) < 12:
+        return None
+    bits = int.from_bytes(data[2:12], "little")
+    pos = 0
+
+    def u(n: int) -> int:
+        nonlocal pos
+        v = (bits >> pos) & ((1 << n) - 1)
+        pos += n
+        return v
+
+    def u32() -> int:
+        return 1 + u((9, 13, 18, 30)[u(2)])
+
+    small = u(1)
+    h = 8 * (1 + u(5)) if small else u32()
+    ratio = u(3)
+    if ratio:
+        num, den = ((1, 1), (12, 10), (4, 3), (3, 2), (16, 9), (5, 4), (2, 1))[ratio - 1]
+        w = h * num // den
+    else:
+        w = 8 * (1 + u(5)) if small else u32()
+    return h, w
+
+
+def _other_header(path: Path, data: bytes) -> tuple[int, int, int]:
+    """``(height, width, decoded bytes per pixel)`` of a WebP, JPEG 2000, AVIF, BMP, GIF,
+    JPEG XL... image, read from its header without decoding it (an upper bound on the bytes
+    where the header does not say).
+
+    Raises
+    ------
+    InputError
+        When no header reader knows the format: its size cannot be checked before decoding.
+    """
+    import io as _io
+
+    from PIL import Image as PILImage
+
+    old = PILImage.MAX_IMAGE_PIXELS
+    PILImage.MAX_IMAGE_PIXELS = None  # the size is checked here, against our own limits
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with PILImage.open(_io.BytesIO(data)) as im:
+                w, h = im.size
+                return h, w, _PIL_BYTES.get(im.mode, 8)
+    except Exception:  # noqa: BLE001 - not a format Pillow knows: try the others
+        pass
+    finally:
+        PILImage.MAX_IMAGE_PIXELS = old
+    size = _jxl_size(data)
+    if size is not None:
+        return size[0], size[1], 16  # up to four float32 bands
+    raise _fail(path, "not an image file (unrecognised format), or a format whose size "
+                      "cannot be checked before decoding; convert it to PNG or TIFF")
+
+
 # ---------------------------------------------------------------------------- readers
 def _read_codec(path: Path, fmt: str, max_pixels: int) -> Image:
     import imagecodecs
@@ -620,20 +755,32 @@ def _read_codec(path: Path, fmt: str, max_pixels: int) -> Image:
     data = path.read_bytes()
     if fmt == "png":
         h, w = _png_header(path, data)
+        bands, itemsize = _png_layout(data)
     elif fmt == "jpeg":
-        h, w = _jpeg_header(path, data)
+        h, w, bands, itemsize = _jpeg_header(path, data)
     else:
-        h = w = None
-    if h is not None:
-        _check_shape(path, (h, w), max_pixels)
-        if h * w > IN_MEMORY_MAX_PIXELS:
-            raise _fail(
-                path,
-                f"{fmt.upper()} image of {h * w:,} pixels is too large to decode in memory "
-                f"(limit {IN_MEMORY_MAX_PIXELS:,}); convert it to a tiled TIFF",
-            )
+        h, w, itemsize = _other_header(path, data)
+        bands = 1
+    _check_shape(path, (h, w), max_pixels)
+    label = fmt.upper() if fmt != "other" else "the"
+    if h * w > IN_MEMORY_MAX_PIXELS:
+        raise _fail(
+            path,
+            f"{label} image of {h * w:,} pixels is too large to decode in memory "
+            f"(limit {IN_MEMORY_MAX_PIXELS:,}); convert it to a tiled TIFF",
+        )
+    nbytes = h * w * bands * itemsize
+    if nbytes > IN_MEMORY_MAX_BYTES:
+        raise _fail(
+            path,
+            f"{label} image of {w}x{h} pixels would decode to {nbytes:,} bytes, more than "
+            f"can be decoded in memory (limit {IN_MEMORY_MAX_BYTES:,}); convert it to a "
+            "tiled TIFF",
+        )
     if fmt == "png" and b"IEND" not in data[-16:]:
         raise _fail(path, "PNG file is truncated (no IEND chunk at the end)")
+    if fmt == "jpeg":
+        _check_jpeg_data(path)
     try:
         if fmt == "png":
             arr = imagecodecs.png_decode(data)
@@ -723,6 +870,12 @@ def _read_tiff(path: Path, max_pixels: int, lazy: bool | None) -> Image:
             cnts = np.asarray(getattr(p, "databytecounts", ()) or (), dtype=np.int64)
             if offs.size and (offs + cnts).max() > size:
                 raise _fail(path, "TIFF file is truncated (image data runs past the end of file)")
+            if offs.size != cnts.size or (cnts.size and (cnts <= 0).any()):
+                # libtiff and tifffile read such a tile or strip as zeros
+                n = int((cnts <= 0).sum())
+                raise _fail(path, f"TIFF image lacks data for {n:,} of its {cnts.size:,} tiles "
+                                  "or strips (offset or byte count 0): missing data would read "
+                                  "as zeros")
         extrasamples = tuple(getattr(page, "extrasamples", ()) or ())
         alpha = bands in (2, 4) and bool(extrasamples) and extrasamples[-1] in (1, 2)
         nbytes = hw[0] * hw[1] * bands * dtype.itemsize
@@ -797,6 +950,7 @@ def _read_zarr(path: Path, max_pixels: int, lazy: bool | None) -> Image:
             node = node[names[0]]
         else:
             raise _fail(path, f"zarr group holds {len(names)} arrays; expected one (or '0')")
+    _check_zarr_chunks(path, node)
     shape = tuple(int(s) for s in node.shape)
     if len(shape) == 3 and shape[2] == 1:
         node = LazyBands(node, bands=(0,))
@@ -806,8 +960,36 @@ def _read_zarr(path: Path, max_pixels: int, lazy: bool | None) -> Image:
     nbytes = int(np.prod(shape)) * np.dtype(node.dtype).itemsize
     if lazy is None:
         lazy = nbytes > LAZY_BYTES
-    arr = np.asarray(node[...]) if not lazy else node
+    if lazy:
+        return Image(node, path, "zarr")
+    try:
+        arr = np.asarray(node[...])
+    except MemoryError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any codec or store failure means corrupt data
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise _fail(path, f"cannot decode zarr chunk data ({msg})") from exc
     return Image(arr, path, "zarr")
+
+
+def _check_zarr_chunks(path: Path, node) -> None:
+    """Refuse a zarr array some of whose chunks were never written (or were deleted).
+
+    zarr reads a missing chunk as the array's fill value, which would pass for image content
+    (a flat area hiding real changes), so every chunk must be present in the store.
+    """
+    try:
+        total, written = int(node.nchunks), int(node.nchunks_initialized)
+    except Exception as exc:  # noqa: BLE001 - an unlistable store is an unreadable one
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise _fail(path, f"cannot list the chunks of the zarr store ({msg})") from exc
+    if written < total:
+        raise _fail(
+            path,
+            f"zarr store lacks {total - written:,} of its {total:,} chunks (missing or never "
+            f"written; they would read as the fill value {node.fill_value}, not as image "
+            "data); write every chunk (zarr: write_empty_chunks=True)",
+        )
 
 
 def _sniff(path: Path) -> str:

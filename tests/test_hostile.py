@@ -1,0 +1,423 @@
+"""Hostile inputs and interrupted or concurrent runs (issue 30).
+
+Corrupt containers are refused rather than read as zeros; the output set of a run appears
+all at once or not at all; two runs into one output directory cannot mix their files.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import tifffile
+import zarr
+
+from reblur.io import InputError, open_image, write_png
+
+
+# ---------------------------------------------------------------------------- helpers
+def run(*args, timeout: float = 120) -> subprocess.CompletedProcess:
+    """Run ``python -m reblur ARGS`` and capture its output."""
+    return subprocess.run([sys.executable, "-m", "reblur", *map(str, args)],
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def assert_one_line_error(res: subprocess.CompletedProcess, *patterns: str) -> str:
+    assert res.returncode != 0, res.stdout
+    assert "Traceback" not in res.stderr, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1, res.stderr
+    assert lines[0].startswith("reblur: error: "), lines[0]
+    for p in patterns:
+        assert re.search(p, lines[0]), (p, lines[0])
+    assert res.stdout == ""
+    return lines[0]
+
+
+def textured(rng, h=64, w=64, bands=3) -> np.ndarray:
+    """Smoothed noise: enough texture for an alignment, uint8."""
+    a = rng.random((h, w, bands) if bands > 1 else (h, w)) * 255
+    return cv2.GaussianBlur(a, (0, 0), 1.5).astype(np.uint8)
+
+
+@pytest.fixture
+def good_pair(tmp_path):
+    rng = np.random.default_rng(3)
+    write_png(tmp_path / "ref.png", textured(rng))
+    write_png(tmp_path / "obs.png", textured(rng))
+    return tmp_path / "ref.png", tmp_path / "obs.png"
+
+
+def assert_refused(bad: Path, obs: Path, out: Path, *patterns: str) -> None:
+    """The CLI refuses ``bad`` as the reference in one line, leaving no output directory."""
+    before = sorted(p.name for p in out.parent.iterdir())
+    line = assert_one_line_error(run("detect", bad, obs, "--out", out, "-q"), *patterns)
+    assert bad.name in line
+    assert not out.exists()
+    assert sorted(p.name for p in out.parent.iterdir()) == before  # no lock or temporary left
+
+
+# ---------------------------------------------------------------------------- corrupt inputs
+@pytest.mark.parametrize("zarr_format", [2, 3])
+def test_zarr_with_a_missing_chunk_is_refused(tmp_path, good_pair, zarr_format):
+    rng = np.random.default_rng(11)
+    a = textured(rng, 96, 64, bands=1)
+    store = tmp_path / "ref.zarr"
+    z = zarr.create_array(str(store), shape=a.shape, chunks=(32, 32), dtype="u1",
+                          zarr_format=zarr_format, fill_value=0)
+    z[...] = a
+    np.testing.assert_array_equal(open_image(store).read(), a)  # intact: read as written
+    chunk = store / ("1.1" if zarr_format == 2 else "c/1/1")
+    assert chunk.is_file()
+    chunk.unlink()
+    # what the bare reader gives: the deleted chunk is zeros, as if it were image content
+    assert (np.asarray(zarr.open(str(store), mode="r")[32:64, 32:64]) == 0).all()
+    with pytest.raises(InputError, match=r"lacks 1 of its 6 chunks"):
+        open_image(store)
+    assert_refused(store, good_pair[1], tmp_path / "res", r"zarr store lacks 1 of its 6 chunks")
+
+
+def _zero_tiff_segment(path: Path, index: int) -> None:
+    """Set the offset and byte count of tile/strip ``index`` to 0 (in place)."""
+    with tifffile.TiffFile(path, mode="r+b") as tif:
+        page = tif.pages[0]
+        tags = page.tags
+        names = (("TileOffsets", "TileByteCounts") if "TileOffsets" in tags
+                 else ("StripOffsets", "StripByteCounts"))
+        for name in names:
+            values = list(tags[name].value)
+            values[index] = 0
+            tags[name].overwrite(values)
+
+
+@pytest.mark.parametrize("layout", [dict(tile=(32, 32)), dict(rowsperstrip=16)])
+def test_tiff_tile_without_data_is_refused(tmp_path, good_pair, layout):
+    rng = np.random.default_rng(12)
+    a = textured(rng, 96, 64, bands=1) | 1  # no zero pixel anywhere
+    p = tmp_path / "ref.tif"
+    tifffile.imwrite(p, a, compression="deflate", **layout)
+    np.testing.assert_array_equal(open_image(p).read(), a)
+    _zero_tiff_segment(p, 2)
+    # what tifffile makes of it: a block of zeros where the segment was
+    assert (tifffile.imread(p) == 0).sum() >= 16 * 32
+    with pytest.raises(InputError, match=r"lacks data for 1 of its \d+ tiles or strips"):
+        open_image(p)
+    with pytest.raises(InputError, match=r"lacks data"):
+        open_image(p, lazy=True)
+    assert_refused(p, good_pair[1], tmp_path / "res", r"TIFF image lacks data")
+
+
+@pytest.mark.parametrize("progressive", [0, 1])
+def test_truncated_jpeg_with_end_marker_is_refused(tmp_path, good_pair, progressive):
+    rng = np.random.default_rng(13)
+    a = textured(rng, 128, 128)
+    data = cv2.imencode(".jpg", a, [cv2.IMWRITE_JPEG_PROGRESSIVE, progressive])[1].tobytes()
+    full = tmp_path / "full.jpg"
+    full.write_bytes(data)
+    expect = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
+    assert np.abs(open_image(full).read().astype(int) - expect).max() <= 1
+    p = tmp_path / "ref.jpg"
+    p.write_bytes(data[: len(data) // 2] + b"\xff\xd9")
+    # the decoders used elsewhere accept it: the lost half comes back as a flat area
+    assert cv2.imdecode(np.frombuffer(p.read_bytes(), np.uint8), cv2.IMREAD_COLOR) is not None
+    with pytest.raises(InputError, match=r"JPEG data is truncated or corrupt \(.*premature end"):
+        open_image(p)
+    assert_refused(p, good_pair[1], tmp_path / "res", r"JPEG data is truncated or corrupt")
+
+
+# ---------------------------------------------------------------------------- output sets
+#: ``python -c`` driver: runs the CLI with one report writer patched (argv[1] says how).
+DRIVER = """
+import errno, os, sys, time
+import reblur.report as R
+
+mode, marker = sys.argv[1], sys.argv[2]
+if mode == "enospc":
+    def fail(*args, **kwargs):
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+    R.write_json = fail
+elif mode == "slow":
+    def slow(f):
+        def wrapped(*args, **kwargs):
+            open(marker, "a").close()
+            time.sleep(0.4)
+            return f(*args, **kwargs)
+        return wrapped
+    R.write_png, R.write_tiff, R.write_json = map(slow, (R.write_png, R.write_tiff, R.write_json))
+from reblur.cli import main
+sys.argv = ["reblur", *sys.argv[3:]]
+main()
+"""
+
+
+def scene(rng, side=256) -> tuple[np.ndarray, np.ndarray]:
+    """A reference of flat shapes and an observation shifted by (2, 1) px, blurred along x,
+    with one painted change: a pair reblur detects in a few seconds."""
+    img = np.full((side, side, 3), 90.0)
+    for _ in range(160):
+        x, y = (int(v) for v in rng.integers(0, side, 2))
+        s = int(rng.integers(4, 18))
+        col = [float(c) for c in rng.integers(0, 255, 3)]
+        if rng.random() < 0.5:
+            cv2.rectangle(img, (x, y), (x + s, y + int(s * 0.7)), col, -1)
+        else:
+            cv2.circle(img, (x, y), s // 2, col, -1)
+    img = cv2.GaussianBlur(img, (0, 0), 0.8)
+    obs = cv2.blur(np.roll(img, (2, 1), (0, 1)), (3, 1))
+    obs[60:80, 60:90] = (250, 20, 20)
+    return img.astype(np.uint8), obs.astype(np.uint8)
+
+
+@pytest.fixture
+def pair(tmp_path):
+    ref, obs = scene(np.random.default_rng(21))
+    d = tmp_path / "in"
+    d.mkdir()
+    write_png(d / "ref.png", ref)
+    write_png(d / "obs.png", obs)
+    return d / "ref.png", d / "obs.png"
+
+
+FAST = ("--t-max", 3, "--rz-max", 0, "-q")
+
+
+def detect_args(pair, out, *extra) -> list:
+    return ["detect", *pair, "--out", out, *FAST, *extra]
+
+
+def drive(mode: str, marker: Path, *args) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-c", DRIVER, mode, str(marker), *map(str, args)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def assert_complete(out: Path) -> dict:
+    """``out`` holds exactly the files its report.json lists, each readable."""
+    import json
+
+    rep = json.loads((out / "report.json").read_text())
+    names = sorted(rep["files"].values())
+    assert sorted(p.name for p in out.iterdir()) == names
+    for n in names:
+        assert (out / n).stat().st_size > 0
+    assert cv2.imread(str(out / "changes.png"), cv2.IMREAD_UNCHANGED).shape == (256, 256)
+    return rep
+
+
+def test_disk_full_mid_write_leaves_no_output(tmp_path, pair):
+    out = tmp_path / "res"
+    proc = drive("enospc", tmp_path / "m", *detect_args(pair, out))
+    stdout, stderr = proc.communicate(timeout=120)
+    res = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
+    assert_one_line_error(res, r"res: cannot write the results \(No space left on device\); "
+                               r"nothing was written")
+    assert not out.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in"]  # no temporary, no lock
+    # with --overwrite, earlier results stay exactly as they were
+    out.mkdir()
+    (out / "report.json").write_text('{"earlier": true}')
+    (out / "changes.png").write_bytes(b"earlier")
+    proc = drive("enospc", tmp_path / "m", *detect_args(pair, out, "--overwrite"))
+    stdout, stderr = proc.communicate(timeout=120)
+    res = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
+    assert_one_line_error(res, r"No space left on device")
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == {
+        "report.json": b'{"earlier": true}', "changes.png": b"earlier"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in", "res"]
+
+
+def _kill_during_write(tmp_path: Path, args: list, delay: float) -> int:
+    """Start a run whose writers are slowed, SIGKILL it ``delay`` s into the write phase."""
+    import signal
+    import time
+
+    marker = tmp_path / f"writing-{delay}"
+    proc = drive("slow", marker, *args)
+    t_end = time.monotonic() + 120
+    while not marker.exists():
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < t_end
+        time.sleep(0.02)
+    time.sleep(delay)
+    proc.send_signal(signal.SIGKILL)
+    proc.communicate(timeout=30)
+    assert proc.returncode == -signal.SIGKILL
+    return proc.pid
+
+
+def test_killed_runs_leave_no_or_complete_results_and_are_cleaned(tmp_path, pair):
+    out = tmp_path / "res"
+    for delay in (0.1, 1.0):  # during the first file, and a few files later
+        pid = _kill_during_write(tmp_path, detect_args(pair, out), delay)
+        assert not out.exists()
+        # the killed run's temporary is left; the one before it was removed by this run
+        left = [p.name for p in tmp_path.iterdir() if p.name.startswith(".res.reblur-tmp-")]
+        assert [n.split("-")[2] for n in left] == [str(pid)]
+    # a temporary of a live process is not touched (this test's own pid)
+    live = tmp_path / f".res.reblur-tmp-{os.getpid()}-keep"
+    live.mkdir()
+    res = run(*detect_args(pair, out))
+    assert res.returncode == 0, res.stderr
+    assert_complete(out)
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith("writing-")) == [
+        live.name, "in", "res"]
+    # killed while overwriting: the earlier complete set stays, byte for byte
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    _kill_during_write(tmp_path, detect_args(pair, out, "--overwrite"), 0.5)
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+
+
+def test_overwrite_into_a_folder_with_other_files(tmp_path, pair):
+    """A folder that also holds a file of the user's (here: the inputs) is filled file by
+    file; the other file stays, stale results go, the set is complete."""
+    ref, obs = pair
+    out = ref.parent
+    (out / "changes.tif").write_bytes(b"stale result of an older run")
+    res = run(*detect_args(pair, out))
+    assert_one_line_error(res, r"already holds results \(changes\.tif\)")
+    res = run(*detect_args(pair, out, "--overwrite"))
+    assert res.returncode == 0, res.stderr
+    inputs = {ref.name: ref.read_bytes(), obs.name: obs.read_bytes()}
+    for p in (ref, obs):
+        p.rename(tmp_path / p.name)
+    assert_complete(out)
+    assert not (out / "changes.tif").exists()
+    assert {n: (tmp_path / n).read_bytes() for n in inputs} == inputs
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["in", *inputs])
+
+
+def test_second_run_into_a_locked_folder_is_refused(tmp_path, pair):
+    import fcntl
+
+    from reblur.outdir import lock_path
+
+    out = tmp_path / "res"
+    lock = lock_path(out)
+    assert lock == tmp_path / ".res.reblur-lock"
+    with open(lock, "w") as fh:
+        fh.write("4242\n")
+        fh.flush()
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        res = run(*detect_args(pair, out))
+        assert_one_line_error(res, r"res: another reblur run \(pid 4242\) is writing into this "
+                                   r"output directory")
+        assert not out.exists()
+        assert lock.read_text() == "4242\n"
+    lock.unlink()
+
+
+def test_two_concurrent_runs_do_not_mix(tmp_path, pair):
+    """Two runs started together: one writes, the other is refused (locked, or the folder
+    already holds the first one's results)."""
+    out = tmp_path / "res"
+    procs = [subprocess.Popen([sys.executable, "-m", "reblur", *map(str, detect_args(pair, out))],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+             for _ in range(2)]
+    results = [p.communicate(timeout=120) + (p.returncode,) for p in procs]
+    codes = sorted(r[2] for r in results)
+    assert codes == [0, 1], results
+    refused = next(r for r in results if r[2] == 1)
+    assert re.fullmatch(r"reblur: error: .*(another reblur run|already holds results).*\n",
+                        refused[1]), refused
+    assert_complete(out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in", "res"]
+
+
+def test_output_set_inside_the_folder_when_the_parent_is_not_writable(tmp_path, monkeypatch):
+    """Root ignores permissions, so an unwritable parent is simulated: the temporary folder
+    and the lock then live inside the output folder and the files are moved in one by one."""
+    import reblur.outdir as od
+
+    monkeypatch.setattr(od, "_in_parent", lambda out: False)
+    out = tmp_path / "res"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    (out / "old.txt").write_text("earlier result")
+    names = ("a.txt", "old.txt", "report.json")
+    with pytest.raises(od.OutputDirError, match=r"already holds results \(old\.txt\)"):
+        with od.output_set(out, names):
+            pass
+    with pytest.raises(RuntimeError, match="boom"):
+        with od.output_set(out, names, overwrite=True) as stage:
+            assert stage.parent == out and (out / ".reblur-lock").is_file()
+            (stage / "a.txt").write_text("new")
+            raise RuntimeError("boom")
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt", "old.txt"]
+    with od.output_set(out, names, overwrite=True, last=("report.json",)) as stage:
+        (stage / "a.txt").write_text("new")
+        (stage / "report.json").write_text("{}")
+    assert {p.name: p.read_text() for p in out.iterdir()} == {
+        "notes.txt": "mine", "a.txt": "new", "report.json": "{}"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["res"]
+
+
+# ---------------------------------------------------------------------------- bombs
+def _png_bomb(w: int, h: int, depth: int, colour: int) -> bytes:
+    """A PNG of a header and an empty end chunk: no pixel data to decode."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return (struct.pack(">I", len(body)) + kind + body
+                + struct.pack(">I", zlib.crc32(kind + body)))
+
+    ihdr = struct.pack(">IIBBBBB", w, h, depth, colour, 0, 0, 0)
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IEND", b"")
+
+
+def _jpeg_bomb(w: int, h: int, precision: int, comps: int) -> bytes:
+    """SOI, a frame header, a scan header with no data, EOI."""
+    import struct
+
+    sof = struct.pack(">BHHB", precision, h, w, comps) + b"".join(
+        bytes((i + 1, 0x11, 0)) for i in range(comps))
+    sos = bytes((comps,)) + b"".join(bytes((i + 1, 0)) for i in range(comps)) + b"\x00\x3f\x00"
+    return (b"\xff\xd8" + b"\xff\xc1" + struct.pack(">H", 2 + len(sof)) + sof
+            + b"\xff\xda" + struct.pack(">H", 2 + len(sos)) + sos + b"\xff\xd9")
+
+
+def _jxl_bomb(side: int) -> bytes:
+    """A bare JPEG XL codestream whose SizeHeader says side x side (nothing else)."""
+    bits = 0 | (3 << 1) | ((side - 1) << 3) | (1 << 33)  # not small, 30-bit height, ratio 1:1
+    return b"\xff\x0a" + bits.to_bytes(10, "little")
+
+
+@pytest.mark.parametrize("name, data, pattern", [
+    # 9e8 pixels pass the pixel limits; RGBA 16-bit makes them 7.2 GB
+    ("rgba16.png", _png_bomb(30_000, 30_000, 16, 6), r"would decode to 7,200,000,000 bytes"),
+    ("rgb12.jpg", _jpeg_bomb(30_000, 30_000, 12, 3), r"would decode to 5,400,000,000 bytes"),
+    ("big.jxl", _jxl_bomb(30_000), r"would decode to 14,400,000,000 bytes"),
+], ids=["png", "jpeg", "jxl"])
+def test_bytes_checked_from_the_header_before_decoding(tmp_path, name, data, pattern):
+    import time
+
+    p = tmp_path / name
+    p.write_bytes(data)
+    t0 = time.perf_counter()
+    with pytest.raises(InputError, match=pattern):
+        open_image(p)
+    assert time.perf_counter() - t0 < 5
+    # the same header at a size that fits passes the checks and fails only on decoding
+    small = {"rgba16.png": _png_bomb(64, 64, 16, 6), "rgb12.jpg": _jpeg_bomb(64, 64, 12, 3),
+             "big.jxl": _jxl_bomb(64)}[name]
+    p.write_bytes(small)
+    with pytest.raises(InputError) as err:
+        open_image(p)
+    assert "would decode to" not in str(err.value)
+
+
+def test_other_formats_sized_from_their_header(tmp_path):
+    import imagecodecs
+
+    a = textured(np.random.default_rng(14), 48, 80)
+    for name, data in (("a.webp", imagecodecs.webp_encode(a, lossless=True)),
+                       ("a.jxl", imagecodecs.jpegxl_encode(a, lossless=True))):
+        (tmp_path / name).write_bytes(data)
+        np.testing.assert_array_equal(open_image(tmp_path / name).read(), a)
+        with pytest.raises(InputError, match=r"3,840 pixels \(80x48\), more than the limit"):
+            open_image(tmp_path / name, max_pixels=3000)
