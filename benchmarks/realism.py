@@ -88,12 +88,25 @@ def make_case(mp: int, bits: int, noise: float, cache: Path) -> Path:
     shape = plan.shape
     dt = np.uint8 if bits == 8 else np.uint16
     _write(d / "reference.tif", shape, dt, plan.reference_tile)
-    _write(d / "observed.tif", shape, dt, plan.observed_tile)
+    render = _rendered(plan, mp, cache)
+    _write(d / "observed.tif", shape, dt,
+           lambda b: plan.sense_observed(render[b[0]:b[1], b[2]:b[3]], b))
     _write(d / "truth.tif", shape[:2], np.uint8, lambda b: plan.truth_tile(b).astype(np.uint8))
     _write(d / "valid.tif", shape[:2], np.uint8, lambda b: plan.valid_tile(b).astype(np.uint8))
     info = dict(plan.info, homographies=np.asarray(plan.homographies).tolist())
     (d / "pair.json").write_text(json.dumps(info, default=float))
     return d
+
+
+def _rendered(plan, mp: int, cache: Path):
+    """The size's noise-free rendered observation (float32 tiled TIFF in ``cache``, made
+    once: the rows of a size differ only in their sensor), opened lazily."""
+    import zarr
+
+    path = cache / f"{mp}mp_render.tif"
+    if not path.exists():
+        _write(path, plan.shape, np.float32, lambda b: plan.render_tile(b).astype(np.float32))
+    return zarr.open(tifffile.imread(path, aszarr=True), mode="r")
 
 
 def _scores(change: np.ndarray, truth: np.ndarray, known: np.ndarray) -> dict:

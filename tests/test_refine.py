@@ -52,7 +52,10 @@ def test_shifts_match_the_analytic_displacement(reference):
     # observation seen through a small scale + roll error the weights do not know about
     err = pose_homography(0.0, 0.0, 3e-4, 0.0, 0.0, 0.02, center=C)
     obs, grid, w = _observe(reference, err)
-    shifts = measure_shifts(reference, obs, SparsePoses(w, grid), probe_boxes((H, W)))
+    boxes = probe_boxes((H, W))
+    every = measure_shifts(reference, obs, SparsePoses(w, grid), boxes)
+    assert len(every) == len(boxes)
+    shifts = [s for s in every if s.measured]
     assert len(shifts) >= 12
     errs = []
     for s in shifts:
@@ -90,4 +93,9 @@ def test_no_reliable_probe_no_correction():
     w = np.zeros(grid.shape)
     w[1, 1, 1] = 1.0
     r = refine_alignment(flat, flat, w, grid, np.eye(3))
-    assert not r.applied and r.model == "none" and r.before == []
+    assert not r.applied and r.model == "none"
+    # every probe is reported, with its reason, in the result and in the report's records
+    assert len(r.before) == r.info["probes"] >= 1
+    assert all(not s.measured and s.reason.startswith("flat") for s in r.before)
+    assert [d["reason"] for d in r.info["probe_shifts"]] == [s.reason for s in r.before]
+    assert all(d["dx"] is None for d in r.info["probe_shifts"])

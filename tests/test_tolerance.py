@@ -130,3 +130,21 @@ def test_noise_free_misregistered_pair_flags_nothing():
     near = ndi.binary_dilation(truth, iterations=4)
     assert change[~near].mean() == 0.0
     assert change[truth].mean() > 0.9
+
+
+def test_report_warns_when_the_model_fits_badly():
+    from types import SimpleNamespace
+
+    from reblur.report import model_notes
+
+    def result(fits, cal):
+        return SimpleNamespace(motion=SimpleNamespace(info={"psnr_inliers": fits}),
+                               decision={"calibration": cal})
+
+    good = {"calibrated": True, "met": True, "shift": 0.25, "contrast": 0.0, "floor": 2.0}
+    assert model_notes(result([48.0, 51.5], good)) == []
+    spread = model_notes(result([39.7, 43.5, 56.0, 56.2], good))
+    assert len(spread) == 1 and "39.7 to 56.2 dB" in spread[0]
+    bad = dict(good, met=False, shift=1.0, contrast=0.08, floor=4.02)
+    raised = model_notes(result([48.0, 49.0], bad))
+    assert len(raised) == 1 and "raised to 4.02" in raised[0]

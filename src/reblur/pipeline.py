@@ -549,6 +549,12 @@ def _estimate_stage(
     if photo is not None:
         # the estimate found view ~ F w + b on its windows, with view = (obs - offset) / gain
         offset = offset + gain * np.asarray(photo["offset"], float)
+    # one home for the photometric gain: the weights are the fractions of the exposure
+    # spent in each pose (sum 1); what they sum to beyond that is a gain of the observation
+    weight_sum = float(motion.weights.sum())
+    motion.weights = motion.weights / weight_sum
+    gain = gain * weight_sum
+    motion.info["weight_sum"] = weight_sum
     timings["estimate"] = time.perf_counter() - t
     report("estimate", 1.0)
 

@@ -39,7 +39,8 @@ class ProbeShift:
     """Residual displacement measured on one probe window.
 
     ``observed(x) ~ reblurred(x + (dx, dy))`` around the probe centre ``(cx, cy)``
-    (observation pixels); ``cc`` is ECC's correlation coefficient.
+    (observation pixels); ``cc`` is ECC's correlation coefficient.  A probe that could
+    not be measured has NaN ``dx``, ``dy`` and ``cc`` and says why in ``reason``.
     """
 
     cx: float
@@ -47,6 +48,22 @@ class ProbeShift:
     dx: float
     dy: float
     cc: float
+    reason: str = ""
+
+    @property
+    def measured(self) -> bool:
+        return not self.reason
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready (NaN as None)."""
+        def num(v: float) -> float | None:
+            return round(float(v), 4) if np.isfinite(v) else None
+
+        d: dict[str, Any] = {"cx": num(self.cx), "cy": num(self.cy), "dx": num(self.dx),
+                             "dy": num(self.dy), "cc": num(self.cc)}
+        if self.reason:
+            d["reason"] = self.reason
+        return d
 
 
 @dataclass
@@ -104,7 +121,7 @@ def measure_shifts(
     ref_scale: float = 1.0,
     obs_scale: float = 1.0,
     min_valid: float = 0.95,
-    min_texture: float = 1e-3,
+    min_texture: float = 1e-4,
 ) -> list[ProbeShift]:
     """Sub-pixel displacement between the reblurred reference and the observation per window.
 
@@ -121,48 +138,75 @@ def measure_shifts(
     min_valid : float
         Fraction of the window the reference must cover (else the probe is skipped).
     min_texture : float
-        Smallest variance of the Laplacian-of-Gaussian of the window (intensities in
-        [0, 1]): flat windows cannot be registered and are skipped.
+        Smallest standard deviation of the Laplacian-of-Gaussian of the window
+        (intensities in [0, 1]): flat windows cannot be registered and are skipped.  It
+        is low enough for smooth (upsampled, clean 16-bit) imagery: ECC's convergence
+        and the correlation gate of the fit judge the rest.
 
     Returns
     -------
     list of ProbeShift
-        One per probe that could be registered (ECC converged).
+        One per probe, in the order of ``boxes``; those that could not be measured
+        carry the reason (:attr:`ProbeShift.reason`).
     """
-    out: list[ProbeShift] = []
-    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-5)
-    for b in boxes:
+    return [_measure_one(reference, observed, poses, b, ref_scale, obs_scale, min_valid,
+                         min_texture) for b in boxes]
+
+
+def _measure_one(reference, observed, poses: SparsePoses, b: Box, ref_scale: float,
+                 obs_scale: float, min_valid: float, min_texture: float) -> ProbeShift:
+    """One probe of :func:`measure_shifts`."""
+    cx, cy = b.x0 + (b.w - 1) / 2.0, b.y0 + (b.h - 1) / 2.0
+
+    def failed(reason: str) -> ProbeShift:
+        return ProbeShift(cx=cx, cy=cy, dx=np.nan, dy=np.nan, cc=np.nan, reason=reason)
+
+    try:
         reb, valid = reblur_tile(poses, reference, b)
-        if valid.mean() < min_valid:
-            continue
-        obs = _gray(read_window(observed, b, np.float32)) / np.float32(obs_scale)
-        rb = _gray(reb) / np.float32(ref_scale)
-        if not (np.isfinite(obs).all() and np.isfinite(rb).all()):
-            continue
-        log = cv2.Laplacian(cv2.GaussianBlur(obs, (0, 0), 1.5), cv2.CV_32F)
-        if float(log.var()) < min_texture**2:
-            continue
-        mask = valid.astype(np.uint8)
-        warp = np.eye(2, 3, dtype=np.float32)
-        try:
-            cc, warp = cv2.findTransformECC(obs, rb, warp, cv2.MOTION_TRANSLATION, crit,
-                                            mask, 5)
-        except cv2.error:
-            continue
-        dx, dy = float(warp[0, 2]), float(warp[1, 2])
-        if not (np.isfinite(dx) and np.isfinite(dy)) or max(abs(dx), abs(dy)) > b.w / 4:
-            continue
-        out.append(ProbeShift(cx=b.x0 + (b.w - 1) / 2.0, cy=b.y0 + (b.h - 1) / 2.0,
-                              dx=dx, dy=dy, cc=float(cc)))
-    return out
+    except ValueError as e:  # a pose maps part of the window beyond the horizon
+        return failed(f"cannot be reblurred: {e}")
+    cover = float(valid.mean())
+    if cover < min_valid:
+        return failed(f"the reference covers {100 * cover:.0f} % of it "
+                      f"(< {100 * min_valid:.0f} %)")
+    obs = _gray(read_window(observed, b, np.float32)) / np.float32(obs_scale)
+    rb = _gray(reb) / np.float32(ref_scale)
+    if not (np.isfinite(obs).all() and np.isfinite(rb).all()):
+        return failed("non-finite values")
+    log = cv2.Laplacian(cv2.GaussianBlur(obs, (0, 0), 1.5), cv2.CV_32F)
+    texture = float(np.sqrt(log.var()))
+    if texture < min_texture:
+        return failed(f"flat: texture {texture:.2g} < {min_texture:.2g}")
+    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-5)
+    warp = np.eye(2, 3, dtype=np.float32)
+    try:
+        cc, warp = cv2.findTransformECC(obs, rb, warp, cv2.MOTION_TRANSLATION, crit,
+                                        valid.astype(np.uint8), 5)
+    except cv2.error:
+        return failed("ECC did not converge")
+    dx, dy = float(warp[0, 2]), float(warp[1, 2])
+    if not (np.isfinite(dx) and np.isfinite(dy)) or max(abs(dx), abs(dy)) > b.w / 4:
+        return failed(f"implausible shift ({dx:.3g}, {dy:.3g}) px")
+    return ProbeShift(cx=cx, cy=cy, dx=dx, dy=dy, cc=float(cc))
 
 
 def _stats(shifts: list[ProbeShift], min_cc: float) -> dict[str, float]:
-    good = [s for s in shifts if s.cc >= min_cc]
+    good = [s for s in shifts if s.measured and s.cc >= min_cc]
     if not good:
         return {"n": 0, "rms_px": None, "max_px": None}  # JSON-ready: no NaN
     d = np.hypot([s.dx for s in good], [s.dy for s in good])
     return {"n": len(good), "rms_px": float(np.sqrt(np.mean(d * d))), "max_px": float(d.max())}
+
+
+def _records(shifts: list[ProbeShift], min_cc: float) -> list[dict[str, Any]]:
+    """Per-probe records for the report: shift, correlation, and why a probe is not used."""
+    out = []
+    for s in shifts:
+        d = s.to_dict()
+        if s.measured and s.cc < min_cc:
+            d["reason"] = f"correlation {s.cc:.3f} < {min_cc} (changes or occlusion)"
+        out.append(d)
+    return out
 
 
 def _fit(shifts: list[ProbeShift], ransac_px: float) -> tuple[np.ndarray | None, str, int]:
@@ -242,10 +286,10 @@ def refine_alignment(
     kw = dict(ref_scale=ref_scale, obs_scale=obs_scale)
     before = measure_shifts(reference, observed, SparsePoses(weights, grid, base), boxes, **kw)
     s0 = _stats(before, min_cc)
-    good = [s for s in before if s.cc >= min_cc]
+    good = [s for s in before if s.measured and s.cc >= min_cc]
     G, model, n_in = _fit(good, ransac_px)
     info: dict[str, Any] = {"probes": len(boxes), "before": s0, "model": model,
-                            "inliers": n_in}
+                            "inliers": n_in, "probe_shifts": _records(before, min_cc)}
     if G is None:
         return Refinement(base, False, "none", before, before, info)
     new = np.linalg.inv(G) @ base
@@ -253,6 +297,7 @@ def refine_alignment(
     after = measure_shifts(reference, observed, SparsePoses(weights, grid, new), boxes, **kw)
     s1 = _stats(after, min_cc)
     info["after"] = s1
+    info["probe_shifts_after"] = _records(after, min_cc)
     corners = np.array([[0.0, 0.0], [grid.image_shape[1] - 1.0, 0.0],
                         [grid.image_shape[1] - 1.0, grid.image_shape[0] - 1.0],
                         [0.0, grid.image_shape[0] - 1.0]])

@@ -442,6 +442,32 @@ def _count(mask) -> int:
                for ys, xs in iter_windows(mask.shape, 4096))
 
 
+#: Spread of the estimation windows' fits (dB) from which the report warns.
+FIT_SPREAD_DB = 6.0
+
+
+def model_notes(result) -> list[str]:
+    """What an analyst should know about how well the model fits: estimation windows whose
+    fits disagree, and a model error the decision's tolerance could not absorb."""
+    notes = []
+    info = result.motion.info
+    fits = [f for f in (info.get("psnr_inliers") or info.get("psnr") or [])
+            if f is not None and np.isfinite(f)]
+    if len(fits) > 1 and max(fits) - min(fits) > FIT_SPREAD_DB:
+        notes.append(
+            f"the estimation windows fit at {min(fits):.1f} to {max(fits):.1f} dB: the blur "
+            "model fits some parts of the image worse than others; the decision's tolerance "
+            "is calibrated on all of them, so the worst sets it")
+    cal = result.decision.get("calibration", {})
+    if cal.get("calibrated") and not cal.get("met", True):
+        notes.append(
+            f"the model's error exceeds the loosest tolerance (shift {cal['shift']:g} px, "
+            f"contrast {cal['contrast']:g}) on the estimation windows: the threshold was "
+            f"raised to {cal['floor']:.2f}, and faint changes on strong structure may be "
+            "missed")
+    return notes
+
+
 def summarize(
     result: ChangeResult,
     *,
@@ -692,7 +718,7 @@ def write_report(
     t0 = time.perf_counter()
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    notes = list(notes)
+    notes = list(notes) + model_notes(result)
     change, unknown = result.change, result.unknown
     H, W = change.shape[:2]
     if observed is not None and tuple(observed.shape[:2]) != (H, W):

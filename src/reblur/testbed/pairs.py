@@ -113,7 +113,17 @@ class PairPlan:
 
     def observed_tile(self, box: Box) -> np.ndarray:
         """Observed pixels of a box: the rendered changed scene through the sensor model."""
+        return self.sense_observed(self.render_tile(box), box)
+
+    def render_tile(self, box: Box) -> np.ndarray:
+        """The noise-free rendered observation of a box (float64 in [0, 1]), before the
+        sensor: plans that differ only in their sensor share it."""
         image, _ = render_window(self.changed, self.homographies, box)
+        return image
+
+    def sense_observed(self, image: np.ndarray, box: Box) -> np.ndarray:
+        """The sensor model applied to a rendered box (:meth:`render_tile`), with this
+        plan's noise stream: ``sense_observed(render_tile(b), b) == observed_tile(b)``."""
         return self._sensor(image, 2, box)
 
     def truth_tile(self, box: Box) -> np.ndarray:
