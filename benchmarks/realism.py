@@ -177,6 +177,10 @@ def run_reblur(case: Path, out: Path, src: Path | None = None) -> dict:
     res["geometry"] = _geometry(report, np.asarray(info["homographies"]), known)
     res["seconds"] = seconds
     res["threshold"] = report.get("threshold")
+    ref = report.get("alignment", {}).get("details", {}).get("refinement", {})
+    shifts = ref.get("probe_shifts")
+    if shifts is not None:  # probes the refinement measured and used, of all
+        res["probes"] = [sum(1 for d in shifts if "reason" not in d), len(shifts)]
     return res
 
 
@@ -227,18 +231,19 @@ def _pct(v: float) -> str:
 
 def table(rows: list[dict]) -> str:
     lines = [
-        "| size | bits | noise (DN) | reblur FAR | recall | JC | geometry RMS / max (px) | s "
-        "| baseline FAR | recall | JC |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| size | bits | noise (DN) | reblur FAR | recall | JC | geometry RMS / max (px) "
+        "| probes | s | baseline FAR | recall | JC |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         rb, bl = r["reblur"], r.get("baseline", {})
         if "error" in rb:
-            cells = [f"failed: {rb['error']}", "", "", "", f"{rb['seconds']:.0f}"]
+            cells = [f"failed: {rb['error']}", "", "", "", "", f"{rb['seconds']:.0f}"]
         else:
             g = rb["geometry"]
+            probes = "{} / {}".format(*rb["probes"]) if "probes" in rb else "-"
             cells = [_pct(rb["far"]), f"{rb['recall']:.3f}", f"{rb['jc']:.3f}",
-                     f"{g['rms_px']:.2f} / {g['max_px']:.2f}", f"{rb['seconds']:.0f}"]
+                     f"{g['rms_px']:.2f} / {g['max_px']:.2f}", probes, f"{rb['seconds']:.0f}"]
         base = ([_pct(bl["far"]), f"{bl['recall']:.3f}", f"{bl['jc']:.3f}"] if bl
                 else ["-", "-", "-"])
         lines.append(f"| {r['mp']} MP | {r['bits']} | {r['noise']:g} | " + " | ".join(cells + base)
@@ -246,24 +251,44 @@ def table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+BEFORE = REPO / "docs" / "realism_before.json"
+
+
 def main(sizes: list[int] | None = None, cache: Path | None = None,
-         src: Path | None = None) -> str:
-    """Run the matrix; return the markdown section of ``docs/benchmarks.md``."""
+         src: Path | None = None, label: str | None = None) -> str:
+    """Run the matrix; return the markdown section of ``docs/benchmarks.md``.
+
+    With ``src`` (another checkout's ``src``), the rows are saved as the "before" figures
+    (``docs/realism_before.json``, under ``label``) and only printed."""
     sizes = sizes or [1, 25]
     cache = cache or Path(tempfile.gettempdir()) / "reblur-realism"
     rows = matrix(sizes, cache, src=src)
     if src is not None:
+        BEFORE.write_text(json.dumps({"label": label or str(src), "rows": rows}, indent=1,
+                                     default=float))
         return table(rows)
     _save(rows)
+    return section(rows)
+
+
+def section(rows: list[dict]) -> str:
+    """The markdown section of the matrix, with the saved "before" rows under it."""
+    before = ""
+    if BEFORE.exists():
+        old = json.loads(BEFORE.read_text())
+        before = (f"\n\nBefore (reblur at {old['label']}, same pairs; "
+                  "`python -m benchmarks.realism --src OLD_CHECKOUT/src --label COMMIT`):\n\n"
+                  + table(old["rows"]))
     return (
         "## Realism matrix (`python -m benchmarks.realism`)\n\n"
         "Pairs from the independent test bed (`reblur.testbed`: 64-sub-pose 6-D shake, bicubic "
         "interpolation, perspective viewpoint, Poisson-Gaussian sensor), LEVIR test_7 at 1 MP "
         "and upsampled; 10-40 % contrast changes. FAR: flagged share of unchanged known "
         f"pixels farther than {BOUNDARY} px from a change. Geometry: reblur's reference "
-        "location of a 17 x 17 lattice against the true blur centroid. Baseline: "
+        "location of a 17 x 17 lattice against the true blur centroid. Probes: the "
+        "refinement's probes measured and used, of all. Baseline: "
         "register (SIFT + RANSAC) + difference + Otsu. Rows in `docs/realism_runs.json`.\n\n"
-        + table(rows)
+        + table(rows) + before
     )
 
 
@@ -277,11 +302,17 @@ if __name__ == "__main__":
     ap.add_argument("--sizes", default="1,25", help="comma-separated MP sizes among 1, 25, 100")
     ap.add_argument("--cache", type=Path, default=None, help="folder of the generated pairs")
     ap.add_argument("--src", type=Path, default=None,
-                    help="run reblur from another checkout's src folder (printed, not written)")
+                    help="run reblur from another checkout's src folder: the 'before' rows")
+    ap.add_argument("--label", default=None, help="name of that checkout (e.g. its commit)")
+    ap.add_argument("--saved", action="store_true",
+                    help="only rewrite the section from docs/realism_runs.json")
     a = ap.parse_args()
     from benchmarks.run import write_section
 
-    body = main([int(s) for s in a.sizes.split(",")], a.cache, a.src)
+    if a.saved:
+        body = section(json.loads((REPO / "docs" / "realism_runs.json").read_text()))
+    else:
+        body = main([int(s) for s in a.sizes.split(",")], a.cache, a.src, a.label)
     if a.src is None:
         write_section("realism", body)
     print(body)

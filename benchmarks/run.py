@@ -27,6 +27,8 @@ BENCHES = {
     "scale": ("benchmarks.scale", "main"),
     "first_touch": ("benchmarks.first_touch", "main"),
     "estimate_profile": ("benchmarks.estimate_profile", "main"),
+    # 1 and 25 MP; the 100 MP rows: python -m benchmarks.realism --sizes 1,25,100
+    "realism": ("benchmarks.realism", "main"),
 }
 
 

@@ -18,26 +18,11 @@ import pytest
 import tifffile
 import zarr
 
-from reblur.io import InputError, open_image, write_png
-
-
 # ---------------------------------------------------------------------------- helpers
-def run(*args, timeout: float = 120) -> subprocess.CompletedProcess:
-    """Run ``python -m reblur ARGS`` and capture its output."""
-    return subprocess.run([sys.executable, "-m", "reblur", *map(str, args)],
-                          capture_output=True, text=True, timeout=timeout)
+# the CLI tests' runner and one-line-error check (tests/ is on sys.path under pytest)
+from test_cli import assert_one_line_error, run  # noqa: E402
 
-
-def assert_one_line_error(res: subprocess.CompletedProcess, *patterns: str) -> str:
-    assert res.returncode != 0, res.stdout
-    assert "Traceback" not in res.stderr, res.stderr
-    lines = res.stderr.strip().splitlines()
-    assert len(lines) == 1, res.stderr
-    assert lines[0].startswith("reblur: error: "), lines[0]
-    for p in patterns:
-        assert re.search(p, lines[0]), (p, lines[0])
-    assert res.stdout == ""
-    return lines[0]
+from reblur.io import InputError, open_image, write_png
 
 
 def textured(rng, h=64, w=64, bands=3) -> np.ndarray:

@@ -148,3 +148,54 @@ def test_report_warns_when_the_model_fits_badly():
     bad = dict(good, met=False, shift=1.0, contrast=0.08, floor=4.02)
     raised = model_notes(result([48.0, 49.0], bad))
     assert len(raised) == 1 and "raised to 4.02" in raised[0]
+
+
+def _windows_pair(seed=7, n=2, side=240):
+    """Estimation windows of a clean pair whose observation is the reference moved by
+    0.4 px: only model error, no change."""
+    rng = np.random.default_rng(seed)
+    H = W = 600
+    m = ndi.gaussian_filter(rng.random((H, W)), 1.5).astype(np.float32)
+    m = (m - m.min()) / np.ptp(m)
+    o = ndi.shift(m, (0.4, 0.0), order=3, mode="nearest").astype(np.float32)
+    o += rng.normal(0, 0.002, o.shape).astype(np.float32)
+    boxes = [(40 + 300 * i, 60, side, side) for i in range(n)]
+
+    def load(g):
+        y, x, h, w = g
+        sl = (slice(y, y + h), slice(x, x + w))
+        return o[sl][..., None], m[sl][..., None], np.zeros((h, w), bool)
+
+    return boxes, load, (H, W)
+
+
+def test_calibration_picks_the_first_rung_that_explains_the_windows():
+    from reblur.decide import Photometry
+    from reblur.pipeline import _calibrate_tolerance
+
+    boxes, load, shape = _windows_pair()
+    ph = Photometry(gain=np.ones(1), offset=np.zeros(1), sigma=np.array([0.002]),
+                    image_shape=shape)
+    p = DecisionParams()
+    q, info = _calibrate_tolerance(p, [(b, None) for b in boxes], load, ph, shape)
+    assert info["calibrated"]
+    # a 0.4 px shift: the 0.25 px rung leaves it above the floor, a 0.5 px one explains it
+    assert info["tried"][0][:2] == [0.25, 0.0] and info["tried"][0][2] > info["target"]
+    assert q.shift_tolerance >= 0.5 and info["met"]
+    assert q.min_threshold == p.min_threshold
+
+
+def test_windows_marked_as_change_drop_the_noise_floor():
+    """Where the estimate marks most of its windows as change, sigma is no noise unit."""
+    from reblur.decide import Photometry
+    from reblur.pipeline import _calibrate_tolerance
+
+    boxes, load, shape = _windows_pair()
+    ph = Photometry(gain=np.ones(1), offset=np.zeros(1), sigma=np.array([0.002]),
+                    image_shape=shape)
+    chi = np.ones((boxes[0][2], boxes[0][3]), np.float32)
+    chi[:10] = 0  # 4 % unmarked
+    q, info = _calibrate_tolerance(DecisionParams(), [(b, chi) for b in boxes], load, ph,
+                                   shape)
+    assert not info["calibrated"] and info["marked"] > 0.9
+    assert q.min_threshold == 0.0

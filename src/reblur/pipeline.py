@@ -376,15 +376,35 @@ def reblur_and_decide(
     return Decided(change, unknown, reblurred, threshold, info, regions)
 
 
+#: Largest fraction of the windows' known pixels the estimate may mark as change for the
+#: residual scale to count as noise (beyond: the pair differs everywhere).
+_MAX_MARKED = 0.5
+
+
+def total_marked(known: np.ndarray, chi) -> int:
+    """Known pixels of a window that the estimate's change term marks."""
+    if chi is None:
+        return 0
+    c = np.asarray(chi)
+    m = (np.abs(c) > 0).any(axis=2) if c.ndim == 3 else np.abs(c) > 0
+    return int(np.count_nonzero(m & known))
+
+
 #: Fewest unchanged window pixels the contrast tolerance is calibrated on (its target
 #: fraction, 2e-4, is then at least a dozen pixels).
 _MIN_CALIBRATION_PIXELS = 50_000
 
 
 def _calibrate_tolerance(p: DecisionParams, windows, load, photometry, shape):
-    """``p`` with its tolerance measured on the estimation ``windows``."""
+    """``p`` with its tolerance measured on the estimation ``windows``.
+
+    Where the estimate marked most of its windows as change (a pair years apart, a view
+    mostly changed), the residual scale ``sigma`` measures appearance change, not noise: the
+    statistic's floor (``min_threshold``, in noise units) does not apply, and the threshold
+    is the data's own split (:func:`reblur.decide.estimate_threshold`)."""
     margin = p.smooth_radius + p.pixel_reach + 2
     obs, mat, kn, ev = [], [], [], []
+    marked = total = 0
     for box, chi in windows:
         box = tuple(int(v) for v in box)
         g = pad_box(box, p.local_radius, shape)
@@ -395,11 +415,19 @@ def _calibrate_tolerance(p: DecisionParams, windows, load, photometry, shape):
         ev_w = np.zeros_like(k)
         c = None if chi is None or np.shape(chi)[:2] != k[core].shape else chi
         ev_w[core] = unchanged_pixels(k[core], c, margin)
+        total += int(np.count_nonzero(k[core]))
+        marked += total_marked(k[core], c)
         obs.append(o)
         mat.append(photometry.apply(r, g))
         kn.append(k)
         ev.append(ev_w)
     n = sum(int(np.count_nonzero(e)) for e in ev)
+    if marked > _MAX_MARKED * max(total, 1):
+        return dataclasses.replace(p, min_threshold=0.0), {
+            "calibrated": False, "shift": p.shift_tolerance, "contrast": p.contrast_tolerance,
+            "floor": 0.0, "marked": marked / max(total, 1),
+            "reason": f"the estimate marked {100 * marked / max(total, 1):.0f} % of its "
+                      "windows as change: the residual scale is not noise, no floor"}
     if n < _MIN_CALIBRATION_PIXELS:
         return p, {"calibrated": False, "shift": p.shift_tolerance,
                    "contrast": p.contrast_tolerance,
