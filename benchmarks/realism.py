@@ -40,7 +40,7 @@ import tifffile
 
 from benchmarks.common import REPO
 
-SIZES = {1: 1, 25: 5, 100: 10}  # MP -> upsampling factor of the 1024 px scene
+SIZES = {1: 1, 4: 2, 25: 5, 100: 10}  # MP -> upsampling factor of the 1024 px scene
 ROWS = [(bits, noise) for bits in (8, 16) for noise in (0.0, 0.5, 2.0)]
 BOUNDARY = 3  # px around a change counted neither as a false alarm nor as a miss
 
@@ -53,14 +53,24 @@ def motion_for(shape: tuple[int, ...]) -> dict:
             "max_tilt_deg": float(np.degrees(3.0 / (1.2 * side)))}
 
 
-def _plan(mp: int, bits: int, noise: float):
+#: The hard geometry (``--hard``), as the external evaluation's pairs: a 0.3 degree roll
+#: whatever the size (the corners of a 25 MP image move by ~25 px), a 60 px / 0.5 degree
+#: perspective viewpoint change.
+HARD_ROLL_DEG, HARD_VIEW = 0.3, {"shift_px": 60.0, "angle_deg": 0.5}
+HARD_ROWS = [(bits, noise) for bits in (8, 16) for noise in (0.0, 2.0)]
+
+
+def _plan(mp: int, bits: int, noise: float, hard: bool = False):
     from reblur.testbed import levir_image, plan_pair, upsampled
 
     scene = levir_image("test_7", gray=True)
     if SIZES[mp] > 1:
         scene = upsampled(scene, SIZES[mp])
+    motion, view = motion_for(scene.shape), {"shift_px": 20.0}
+    if hard:
+        motion, view = dict(motion, max_roll_deg=HARD_ROLL_DEG), HARD_VIEW
     return plan_pair(scene, bits=bits, noise_dn=noise, n_changes=8 * SIZES[mp] ** 2 // 4 + 8,
-                     seed=0, motion=motion_for(scene.shape), viewpoint={"shift_px": 20.0})
+                     seed=0 if not hard else 3, motion=motion, viewpoint=view)
 
 
 def _tiles(shape: tuple[int, ...], tile: int = 512):
@@ -77,18 +87,19 @@ def _write(path: Path, shape, dtype, tile_fn) -> None:
     os.replace(tmp, path)
 
 
-def make_case(mp: int, bits: int, noise: float, cache: Path) -> Path:
+def make_case(mp: int, bits: int, noise: float, cache: Path, hard: bool = False) -> Path:
     """Write (or reuse) the pair of one row: reference.tif, observed.tif, truth.tif,
     valid.tif, pair.json."""
-    d = cache / f"{mp}mp_{bits}bit_{noise:g}dn"
+    tag = f"{mp}mp" + ("_hard" if hard else "")
+    d = cache / f"{tag}_{bits}bit_{noise:g}dn"
     if (d / "pair.json").exists():
         return d
     d.mkdir(parents=True, exist_ok=True)
-    plan = _plan(mp, bits, noise)
+    plan = _plan(mp, bits, noise, hard)
     shape = plan.shape
     dt = np.uint8 if bits == 8 else np.uint16
     _write(d / "reference.tif", shape, dt, plan.reference_tile)
-    render = _rendered(plan, mp, cache)
+    render = _rendered(plan, tag, cache)
     _write(d / "observed.tif", shape, dt,
            lambda b: plan.sense_observed(render[b[0]:b[1], b[2]:b[3]], b))
     _write(d / "truth.tif", shape[:2], np.uint8, lambda b: plan.truth_tile(b).astype(np.uint8))
@@ -98,12 +109,12 @@ def make_case(mp: int, bits: int, noise: float, cache: Path) -> Path:
     return d
 
 
-def _rendered(plan, mp: int, cache: Path):
+def _rendered(plan, tag: str, cache: Path):
     """The size's noise-free rendered observation (float32 tiled TIFF in ``cache``, made
     once: the rows of a size differ only in their sensor), opened lazily."""
     import zarr
 
-    path = cache / f"{mp}mp_render.tif"
+    path = cache / f"{tag}_render.tif"
     if not path.exists():
         _write(path, plan.shape, np.float32, lambda b: plan.render_tile(b).astype(np.float32))
     return zarr.open(tifffile.imread(path, aszarr=True), mode="r")
@@ -208,16 +219,17 @@ def run_baseline(case: Path) -> dict:
 
 
 def matrix(sizes: list[int], cache: Path, baseline: bool = True,
-           src: Path | None = None) -> list[dict]:
+           src: Path | None = None, hard: bool = False) -> list[dict]:
     rows = []
     for mp in sizes:
-        for bits, noise in ROWS:
+        for bits, noise in (HARD_ROWS if hard else ROWS):
             t = time.perf_counter()
-            case = make_case(mp, bits, noise, cache)
+            case = make_case(mp, bits, noise, cache, hard)
             made = time.perf_counter() - t
             with tempfile.TemporaryDirectory() as tmp:
                 rb = run_reblur(case, Path(tmp) / "out", src)
-            row = {"mp": mp, "bits": bits, "noise": noise, "reblur": rb, "make_s": made}
+            row = {"mp": mp, "bits": bits, "noise": noise, "reblur": rb, "make_s": made,
+                   "hard": hard}
             if baseline:
                 row["baseline"] = run_baseline(case)
             print(json.dumps(row, default=float), flush=True)
@@ -246,7 +258,8 @@ def table(rows: list[dict]) -> str:
                      f"{g['rms_px']:.2f} / {g['max_px']:.2f}", probes, f"{rb['seconds']:.0f}"]
         base = ([_pct(bl["far"]), f"{bl['recall']:.3f}", f"{bl['jc']:.3f}"] if bl
                 else ["-", "-", "-"])
-        lines.append(f"| {r['mp']} MP | {r['bits']} | {r['noise']:g} | " + " | ".join(cells + base)
+        size = f"{r['mp']} MP" + (" hard" if r.get("hard") else "")
+        lines.append(f"| {size} | {r['bits']} | {r['noise']:g} | " + " | ".join(cells + base)
                      + " |")
     return "\n".join(lines)
 
@@ -255,14 +268,17 @@ BEFORE = REPO / "docs" / "realism_before.json"
 
 
 def main(sizes: list[int] | None = None, cache: Path | None = None,
-         src: Path | None = None, label: str | None = None) -> str:
-    """Run the matrix; return the markdown section of ``docs/benchmarks.md``.
+         src: Path | None = None, label: str | None = None,
+         hard_sizes: list[int] | None = None) -> str:
+    """Run the matrix (and its hard-geometry rows at ``hard_sizes``); return the markdown
+    section of ``docs/benchmarks.md``.
 
     With ``src`` (another checkout's ``src``), the rows are saved as the "before" figures
     (``docs/realism_before.json``, under ``label``) and only printed."""
-    sizes = sizes or [1, 25]
+    sizes = [1, 25] if sizes is None else sizes
+    hard_sizes = [4] if hard_sizes is None else hard_sizes
     cache = cache or Path(tempfile.gettempdir()) / "reblur-realism"
-    rows = matrix(sizes, cache, src=src)
+    rows = matrix(sizes, cache, src=src) + matrix(hard_sizes, cache, src=src, hard=True)
     if src is not None:
         BEFORE.write_text(json.dumps({"label": label or str(src), "rows": rows}, indent=1,
                                      default=float))
@@ -287,7 +303,10 @@ def section(rows: list[dict]) -> str:
         f"pixels farther than {BOUNDARY} px from a change. Geometry: reblur's reference "
         "location of a 17 x 17 lattice against the true blur centroid. Probes: the "
         "refinement's probes measured and used, of all. Baseline: "
-        "register (SIFT + RANSAC) + difference + Otsu. Rows in `docs/realism_runs.json`.\n\n"
+        "register (SIFT + RANSAC) + difference + Otsu. Rows in `docs/realism_runs.json`. "
+        f"Rows marked hard: a {HARD_ROLL_DEG} degree roll at any size and a "
+        f"{HARD_VIEW['shift_px']:g} px / {HARD_VIEW['angle_deg']:g} degree perspective "
+        "viewpoint, like the external evaluation's pairs.\n\n"
         + table(rows) + before
     )
 
@@ -300,6 +319,8 @@ def _save(rows: list[dict]) -> None:
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="1,25", help="comma-separated MP sizes among 1, 25, 100")
+    ap.add_argument("--hard-sizes", default="4",
+                    help="sizes of the hard-geometry rows (empty for none)")
     ap.add_argument("--cache", type=Path, default=None, help="folder of the generated pairs")
     ap.add_argument("--src", type=Path, default=None,
                     help="run reblur from another checkout's src folder: the 'before' rows")
@@ -312,7 +333,8 @@ if __name__ == "__main__":
     if a.saved:
         body = section(json.loads((REPO / "docs" / "realism_runs.json").read_text()))
     else:
-        body = main([int(s) for s in a.sizes.split(",")], a.cache, a.src, a.label)
+        body = main([int(s) for s in a.sizes.split(",") if s],
+                    a.cache, a.src, a.label, [int(s) for s in a.hard_sizes.split(",") if s])
     if a.src is None:
         write_section("realism", body)
     print(body)

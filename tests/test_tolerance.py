@@ -176,13 +176,21 @@ def test_calibration_picks_the_first_rung_that_explains_the_windows():
     boxes, load, shape = _windows_pair()
     ph = Photometry(gain=np.ones(1), offset=np.zeros(1), sigma=np.array([0.002]),
                     image_shape=shape)
-    p = DecisionParams()
+    p = DecisionParams(calibration_margin=0)
     q, info = _calibrate_tolerance(p, [(b, None) for b in boxes], load, ph, shape)
     assert info["calibrated"]
     # a 0.4 px shift: the 0.25 px rung leaves it above the floor, a 0.5 px one explains it
     assert info["tried"][0][:2] == [0.25, 0.0] and info["tried"][0][2] > info["target"]
-    assert q.shift_tolerance >= 0.5 and info["met"]
+    assert info["tried"][1][:2] == [0.5, 0.02] and info["tried"][1][2] <= info["target"]
+    assert (q.shift_tolerance, q.contrast_tolerance) == (0.5, 0.02) and info["met"]
     assert q.min_threshold == p.min_threshold
+    # with a margin, that many rungs further (and no further than the ladder's end)
+    q2, _ = _calibrate_tolerance(DecisionParams(calibration_margin=2),
+                                 [(b, None) for b in boxes], load, ph, shape)
+    assert (q2.shift_tolerance, q2.contrast_tolerance) == p.tolerance_ladder[3]
+    q9, _ = _calibrate_tolerance(DecisionParams(calibration_margin=9),
+                                 [(b, None) for b in boxes], load, ph, shape)
+    assert (q9.shift_tolerance, q9.contrast_tolerance) == p.tolerance_ladder[-1]
 
 
 def test_windows_marked_as_change_drop_the_noise_floor():

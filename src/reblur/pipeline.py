@@ -435,7 +435,8 @@ def _calibrate_tolerance(p: DecisionParams, windows, load, photometry, shape):
                    f"{_MIN_CALIBRATION_PIXELS}): the tolerance is the default"}
     tol, info = calibrate_tolerance(
         obs, mat, kn, ev, photometry.sigma, ladder=p.ladder, threshold=p.min_threshold,
-        target=p.calibration_target, smooth=p.smooth, truncate=p.truncate)
+        target=p.calibration_target, margin=p.calibration_margin, smooth=p.smooth,
+        truncate=p.truncate)
     info.update(calibrated=True, shift=tol.shift, contrast=tol.contrast, windows=len(obs))
     floor = max(p.min_threshold, info["floor"])
     return dataclasses.replace(p, shift_tolerance=tol.shift, contrast_tolerance=tol.contrast,

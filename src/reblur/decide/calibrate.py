@@ -70,6 +70,7 @@ def calibrate_tolerance(
     ladder: Sequence[ModelTolerance],
     threshold: float,
     target: float,
+    margin: int = 0,
     smooth: float = 2.0,
     truncate: float = 4.0,
 ) -> tuple[ModelTolerance, dict[str, Any]]:
@@ -93,13 +94,18 @@ def calibrate_tolerance(
         The statistic's floor (``DecisionParams.min_threshold``).
     target : float
         Largest fraction of unchanged pixels allowed above ``threshold``.
+    margin : int
+        Rungs added beyond the first that meets the target (bounded by the ladder): the
+        windows are a few, chosen where the texture fits best, and the rest of the image
+        may hold more model error than they show.
     smooth, truncate : float
         The statistic's window.
 
     Returns
     -------
     tolerance : ModelTolerance
-        The chosen tolerance (the ladder's last one when none meets the target).
+        The chosen tolerance: ``margin`` rungs after the first that meets the target (the
+        ladder's last one when none does).
     info : dict
         ``n`` (pixels evaluated), ``tried`` (shift, contrast, fraction above the threshold),
         ``met`` (whether the chosen value meets the target), ``floor``: ``threshold``,
@@ -127,8 +133,10 @@ def calibrate_tolerance(
         above = sum(int(np.count_nonzero(v > threshold)) for v in values)
         tried.append([tol.shift, tol.contrast, above / n])
         if above <= target * n:
-            return tol, {"n": n, "tried": tried, "met": True, "target": float(target),
-                           "floor": float(threshold)}
+            pick = lad[min(len(tried) - 1 + int(margin), len(lad) - 1)]
+            return pick, {"n": n, "tried": tried, "met": True, "target": float(target),
+                          "floor": float(threshold), "margin": int(margin),
+                          "first_met": [tol.shift, tol.contrast]}
     # the model's error exceeds even the largest tolerance: the statistic's floor rises
     # to what the unchanged pixels reach but for the target fraction
     floor = float(np.quantile(np.concatenate(values), 1.0 - target))
