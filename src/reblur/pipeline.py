@@ -28,7 +28,7 @@ from .decide import (
     fit_photometry,
     tile_boxes,
 )
-from .decide.calibrate import calibrate_tolerance, unchanged_pixels
+from .decide.calibrate import calibrate_tolerance, marked_pixels, unchanged_pixels
 from .decide.photometry import with_model_error
 from .estimate import estimate_motion, intensity_scale
 from .grid import PoseGrid
@@ -381,17 +381,8 @@ def reblur_and_decide(
 _MAX_MARKED = 0.5
 
 
-def total_marked(known: np.ndarray, chi) -> int:
-    """Known pixels of a window that the estimate's change term marks."""
-    if chi is None:
-        return 0
-    c = np.asarray(chi)
-    m = (np.abs(c) > 0).any(axis=2) if c.ndim == 3 else np.abs(c) > 0
-    return int(np.count_nonzero(m & known))
-
-
-#: Fewest unchanged window pixels the contrast tolerance is calibrated on (its target
-#: fraction, 2e-4, is then at least a dozen pixels).
+#: Fewest unchanged window pixels the tolerance is calibrated on (its target fraction,
+#: 2e-4, is then at least a dozen pixels).
 _MIN_CALIBRATION_PIXELS = 50_000
 
 
@@ -416,7 +407,8 @@ def _calibrate_tolerance(p: DecisionParams, windows, load, photometry, shape):
         c = None if chi is None or np.shape(chi)[:2] != k[core].shape else chi
         ev_w[core] = unchanged_pixels(k[core], c, margin)
         total += int(np.count_nonzero(k[core]))
-        marked += total_marked(k[core], c)
+        mk = marked_pixels(c)
+        marked += 0 if mk is None else int(np.count_nonzero(mk & k[core]))
         obs.append(o)
         mat.append(photometry.apply(r, g))
         kn.append(k)

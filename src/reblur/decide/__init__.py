@@ -27,7 +27,7 @@ from __future__ import annotations
 
 # the public names (``__all__``) and, as redundant aliases, the private ones the tests and
 # other modules import from ``reblur.decide``
-from .calibrate import calibrate_tolerance, unchanged_pixels
+from .calibrate import calibrate_tolerance, marked_pixels, unchanged_pixels
 from .params import DecisionParams
 from .photometry import Photometry, fit_photometry
 from .regions import _boxes as _boxes
@@ -56,6 +56,7 @@ __all__ = [
     "tile_boxes",
     "ModelTolerance",
     "calibrate_tolerance",
+    "marked_pixels",
     "unchanged_pixels",
     "tolerance_interval",
     "tolerant_reference",

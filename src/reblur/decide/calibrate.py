@@ -29,7 +29,15 @@ import numpy as np
 from .statistic import change_statistic
 from .tolerance import ModelTolerance
 
-__all__ = ["calibrate_tolerance", "unchanged_pixels"]
+__all__ = ["calibrate_tolerance", "marked_pixels", "unchanged_pixels"]
+
+
+def marked_pixels(chi: np.ndarray | None) -> np.ndarray | None:
+    """Pixels the estimate's change term marks (non-zero in any band), or None."""
+    if chi is None:
+        return None
+    c = np.asarray(chi)
+    return (np.abs(c) > 0).any(axis=2) if c.ndim == 3 else np.abs(c) > 0
 
 
 def unchanged_pixels(known: np.ndarray, chi: np.ndarray | None, margin: int) -> np.ndarray:
@@ -48,10 +56,9 @@ def unchanged_pixels(known: np.ndarray, chi: np.ndarray | None, margin: int) -> 
     (h, w) bool ndarray
     """
     known = np.asarray(known, bool)
-    if chi is None:
+    marked = marked_pixels(chi)
+    if marked is None:
         return known.copy()
-    c = np.asarray(chi)
-    marked = (np.abs(c) > 0).any(axis=2) if c.ndim == 3 else np.abs(c) > 0
     if marked.shape != known.shape:
         raise ValueError(f"chi has shape {marked.shape}, the window {known.shape}")
     if margin > 0 and marked.any():

@@ -7,7 +7,9 @@ reference has edges and fine texture (model error: ``sigma_c^2 + (k |grad m|)^2 
 pixels neither contribute nor receive a value).  Every band enters the sum, so a change in
 any one band counts; the window averages about ``4 pi smooth^2 C`` squared z-scores, which
 cuts the variance of the statistic accordingly.  It is a filter of radius
-``int(truncate * smooth + 0.5)``.
+``int(truncate * smooth + 0.5)`` plus the per-pixel reach.  With a ``tolerance``
+(:mod:`.tolerance`) the residual ``g - m`` is replaced by the observation's distance from
+the interval of values the model allows around ``m``.
 """
 
 from __future__ import annotations
@@ -70,8 +72,10 @@ def change_statistic(
 
     Notes
     -----
-    The value at a pixel depends only on pixels within ``int(truncate * smooth + 0.5)``,
-    so a tile with at least that halo gives the whole-image values on its core.
+    The value at a pixel depends only on pixels within ``int(truncate * smooth + 0.5)``
+    plus the per-pixel reach (1 for the 3 x 3 stencils, ``tolerance.reach`` for the
+    interval: ``DecisionParams.pixel_reach``), so a tile with at least that halo gives the
+    whole-image values on its core.
     """
     o = _channels(_float(observed))
     m = _channels(_float(matched))
