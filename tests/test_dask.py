@@ -12,6 +12,7 @@ import os
 import pickle
 import subprocess
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -252,3 +253,49 @@ def test_worker_malloc_tuning_keeps_array_temporaries_on_the_heap():
     out = subprocess.run([sys.executable, "-c", _MALLOC_PROBE], env=chosen, check=True,
                          capture_output=True, text=True).stdout.split()
     assert out == ["1", "False", "False", "1"]
+
+
+def test_cli_on_a_real_cluster_without_a_default_client(pair, tmp_path):
+    """The README's recipe: `dask scheduler`, two `dask worker` processes, then
+    `reblur detect ... --scheduler tcp://...` in a process that has no default client.
+    The masks equal the local path's."""
+    ref, obs, _ = pair
+    ref_p, obs_p = _tiffs(tmp_path, ref, obs)
+    dask_cli = os.path.join(os.path.dirname(sys.executable), "dask")
+    sched_file = tmp_path / "scheduler.json"
+    env = dict(os.environ, DASK_DISTRIBUTED__WORKER__DAEMON="False")
+    procs = [subprocess.Popen([dask_cli, "scheduler", "--host", "127.0.0.1", "--port", "0",
+                               "--no-dashboard", "--scheduler-file", str(sched_file)],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)]
+    try:
+        for _ in range(600):  # the scheduler writes its address when it is up
+            if sched_file.exists() and sched_file.stat().st_size > 0:
+                break
+            procs[0].wait(timeout=0.05) if procs[0].poll() is not None else time.sleep(0.05)
+        import json
+
+        address = json.loads(sched_file.read_text())["address"]
+        assert address.startswith("tcp://127.0.0.1:")
+        for _ in range(2):
+            procs.append(subprocess.Popen(
+                [dask_cli, "worker", address, "--nthreads", "1", "--no-dashboard",
+                 "--host", "127.0.0.1"],
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env))
+        outs = {}
+        for name, extra in (("local", []), ("cluster", ["--scheduler", address])):
+            out = tmp_path / name
+            r = subprocess.run(
+                [sys.executable, "-m", "reblur", "detect", str(ref_p), str(obs_p), "--out",
+                 str(out), "--t-max", "5", "--rz-max", "1", "--tile-size", str(TILE),
+                 "--quiet", *extra], capture_output=True, text=True, timeout=600)
+            assert r.returncode == 0, r.stderr
+            outs[name] = _png(out / "changes.png")
+        np.testing.assert_array_equal(outs["local"], outs["cluster"])
+    finally:
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                p.kill()

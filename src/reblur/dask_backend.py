@@ -530,7 +530,9 @@ def _compute(graph, kind: str, scheduler, workers: int,
         results: list[dict[str, Any]] = []
         with _client(scheduler) as client:
             futures = client.compute(blocks)
-            for k, fut in enumerate(distributed.as_completed(futures), 1):
+            # the client's own loop: as_completed would otherwise look for a default
+            # client, and the one opened here is not made the default
+            for k, fut in enumerate(distributed.as_completed(futures, loop=client.loop), 1):
                 results.append(fut.result()[0, 0])
                 fut.release()
                 if progress is not None:
