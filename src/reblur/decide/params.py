@@ -81,9 +81,9 @@ class DecisionParams:
         Fraction of the windows' unchanged pixels allowed above ``min_threshold``.
     calibration_margin : int
         Rungs taken beyond the first that meets the target: the windows show the model's
-        error where the texture fits best, and at 4 MP with a 0.3 degree roll and a
-        perspective viewpoint the first rung left 0.34 % false alarms elsewhere, two more
-        0.09 % (test bed, ``benchmarks/realism.py``'s hard rows), at a recall of 0.99.
+        error where the texture fits best, and elsewhere it can be larger (a roll and a
+        perspective viewpoint grow it towards the corners).  The hard-geometry rows of
+        ``benchmarks/realism.py`` are the check: at most 0.02 % false alarms with two.
     min_threshold : float
         Lower bound of the estimated threshold, in units of the statistic (an RMS of
         noise z-scores over ``4 pi smooth^2`` pixels: 1 for pure noise, whose 1e-6 tail
