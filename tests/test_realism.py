@@ -126,3 +126,12 @@ def test_the_tolerance_is_measured_and_reported(case):
     else:
         want = ladder[-1]
     assert [cal["shift"], cal["contrast"]] == want
+
+
+def test_identical_inputs_flag_nothing():
+    """Observation = reference, byte for byte: no change, nothing unknown."""
+    scene = _scene("test_7")
+    a = np.round(scene * 255).astype(np.uint8)
+    res = reblur.detect_changes(a, a.copy())
+    assert not res.change.any(), res.change.mean()
+    assert not res.unknown.any()
