@@ -45,14 +45,6 @@ ROWS = [(bits, noise) for bits in (8, 16) for noise in (0.0, 0.5, 2.0)]
 BOUNDARY = 3  # px around a change counted neither as a false alarm nor as a miss
 
 
-def motion_for(shape: tuple[int, ...]) -> dict:
-    """Camera shake of a hand-held or airborne exposure, scaled to the image: a few pixels
-    of translation, a roll that moves the corners by ~8 px and a tilt of ~3 px."""
-    side = float(max(shape[:2]))
-    return {"max_shift_px": 5.0, "max_roll_deg": float(np.degrees(8.0 / (0.7 * side))),
-            "max_tilt_deg": float(np.degrees(3.0 / (1.2 * side)))}
-
-
 #: The hard geometry (``--hard``), as the external evaluation's pairs: a 0.3 degree roll
 #: whatever the size (the corners of a 25 MP image move by ~25 px), a 60 px / 0.5 degree
 #: perspective viewpoint change.
@@ -61,12 +53,12 @@ HARD_ROWS = [(bits, noise) for bits in (8, 16) for noise in (0.0, 2.0)]
 
 
 def _plan(mp: int, bits: int, noise: float, hard: bool = False):
-    from reblur.testbed import levir_image, plan_pair, upsampled
+    from reblur.testbed import levir_image, plan_pair, shake_for, upsampled
 
     scene = levir_image("test_7", gray=True)
     if SIZES[mp] > 1:
         scene = upsampled(scene, SIZES[mp])
-    motion, view = motion_for(scene.shape), {"shift_px": 20.0}
+    motion, view = shake_for(scene.shape), {"shift_px": 20.0}
     if hard:
         motion, view = dict(motion, max_roll_deg=HARD_ROLL_DEG), HARD_VIEW
     return plan_pair(scene, bits=bits, noise_dn=noise, n_changes=8 * SIZES[mp] ** 2 // 4 + 8,
@@ -136,7 +128,7 @@ def _scores(change: np.ndarray, truth: np.ndarray, known: np.ndarray) -> dict:
 
 def _geometry(report: dict, homographies: np.ndarray, known: np.ndarray) -> dict:
     """Residual of reblur's reference location of a 17 x 17 lattice of known points."""
-    from reblur.grid import map_points, pose_homography
+    from reblur.grid import mean_source_points, pose_homography
     from reblur.testbed import true_centroid
 
     H, W = known.shape
@@ -148,14 +140,11 @@ def _geometry(report: dict, homographies: np.ndarray, known: np.ndarray) -> dict
         return {"rms_px": float("nan"), "max_px": float("nan")}
     base = np.asarray(report["alignment"]["H"], float)
     g = report["motion"]["grid"]
-    acc = np.zeros_like(pts)
-    total = 0.0
-    for p in report["motion"]["nonzero_poses"]:
-        Hp = pose_homography(p["tx"], p["ty"], p["tz"], p["rx"], p["ry"], p["rz"],
-                             center=tuple(g["center"]), focal=g["focal"]) @ base
-        acc += p["weight"] * map_points(np.linalg.inv(Hp), pts)
-        total += p["weight"]
-    est = acc / total
+    poses = report["motion"]["nonzero_poses"]
+    est = mean_source_points(
+        [pose_homography(p["tx"], p["ty"], p["tz"], p["rx"], p["ry"], p["rz"],
+                         center=tuple(g["center"]), focal=g["focal"]) @ base for p in poses],
+        [p["weight"] for p in poses], pts)
     err = np.hypot(*(est - true_centroid(homographies, pts)).T)
     return {"rms_px": float(np.sqrt(np.mean(err ** 2))), "max_px": float(err.max())}
 

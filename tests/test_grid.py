@@ -84,3 +84,16 @@ def test_crop_keeps_full_image_geometry(levir_gray):
     M = local_homography(wrong, (0, 0), (0, 0))
     bad = cv2.warpPerspective(np.ascontiguousarray(img[y0 : y0 + h, x0 : x0 + w]), M, (w, h))
     assert np.mean(np.abs(bad[20:-20, 20:-20] - ref[20:-20, 20:-20])) > 0.02
+
+
+def test_mean_source_points_is_the_weighted_mean_of_the_inverse_maps():
+    from reblur.grid import mean_source_points, translation
+
+    pts = np.array([[10.0, 20.0], [300.0, 5.5]])
+    # two translations by (+2, 0) and (-1, +3) with weights 2 : 1 (a gain of 3 in all):
+    # the sources are pts - t, weighted -> pts - (2*(2, 0) + 1*(-1, 3)) / 3
+    Hs = [translation(2.0, 0.0), translation(-1.0, 3.0)]
+    got = mean_source_points(Hs, [2.0, 1.0], pts)
+    np.testing.assert_allclose(got, pts - np.array([1.0, 1.0]), atol=1e-12)
+    with pytest.raises(ValueError, match="no pose"):
+        mean_source_points(Hs, [0.0, 0.0], pts)

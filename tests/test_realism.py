@@ -25,14 +25,6 @@ MIN_RECALL = 0.9  # pasted changes of 10-40 % of their surroundings' range
 MAX_GEOMETRY_RMS, MAX_GEOMETRY_MAX = 0.3, 0.6  # px
 
 
-def _motion(shape):
-    """Shake scaled to the image (as benchmarks/realism.py): ~5 px of translation, a roll
-    moving the corners by ~8 px, a tilt of ~3 px."""
-    side = float(max(shape[:2]))
-    return {"max_shift_px": 5.0, "max_roll_deg": float(np.degrees(8.0 / (0.7 * side))),
-            "max_tilt_deg": float(np.degrees(3.0 / (1.2 * side)))}
-
-
 def _scene(name):
     try:
         return tb.levir_image(name) if name.startswith("test") else tb.whu_image(name)
@@ -43,7 +35,7 @@ def _scene(name):
 def _run(name, bits, noise, n_changes, seed):
     scene = _scene(name)
     pair = tb.make_pair(scene, bits=bits, noise_dn=noise, n_changes=n_changes, seed=seed,
-                        motion=_motion(scene.shape), viewpoint={"shift_px": 20.0})
+                        motion=tb.shake_for(scene.shape), viewpoint={"shift_px": 20.0})
     res = reblur.detect_changes(pair.reference, pair.observed)
     return pair, res
 

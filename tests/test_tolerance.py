@@ -116,7 +116,9 @@ def test_params_validate_the_tolerance():
 
 def test_noise_free_misregistered_pair_flags_nothing():
     """A clean (noise-free) pair whose only difference is a 0.3 px shift and a slightly
-    different blur: with the default tolerance nothing is change; the square is."""
+    different blur: with the default tolerance nothing is change and the square keeps its
+    recall.  (The error here is uniform, so the fitted model error alone also copes: this
+    guards the tolerance's cost, the test-bed bounds in tests/test_realism.py its gain.)"""
     rng = np.random.default_rng(5)
     ref = ndi.gaussian_filter(rng.random((256, 256)), 2.0)
     ref = (ref - ref.min()) / np.ptp(ref)

@@ -35,6 +35,7 @@ __all__ = [
     "translation",
     "local_homography",
     "map_points",
+    "mean_source_points",
 ]
 
 _AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
@@ -129,6 +130,29 @@ def map_points(H: np.ndarray, pts: np.ndarray) -> np.ndarray:
     pts = np.asarray(pts, dtype=float)
     q = pts @ H[:, :2].T + H[:, 2]
     return q[:, :2] / q[:, 2:3]
+
+
+def mean_source_points(homographies, weights, pts: np.ndarray) -> np.ndarray:
+    """Weighted mean over poses of where observation points come from in the reference.
+
+    ``sum_p w_p H_p^-1 pts / sum_p w_p`` for reference -> observation homographies
+    ``H_p``: the centroid of the blur kernel at each point (a gain the weights carry does
+    not move it).
+
+    Raises
+    ------
+    ValueError
+        When no weight is positive.
+    """
+    pts = np.asarray(pts, dtype=float).reshape(-1, 2)
+    acc = np.zeros_like(pts)
+    total = 0.0
+    for H, w in zip(homographies, weights, strict=True):
+        acc += w * map_points(np.linalg.inv(H), pts)
+        total += w
+    if total <= 0:
+        raise ValueError("the motion has no pose with weight")
+    return acc / total
 
 
 def _as_values(name: str, v) -> tuple[float, ...]:

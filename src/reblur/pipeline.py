@@ -596,12 +596,9 @@ def _estimate_stage(
 def _windows_of(motion) -> list[tuple[tuple[int, ...], np.ndarray | None]]:
     """The estimation windows and the estimate's change term on each (None where it is
     missing or of another shape)."""
-    chis = list(getattr(motion, "chi", None) or [])
-    out = []
-    for i, box in enumerate(getattr(motion, "boxes", None) or []):
-        chi = chis[i] if i < len(chis) else None
-        out.append((tuple(int(v) for v in box), chi))
-    return out
+    chis = list(motion.chi) + [None] * (len(motion.boxes) - len(motion.chi))
+    return [(tuple(int(v) for v in box), chi)
+            for box, chi in zip(motion.boxes, chis, strict=False)]
 
 
 def detect_changes(

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from .grid import PoseGrid, map_points
+from .grid import PoseGrid, mean_source_points
 
 __all__ = ["MotionEstimate", "CropChoice", "ChangeResult"]
 
@@ -68,17 +68,10 @@ class MotionEstimate:
         (n, 2) ndarray
             Reference points ``(x, y)``.
         """
-        pts = np.asarray(xy, dtype=float).reshape(-1, 2)
         base = np.eye(3) if base is None else np.asarray(base, float)
-        acc = np.zeros_like(pts)
-        total = 0.0
-        for b, iy, ix, w in self.grid.nonzero(self.weights):
-            H = self.grid.homography((b, iy, ix)) @ base
-            acc += w * map_points(np.linalg.inv(H), pts)
-            total += w
-        if total <= 0:
-            raise ValueError("the motion has no pose with weight")
-        return acc / total
+        poses = self.grid.nonzero(self.weights)
+        return mean_source_points([self.grid.homography((b, iy, ix)) @ base
+                                   for b, iy, ix, _ in poses], [w for *_, w in poses], xy)
 
 
 @dataclass

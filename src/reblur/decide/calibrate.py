@@ -130,7 +130,7 @@ def calibrate_tolerance(
         raise ValueError("the tolerance ladder is empty")
     n = int(sum(int(np.count_nonzero(e)) for e in evaluate))
     if n == 0:
-        raise ValueError("no unchanged pixel to calibrate the contrast tolerance on")
+        raise ValueError("no unchanged pixel to calibrate the tolerance on")
     tried = []
     values: list[np.ndarray] = []
     for tol in lad:

@@ -19,6 +19,7 @@ from .camera import (
     pose_homography,
     random_camera_path,
     rotation_matrix,
+    shake_for,
     viewpoint_homography,
 )
 from .gopro import N_FRAMES, gopro_frame, gopro_frame_indices, gopro_pair
@@ -83,6 +84,7 @@ __all__ = [
     "render_window",
     "rotation_matrix",
     "scene_names",
+    "shake_for",
     "shared_data_dir",
     "source_box",
     "true_centroid",

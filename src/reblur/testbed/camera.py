@@ -40,8 +40,18 @@ __all__ = [
     "pose_homography",
     "random_camera_path",
     "rotation_matrix",
+    "shake_for",
     "viewpoint_homography",
 ]
+
+
+def shake_for(shape: tuple[int, ...]) -> dict:
+    """Keywords of :func:`random_camera_path` for the shake of a hand-held or airborne
+    exposure scaled to the image: ~5 px of translation, a roll that moves the corners by
+    ~8 px and a tilt that shifts the image by ~3 px (with the default focal length)."""
+    side = float(max(_check_shape(shape)))
+    return {"max_shift_px": 5.0, "max_roll_deg": float(np.degrees(8.0 / (0.7 * side))),
+            "max_tilt_deg": float(np.degrees(3.0 / (1.2 * side)))}
 
 
 def _check_shape(shape: tuple[int, ...]) -> tuple[int, int]:
