@@ -105,10 +105,24 @@ def test_grayscale_squares_with_ramp():
 
 
 def test_ramp_needs_the_field(colour):
-    # without the smooth field the ramp is left in the residual (the field does the work)
+    # without a smooth field the ramp is left in the residual (the field does the work)
     obs, reb, truth, unknown = colour
-    change, _ = decide(obs, reb, unknown)
+    change, _ = decide(obs, reb, unknown, illumination="global")
     assert change_metrics(truth, change, ignore=unknown)["jaccard"] < 0.9
+    # illumination="auto" (the default) sees that a field explains the data far better
+    change, info = decide(obs, reb, unknown)
+    chosen = info["photometry"]["info"]["illumination"]
+    assert chosen["model"] == "field" and max(chosen["ratio"]) < 0.85, chosen
+    assert change_metrics(truth, change, ignore=unknown)["jaccard"] >= 0.9
+
+
+def test_auto_illumination_keeps_the_global_model_without_a_field():
+    obs, reb, truth, unknown = make_pair(bands=3, seed=4, ramp=False)
+    change, info = decide(obs, reb, unknown)
+    chosen = info["photometry"]["info"]["illumination"]
+    assert chosen["model"] == "global" and min(chosen["ratio"]) > 0.95, chosen
+    assert info["photometry"]["field_block"] is None
+    _check_detection(change, truth, unknown)
 
 
 def test_unknown_never_change(colour, colour_result):
@@ -170,19 +184,56 @@ def test_hysteresis_needs_strong_evidence(colour):
     assert kept[250:290, 60:100].mean() > 0.8
 
 
-def test_region_tests_reject_networks():
-    # a road-like cross (branching, thin) and a strip vs one compact square
+def test_thin_changes_kept_by_their_evidence_networks_dropped_without_it():
+    """A road-like cross and a 10 x 240 strip of real contrast (0.2) persist under the loose
+    tolerance of the edge test (1 px, 8 % of the local range): kept, as thin changes, next to
+    a compact square.  With the test off (``edge_test_fraction=0``, the shape tests alone)
+    they are dropped as not object-like."""
     obs, reb, _, unknown = make_pair(bands=3, seed=2, ramp=False, squares=[((300, 300), 36, 0.2)])
     obs = obs.copy()
     obs[40:52, 20:360] += 0.2 * GAIN  # horizontal bar of the cross
     obs[20:240, 150:162] += 0.2 * GAIN  # vertical bar
     obs[300:310, 20:260] += 0.2 * GAIN  # a 10 x 240 strip
-    with_tests, info = decide(obs, reb, unknown)
-    assert with_tests[300:336, 300:336].mean() > 0.9
-    assert not with_tests[:260, :].any() and not with_tests[290:320, 20:260].any()
-    assert info["counts"]["not_object"] >= 2
+    kept, info = decide(obs, reb, unknown)
+    assert kept[300:336, 300:336].mean() > 0.9
+    assert kept[42:50, 30:140].mean() > 0.9 and kept[302:308, 30:250].mean() > 0.9
+    assert info["counts"]["thin"] >= 2
+    shape_only, info = decide(obs, reb, unknown, edge_test_fraction=0.0)
+    assert shape_only[300:336, 300:336].mean() > 0.9
+    assert not shape_only[:260, :].any() and not shape_only[290:320, 20:260].any()
+    assert info["counts"]["not_object"] >= 2 and info["counts"]["thin"] == 0
     pixel_only, _ = decide(obs, reb, unknown, region_tests=False)
     assert pixel_only[40:52, 30:140].mean() > 0.9 and pixel_only[300:310, 30:250].mean() > 0.9
+
+
+def test_edge_artefacts_of_a_subpixel_shift_vanish_under_the_edge_test():
+    """Long straight soft edges seen 0.9 px off (beyond the statistic's 0.25 px tolerance,
+    within the edge test's 1 px): strips of evidence along every edge, crossed by a real
+    strip (contrast 0.2).  The pixel-level decision keeps the whole lattice; the edge test
+    keeps the real strip and none of the artefacts, even those joined to it."""
+    rng = np.random.default_rng(5)
+    h, w = 320, 400
+    xx = np.arange(w, dtype=np.float64)
+
+    def steps(x):  # soft steps every 50 px
+        return 0.1 + 0.8 * sum(1.0 / (1.0 + np.exp(-(x - c) / 3.0)) * (-1) ** k
+                               for k, c in enumerate(range(25, w, 50)))
+
+    reb = np.repeat(steps(xx)[None, :], h, axis=0).astype(np.float32)
+    obs = np.repeat(steps(xx + 0.9)[None, :], h, axis=0)
+    obs[150:162, 30:370] += 0.2  # a real strip across the edges
+    obs = (obs + 0.005 * rng.standard_normal(obs.shape)).astype(np.float32)
+    ph = fit_photometry(obs, reb, edge_error=False, illumination="global")
+    strip = np.zeros((h, w), bool)
+    strip[144:168, 22:378] = True
+    pixels, _ = decide(obs, reb, photometry=ph, threshold=2.0, region_tests=False)
+    assert np.count_nonzero(pixels & ~strip) > 2000  # the artefacts are there
+    mask, info = decide(obs, reb, photometry=ph, threshold=2.0)
+    assert mask[152:160, 40:360].mean() > 0.9  # the real strip is kept
+    assert not mask[~strip].any(), np.argwhere(mask & ~strip)[:5]  # no edge artefact
+    assert info["counts"]["thin"] >= 1, info["counts"]
+    shape_only, _ = decide(obs, reb, photometry=ph, threshold=2.0, edge_test_fraction=0.0)
+    assert not shape_only.any()  # the shape tests alone drop the strip with the lattice
 
 
 def test_regions_closed_one_by_one():

@@ -46,7 +46,7 @@ def _ref_decide_core(S, known, threshold, p):
     strong = p.strong_factor * threshold
     accepted = np.zeros(S.shape, bool)
     pending = known.copy()
-    counts = {"accepted": 0, "small": 0, "weak": 0, "not_object": 0}
+    counts = {"accepted": 0, "small": 0, "weak": 0, "not_object": 0, "thin": 0}
     levels = p.levels if p.region_tests else (1.0,)
     candidates = None
     kernel = (cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * p.open_radius + 1,) * 2)

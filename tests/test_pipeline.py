@@ -100,11 +100,14 @@ def test_gopro_real_blur_flags_little():
     ref = stack[3].astype(np.float32)
     res = reblur.detect_changes(ref, obs)
     flagged = res.change[~res.unknown].mean()
-    # what is flagged is the moving player and ball (top right, centre): the floor in the
-    # bottom-left part of the frame, static, is almost never flagged
-    floor = res.change[400:, :500][~res.unknown[400:, :500]]
-    assert floor.mean() < 0.01, floor.mean()
-    assert flagged < 0.08, flagged
+    # what is flagged is the moving player and ball (top right, centre): the static floor,
+    # the left 38 % of the frame and its bottom fifth left of the player, is not
+    H, W = res.change.shape
+    for sl in ((slice(None), slice(0, int(0.38 * W))),
+               (slice(int(0.8 * H), None), slice(0, int(0.6 * W)))):
+        static = res.change[sl][~res.unknown[sl]]
+        assert static.mean() < 0.005, static.mean()
+    assert flagged < 0.2, flagged  # the player and the ball cover about a fifth
 
 
 def test_textureless_input_says_so():

@@ -75,7 +75,10 @@ def estimate_motion(
         Sharp reference (numpy or any sliceable array such as zarr); only the windows the
         estimation needs are read.
     observed : array-like, (H', W') or (H', W', C)
-        Blurred observation, same band count.
+        Blurred observation, same band count.  When it has an ``exclude`` attribute (a
+        callable ``exclude(box) -> (h, w) bool``, e.g. a large change seen at low
+        resolution), those pixels are left out of the data term and reported as change
+        (``chi`` is the whole residual there).
     grid : PoseGrid, optional
         Pose grid on the observation's full geometry.  Default: the paper's 8125-pose grid.
     lam : float
@@ -206,6 +209,9 @@ def estimate_motion(
             m = op.valid
             chi = soft_threshold(r, lam / 2.0) if occlusion else np.zeros_like(r)
             chi[~m] = 0.0
+            ex = getattr(op, "excluded", None)
+            if ex is not None and ex.any():  # left out as a known change: all of it is
+                chi[ex] = r[ex]
             chis.append(chi[:, :, 0] if two_d else chi)
             psnrs.append(_psnr(r[m]))
             inl = m[:, :, None] & (chi == 0)
@@ -218,8 +224,12 @@ def estimate_motion(
         time_total_s=time.perf_counter() - t0,
         valid_fraction=[float(op.valid.mean()) for op in ops], levels=levels,
     )
+    excluded = [op.excluded for op in ops if getattr(op, "excluded", None) is not None]
+    if excluded:
+        info["excluded_fraction"] = [float(e.mean()) for e in excluded]
     return MotionEstimate(
-        weights=w, grid=grid, chi=chis, boxes=[b.as_tuple() for b in boxes], info=info
+        weights=w, grid=grid, chi=chis, boxes=[b.as_tuple() for b in boxes], info=info,
+        excluded=excluded if any(e.any() for e in excluded) else [],
     )
 
 
@@ -273,6 +283,7 @@ def _psnr(r: np.ndarray) -> float:
 def _solve(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, occlusion,
            solver, max_outer, time_limit, fista_iter, w0, gs=None, scratch=None, threads=None):
     ops = _build_operators(reference, grid, boxes, base, engine, s_ref, threads)
+    _exclude(ops, boxes, getattr(observed, "exclude", None))
     if gs is None:
         gs = [read_window(observed, b, np.float64) / s_obs for b in boxes]
     if not any(op.valid.any() for op in ops):
@@ -292,6 +303,15 @@ def _solve(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, oc
     else:
         raise ValueError(f"solver must be 'active-set' or 'fista', got {solver!r}")
     return w, info, ops, gs
+
+
+def _exclude(ops, boxes, exclude) -> None:
+    """Leave the pixels ``exclude(box)`` out of each window's data term (``op.valid``);
+    ``op.excluded`` keeps them (the estimate reports them as change)."""
+    for op, b in zip(ops, boxes, strict=True):
+        ex = np.zeros_like(op.valid) if exclude is None else np.asarray(exclude(b), bool)
+        op.excluded = ex & op.valid
+        op.valid = op.valid & ~ex
 
 
 def _build_operators(reference, grid, boxes, base, engine, scale, threads):
@@ -427,7 +447,8 @@ def _shrink(box, side: int):
 _C2F_FACTOR = 4
 
 
-def _next_angles(mass: np.ndarray, stride: int) -> tuple[list[int], int]:
+def _next_angles(mass: np.ndarray, stride: int, centre: int | None = None
+                 ) -> tuple[list[int], int]:
     """Angles of the next coarse-to-fine level, and its stride.
 
     ``mass`` holds the weight of every angle of the full grid after a level of stride
@@ -436,10 +457,14 @@ def _next_angles(mass: np.ndarray, stride: int) -> tuple[list[int], int]:
     1 Gpx, where a 0.3 deg path spreads over ~120 angles of <= 1 % each (unseen windows
     48-55 dB instead of 63-69 dB, ``python -m benchmarks.large_motion``).  Around each,
     the next level takes the angles within one old stride, every ``new_stride``-th (a
-    lattice through the angle itself, so the warm start carries over).
+    lattice through the angle itself, so the warm start carries over).  When no angle
+    carries weight (the windows' fit put everything in the change term: a window covered
+    by a new object), the search goes on around the ``centre`` angle.
     """
     n = mass.size
     active = np.flatnonzero(mass > 0.01 * max(float(mass.max()), 1e-300))
+    if active.size == 0:
+        active = np.array([n // 2 if centre is None else int(centre)])
     new_stride = max(1, stride // _C2F_FACTOR)
     if new_stride == 1 and stride > _C2F_FACTOR:
         # not straight to the last level (full windows, the costly one) from a stride
@@ -556,7 +581,7 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
         if stride == 1:  # the central parts at the finest stride: same poses, full windows
             on_centres = False
             continue
-        idx, stride = _next_angles(w_full.sum(axis=(1, 2)), stride)
+        idx, stride = _next_angles(w_full.sum(axis=(1, 2)), stride, centre)
         # translations: those carrying weight, plus a margin, within the grid
         nz = np.argwhere(w_full > 0)
         if nz.size:

@@ -30,6 +30,9 @@ class MotionEstimate:
     info : dict
         Convergence information: ``objective`` history, ``n_outer``, ``converged``,
         ``time_s``, ``n_active``, ``psnr`` of the fit on the windows, ...
+    excluded : list of ndarray
+        Per window, the ``(h, w)`` pixels left out of the fit as a known change (the
+        observation's ``exclude``); empty when none were.
     """
 
     weights: np.ndarray
@@ -37,6 +40,7 @@ class MotionEstimate:
     chi: list[np.ndarray] = field(default_factory=list)
     boxes: list[tuple[int, int, int, int]] = field(default_factory=list)
     info: dict[str, Any] = field(default_factory=dict)
+    excluded: list[np.ndarray] = field(default_factory=list)
 
     def nonzero_poses(self, rtol: float = 0.0) -> list[dict[str, float]]:
         """Poses carrying weight, heaviest first: dicts with tx, ty, tz, rx, ry, rz, weight."""

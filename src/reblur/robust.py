@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["MAD_TO_SIGMA", "mad", "huber_line"]
+__all__ = ["MAD_TO_SIGMA", "huber_line", "inlier_scale", "lqs_line", "mad", "robust_line"]
 
 #: MAD -> standard deviation for a Gaussian.
 MAD_TO_SIGMA = 1.4826
@@ -76,3 +76,156 @@ def _weighted_line(x: np.ndarray, y: np.ndarray, wts: np.ndarray | None) -> np.n
     sq = np.sqrt(w)
     A = np.stack([x * sq, sq], axis=1)
     return np.linalg.lstsq(A, y * sq, rcond=None)[0]
+
+
+#: Half width of the central ``q`` of a standard normal, ``q = 0.25``: the consistency factor
+#: of :func:`lqs_line`'s interval.
+_LQS_Z = 0.318639
+
+
+def inlier_scale(r: np.ndarray, start: float, centre: float = 0.0, k: float = 3.5,
+                 n_iter: int = 20) -> tuple[float, float, np.ndarray]:
+    """Centre and standard deviation of the inliers of ``r``, from a starting scale.
+
+    Iterates ``keep = |r - c| < k s``, ``c = median(r[keep])``,
+    ``s = 1.4826 MAD(r[keep])`` from ``(centre, start)``: unlike a MAD of all of ``r``
+    (breakdown 50 %), the result stays on the inliers' mode however many gross outliers
+    there are, as long as the start lies within a few of their scales.
+
+    Returns
+    -------
+    centre, scale : float
+    keep : bool ndarray
+        The inliers at the last step.
+    """
+    r = np.asarray(r, dtype=np.float64)
+    c, s = float(centre), float(start)
+    keep = np.isfinite(r)
+    if not s > 0:
+        return c, s, keep
+    for _ in range(int(n_iter)):
+        keep = np.abs(r - c) < k * s
+        if np.count_nonzero(keep) < 3:
+            break
+        c_new = float(np.median(r[keep]))
+        s_new = MAD_TO_SIGMA * float(np.median(np.abs(r[keep] - c_new)))
+        if not s_new > 0:
+            break
+        done = abs(s_new - s) <= 1e-6 * s and abs(c_new - c) <= 1e-6 * s
+        c, s = c_new, s_new
+        if done:
+            break
+    return c, s, np.abs(r - c) < k * s
+
+
+def _narrowest(r: np.ndarray, h: int) -> tuple[float, float]:
+    """Width and midpoint of the narrowest interval holding ``h`` of the sorted ``r``."""
+    widths = r[h - 1:] - r[: r.size - h + 1]
+    i = int(np.argmin(widths))
+    return float(widths[i]), 0.5 * float(r[i] + r[i + h - 1])
+
+
+def lqs_line(
+    x: np.ndarray, y: np.ndarray, *, gain_range: tuple[float, float] = (0.1, 10.0),
+    quantile: float = 0.25, n_gain: int = 81, max_points: int = 6000, rng=0,
+) -> tuple[float, float, float]:
+    """Least-quantile-of-squares line ``y ~ gain * x + offset`` with a positive gain.
+
+    The line whose narrowest band holds a ``quantile`` of the points: it follows the
+    unchanged pixels as long as they are at least that share AND are the tightest such
+    group, whatever the rest does.  Bands are compared by their width over the gain (in the
+    reference's units), and gains outside ``gain_range`` are not considered: a black or
+    saturated area (a line of gain 0) cannot win.  For each gain on a
+    log-spaced grid (refined twice around the best) the offset is exact: the midpoint of the
+    narrowest interval of ``y - gain x`` holding ``quantile * n`` values.  Deterministic
+    (seeded subsample of ``max_points``).
+
+    Returns
+    -------
+    gain, offset : float
+    scale : float
+        The band's half width over the normal's (``0.3186`` for ``quantile = 0.25``): an
+        upper bound of the inliers' standard deviation (exact when all points are inliers).
+    """
+    x = np.asarray(x, dtype=np.float64).ravel()
+    y = np.asarray(y, dtype=np.float64).ravel()
+    if x.size != y.size or x.size < 4:
+        raise ValueError(f"lqs_line needs at least 4 paired samples, got {x.size}, {y.size}")
+    lo, hi = (float(v) for v in gain_range)
+    if not 0 < lo < hi:
+        raise ValueError(f"gain_range must be (lo, hi) with 0 < lo < hi, got {gain_range}")
+    if x.size > max_points:
+        idx = np.random.default_rng(rng).choice(x.size, int(max_points), replace=False)
+        x, y = x[idx], y[idx]
+    h = max(2, int(np.ceil(float(quantile) * x.size)))
+
+    def best_of(gains: np.ndarray) -> tuple[int, float, float]:
+        res = [_narrowest(np.sort(y - g * x), h) for g in gains]
+        # band widths in the reference's units (over the gain): a flat area of the
+        # observation (black, saturated, a painted surface) is a tight band of low gain in
+        # the observation's units, never in the reference's
+        i = int(np.argmin([w / g for (w, _), g in zip(res, gains, strict=True)]))
+        return i, res[i][0], res[i][1]
+
+    gains = np.geomspace(lo, hi, int(n_gain))
+    i, width, mid = best_of(gains)
+    for _ in range(2):
+        a, b = gains[max(i - 1, 0)], gains[min(i + 1, gains.size - 1)]
+        gains = np.geomspace(a, b, 21)
+        i, width, mid = best_of(gains)
+    return float(gains[i]), float(mid), 0.5 * width / _LQS_Z
+
+
+def robust_line(
+    x: np.ndarray, y: np.ndarray, *, gain_range: tuple[float, float] = (0.1, 10.0),
+    k: float = 3.5, keep_huber: float = 0.9,
+) -> tuple[float, float, dict]:
+    """A line fit with a high breakdown point that is Huber's fit whenever that holds.
+
+    Huber's loss is convex: its fit is unique and stable, but any share of gross outliers
+    with a common trend (a quarter of the view black, a large new object) drags it away:
+    its breakdown point is 0.  :func:`lqs_line` finds the line that the tightest quarter
+    of the points follows (positive gain); from it, :func:`inlier_scale` finds the inliers
+    and their scale, and Huber's fit on those inliers, iterated three times (concentration
+    steps), is the high-breakdown fit.  The criterion: Huber's fit on all points is kept
+    when it leaves at least ``keep_huber`` as many points within ``k`` inlier scales as the
+    high-breakdown one; otherwise it broke down, and the high-breakdown fit is returned.
+
+    Returns
+    -------
+    gain, offset : float
+    info : dict
+        ``method`` ("Huber" or "high-breakdown"), ``inliers`` (fraction of points within
+        ``k`` scales of the returned line), ``huber_inliers``, ``scale`` (the inliers'
+        standard deviation), ``huber`` (Huber's gain and offset).
+    """
+    x = np.asarray(x, dtype=np.float64).ravel()
+    y = np.asarray(y, dtype=np.float64).ravel()
+    g_h, o_h = huber_line(x, y)
+    info: dict = {"method": "Huber", "huber": [g_h, o_h]}
+    if x.size < 20 or np.ptp(x) == 0:
+        return g_h, o_h, info
+    g, o, s0 = lqs_line(x, y, gain_range=gain_range)
+    for _ in range(3):
+        c, s, keep = inlier_scale(y - (g * x + o), s0, k=k)
+        if np.count_nonzero(keep) < 10 or not s > 0:
+            break
+        g_new, o_new = huber_line(x[keep], y[keep], start=(g, o + c))
+        if not gain_range[0] <= g_new <= gain_range[1]:
+            break
+        g, o, s0 = g_new, o_new, s
+    r_hb = y - (g * x + o)
+    c, s, keep = inlier_scale(r_hb, s0, k=k)
+    if not s > 0:
+        return g_h, o_h, info
+    n_hb = int(np.count_nonzero(keep))
+    r_h = y - (g_h * x + o_h)
+    n_h = int(np.count_nonzero(np.abs(r_h - np.median(r_h[np.abs(r_h) < k * s]
+                                                          if np.any(np.abs(r_h) < k * s)
+                                                          else r_h)) < k * s))
+    info.update(scale=s, inliers=n_hb / x.size, huber_inliers=n_h / x.size)
+    if n_h >= keep_huber * n_hb and gain_range[0] <= g_h <= gain_range[1]:
+        info["inliers"] = n_h / x.size
+        return g_h, o_h, info
+    info["method"] = "high-breakdown"
+    return g, o + c, info

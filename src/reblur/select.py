@@ -177,6 +177,31 @@ def kernel_similarity(
 
 
 # ---------------------------------------------------------------------------- selection
+#: Largest share of a cell that may disagree (a large change) for it to hold a window: the
+#: l1 fit of eq. 5 prefers zero weights once about half of its windows' pixels are a new
+#: surface darker than the reference there (a black hole of 45 % of the windows; the
+#: paper's 2/3 rule, applied after the fit, comes too late).
+MAX_DISAGREEING = 1.0 / 3.0
+
+
+def agreeing_cells(agreement: np.ndarray, factor: int, shape: tuple[int, int],
+                   unit: int) -> np.ndarray:
+    """Cells of ``unit`` pixels (``shape`` of them) where at most :data:`MAX_DISAGREEING` of
+    the low-resolution ``agreement`` map (``factor`` observation pixels per map pixel; NaN:
+    no data, counted as disagreeing) says the images disagree."""
+    a = np.nan_to_num(np.asarray(agreement, np.float64), nan=0.0)
+    ny, nx = shape
+    ii = np.zeros((a.shape[0] + 1, a.shape[1] + 1))
+    ii[1:, 1:] = a.cumsum(0).cumsum(1)
+    ys = np.clip(np.round(np.arange(ny + 1) * unit / factor).astype(int), 0, a.shape[0])
+    xs = np.clip(np.round(np.arange(nx + 1) * unit / factor).astype(int), 0, a.shape[1])
+    s = ii[ys[1:, None], xs[None, 1:]] - ii[ys[:-1, None], xs[None, 1:]] \
+        - ii[ys[1:, None], xs[None, :-1]] + ii[ys[:-1, None], xs[None, :-1]]
+    n = (ys[1:] - ys[:-1])[:, None] * (xs[1:] - xs[:-1])[None, :]
+    frac = np.where(n > 0, s / np.maximum(n, 1), 0.0)
+    return frac >= 1.0 - MAX_DISAGREEING
+
+
 def _candidates(cells: np.ndarray, cover: np.ndarray, n: int, k: int, unit: int) -> list[Box]:
     """Up to ``k`` best ``n x n``-cell windows, fully covered, not overlapping each other."""
     sc = _window_scores(cells, n)
@@ -275,6 +300,7 @@ def select_windows(
     base: np.ndarray | None = None,
     params: SelectParams | None = None,
     progress=None,
+    agreement: tuple[np.ndarray | None, int] | None = None,
 ) -> tuple[CropChoice, MotionEstimate]:
     """Algorithm 1: choose the estimation window(s) and estimate the motion on them.
 
@@ -290,6 +316,11 @@ def select_windows(
         The algorithm's constants.
     progress : callable, optional
         Called with a short text after each window tried.
+    agreement : (ndarray, int), optional
+        A low-resolution map over the observation, 1 where the aligned images agree and 0
+        where they do not (a large change), and the observation pixels per map pixel
+        (:func:`reblur.pipeline.photometric_prefit`): windows keep to the cells where the
+        images agree (:func:`agreeing_cells`), when there are any.
 
     Returns
     -------
@@ -320,6 +351,10 @@ def select_windows(
     if not np.any(cells > 1e-9):
         raise ValueError("motion cannot be estimated: the observation is textureless")
     cover = _coverage_cells(reference.shape, (H, W), base, grid, unit)
+    if agreement is not None and agreement[0] is not None:
+        agreeing = agreeing_cells(agreement[0], agreement[1], cover.shape, unit)
+        if (cover & agreeing).any():
+            cover = cover & agreeing
     if not cover.any():
         raise ValueError(
             "motion cannot be estimated: no part of the observation is covered by the "

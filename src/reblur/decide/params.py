@@ -84,6 +84,23 @@ class DecisionParams:
         error where the texture fits best, and elsewhere it can be larger (a roll and a
         perspective viewpoint grow it towards the corners).  The hard-geometry rows of
         ``benchmarks/realism.py`` are the check: at most 0.02 % false alarms with two.
+    edge_test_shift, edge_test_contrast : float
+        The loose tolerance of the edge-artefact test: a region that is not object-like
+        (a strip, a branching network) is kept when it persists under this tolerance (a
+        shift of up to ``edge_test_shift`` px and ``edge_test_contrast`` of the local range,
+        or the calibrated tolerance where that is looser): an edge artefact of residual
+        misregistration or blur-model error vanishes under a sub-pixel shift of the
+        reblurred reference, a thin real change (a new road, a wall) does not.
+    edge_test_fraction : float
+        Share of a region's pixels that must stay above the threshold under the loose
+        tolerance (and one above the strong threshold) for it to persist; 0 turns the test
+        off (every region that is not object-like is dropped, as before).
+    illumination : {"auto", "global", "field"}
+        Photometric model between the reblurred reference and the observation
+        (:func:`reblur.decide.fit_photometry`): one gain and offset per band, a smooth
+        (quadratic) gain and offset field for ramps, vignetting and shadow gradients, or
+        ``"auto"``: the field where it explains the data markedly better (its inlier
+        residual scale at most 0.85 of the global model's), recorded in the report.
     min_threshold : float
         Lower bound of the estimated threshold, in units of the statistic (an RMS of
         noise z-scores over ``4 pi smooth^2`` pixels: 1 for pure noise, whose 1e-6 tail
@@ -106,6 +123,10 @@ class DecisionParams:
     shift_tolerance: float = 0.25
     contrast_tolerance: float = 0.0
     contrast_radius: int = 3
+    illumination: str = "auto"
+    edge_test_shift: float = 1.0
+    edge_test_contrast: float = 0.08
+    edge_test_fraction: float = 0.5
     min_threshold: float = 2.0
     tolerance_ladder: tuple[tuple[float, float], ...] = (
         (0.25, 0.0), (0.5, 0.02), (0.5, 0.03), (1.0, 0.03), (1.0, 0.05), (1.0, 0.08))
@@ -139,12 +160,28 @@ class DecisionParams:
         if not self.min_threshold >= 0.0:
             raise ValueError(f"min_threshold must be >= 0, got {self.min_threshold}")
         _ = self.tolerance  # validates shift_tolerance, contrast_tolerance, contrast_radius
+        _ = self.loose_tolerance  # validates the edge test's tolerance
+        if self.illumination not in ("auto", "global", "field"):
+            raise ValueError(f"illumination must be 'auto', 'global' or 'field', got "
+                             f"{self.illumination!r}")
+        if not 0.0 <= self.edge_test_fraction <= 1.0:
+            raise ValueError(f"edge_test_fraction must lie in [0, 1], got "
+                             f"{self.edge_test_fraction}")
 
     @property
     def tolerance(self) -> ModelTolerance:
         """The model's tolerance of the statistic (:mod:`reblur.decide.tolerance`)."""
         return ModelTolerance(shift=float(self.shift_tolerance),
                               contrast=float(self.contrast_tolerance),
+                              radius=int(self.contrast_radius))
+
+    @property
+    def loose_tolerance(self) -> ModelTolerance:
+        """The tolerance of the edge-artefact test: the looser of ``edge_test_*`` and the
+        statistic's own, per component."""
+        return ModelTolerance(shift=max(float(self.edge_test_shift), float(self.shift_tolerance)),
+                              contrast=max(float(self.edge_test_contrast),
+                                           float(self.contrast_tolerance)),
                               radius=int(self.contrast_radius))
 
     @property
@@ -157,7 +194,8 @@ class DecisionParams:
     def pixel_reach(self) -> int:
         """How far the per-pixel residual looks: the 3 x 3 stencils of the model error and
         the tolerance interval."""
-        return max([1, self.tolerance.reach] + [t.reach for t in self.ladder])
+        return max([1, self.tolerance.reach, self.loose_tolerance.reach]
+                   + [t.reach for t in self.ladder])
 
     @property
     def smooth_radius(self) -> int:

@@ -188,11 +188,16 @@ def _label_median(
 def _decide_core(
     S: np.ndarray, known: np.ndarray, threshold: float, p: DecisionParams,
     stop: Callable[[_Components], bool] | None = None,
+    persists: Callable[[np.ndarray, tuple[slice, slice]], np.ndarray | None] | None = None,
 ) -> tuple[np.ndarray | None, np.ndarray, dict[str, int]]:
     """Region decision on an array; returns (mask, level-0 candidate mask, counts).
 
     ``stop``, called with the components of the level-0 candidates, may end the decision
-    there: the mask is then None (and the counts cover nothing).
+    there: the mask is then None (and the counts cover nothing).  ``persists(sub, window)``
+    (the region's mask on its bounding ``window`` of the array) is asked about every region
+    that is not object-like: a mask (its pixels that persist) accepts them as a thin change
+    (``counts["thin"]``), None passes the region on; the evidence test of
+    :func:`persistence_test`.
 
     Level 0 looks at the whole array; every later level only at the window holding the
     regions passed on to it (grown by the opening's reach, so the opening, which never
@@ -203,7 +208,7 @@ def _decide_core(
     strong = p.strong_factor * threshold
     shape = S.shape
     accepted = np.zeros(shape, bool)
-    counts = {"accepted": 0, "small": 0, "weak": 0, "not_object": 0}
+    counts = {"accepted": 0, "small": 0, "weak": 0, "not_object": 0, "thin": 0}
     levels = p.levels if p.region_tests else (1.0,)
     candidates = None
     kernel = _disc(p.open_radius) if p.open_radius > 0 else None
@@ -246,6 +251,10 @@ def _decide_core(
                 accepted[full] |= sub
                 kept.append(box)
                 counts["accepted"] += 1
+            elif persists is not None and (part := persists(sub, full)) is not None:
+                accepted[full] |= part
+                kept.append(box)
+                counts["thin"] += 1
             elif last:
                 counts["not_object"] += 1
             else:
@@ -297,6 +306,57 @@ def _decide_core(
         acc |= fill[bg]
     accepted[win] &= known[win]
     return accepted, candidates, counts
+
+
+def persistence_test(
+    observed: np.ndarray, matched: np.ndarray, known: np.ndarray, photometry: Any,
+    p: DecisionParams, threshold: float,
+) -> Callable[[np.ndarray, tuple[slice, slice]], np.ndarray | None] | None:
+    """The edge-artefact test of a region that is not object-like (see ``persists`` of
+    :func:`_decide_core`), on one array (a padded tile or the whole image).
+
+    The statistic is recomputed (once for the array, when a region first asks) under the
+    loose tolerance :attr:`DecisionParams.loose_tolerance` (a shift of up to 1 px, 8 % of
+    the local range): the artefacts that residual misregistration and blur-model error
+    leave along edges vanish under it, a real thin change (a road, a wall, 10 % of the local
+    range or more) does not.  The region persists when at least ``edge_test_fraction`` of
+    its pixels stay above ``threshold`` and one above the strong threshold; what is kept of
+    it are those pixels, opened like the candidates and in pieces of at least ``min_area``
+    (artefact strips joined to a real change go).  None when the test is off
+    (``edge_test_fraction == 0`` or no region tests).
+    """
+    if not p.region_tests or p.edge_test_fraction <= 0:
+        return None
+    from .statistic import change_statistic
+
+    loose = p.loose_tolerance
+    strong = p.strong_factor * threshold
+    kernel = _disc(p.open_radius) if p.open_radius > 0 else None
+    cache: list[np.ndarray] = []
+
+    def persists(sub: np.ndarray, window: tuple[slice, slice]) -> np.ndarray | None:
+        if not cache:  # once per array, when the first region asks (the cost of stage 2)
+            cache.append(change_statistic(
+                observed, matched, known, photometry.sigma, smooth=p.smooth,
+                truncate=p.truncate, edge_k=photometry.edge_k, curv_k=photometry.curv_k,
+                tolerance=loose))
+        L = cache[0][window]
+        v = L[sub]
+        if not (v.size and np.mean(v > threshold) >= p.edge_test_fraction
+                and v.max() >= strong):
+            return None
+        part = sub & (L > threshold)
+        if kernel is not None:
+            part = cv2.morphologyEx(np.pad(part, 1).view(np.uint8), cv2.MORPH_OPEN,
+                                    kernel)[1:-1, 1:-1].view(bool)
+        cc = _components(part)
+        keep = np.zeros(cc.n + 1, bool)
+        if cc.n:
+            keep[1:] = (cc.area[1:] >= p.min_area) & (_label_max(L, cc.lab, cc.n, cc) >= strong)
+        part = keep[cc.lab]
+        return part if part.any() else None
+
+    return persists
 
 
 def _close_regions(mask: np.ndarray, win: tuple[slice, slice], radius: int) -> None:

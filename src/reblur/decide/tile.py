@@ -23,7 +23,13 @@ import numpy as np
 from ._common import _box, _channels, _float
 from .params import DecisionParams, _params
 from .photometry import Photometry, fit_photometry
-from .regions import _Components, _decide_core, _reaching, _region_records
+from .regions import (
+    _Components,
+    _decide_core,
+    _reaching,
+    _region_records,
+    persistence_test,
+)
 from .statistic import change_statistic
 from .threshold import estimate_threshold
 
@@ -223,7 +229,9 @@ def decide_tile(
         cand_reach[0] = _reaching(None, band, core_sl, cc)
         return stop_incomplete and bool(cand_reach[0])
 
-    mask, cand, counts = _decide_core(S, known, float(threshold), p, stop=level0)
+    mask, cand, counts = _decide_core(
+        S, known, float(threshold), p, stop=level0,
+        persists=persistence_test(o, matched, known, photometry, p, float(threshold)))
     kept = {"statistic": (S, (by0, bx0, bh, bw))} if keep_statistic else {}
     if mask is None:
         return None, {"complete": False, "reach": [names[i] for i in cand_reach[0]],
@@ -316,8 +324,10 @@ def decide(
     if not known.any():
         raise ValueError("no known pixel: every pixel is unknown or non-finite")
     if photometry is None:
-        photometry = fit_photometry(o, r, known, field_block=field_block, rng=rng,
-                                    edge_error=edge_error, tolerance=p.tolerance)
+        photometry = fit_photometry(
+            o, r, known, field_block=field_block, rng=rng, edge_error=edge_error,
+            tolerance=p.tolerance,
+            illumination="global" if field_block is not None else p.illumination)
     matched = photometry.apply(r)
     S = change_statistic(o, matched, known, photometry.sigma, smooth=p.smooth, truncate=p.truncate,
                          edge_k=photometry.edge_k, curv_k=photometry.curv_k,
@@ -328,7 +338,9 @@ def decide(
     else:
         threshold = float(threshold)
         tinfo = {"method": "given"}
-    mask, _, counts = _decide_core(S, known, threshold, p)
+    mask, _, counts = _decide_core(
+        S, known, threshold, p,
+        persists=persistence_test(o, matched, known, photometry, p, threshold))
     info = {
         "threshold": threshold,
         "threshold_info": tinfo,

@@ -22,6 +22,8 @@ from .camera import (
     shake_for,
     viewpoint_homography,
 )
+from .cases import CASES, failure_pair, wedge_mask
+from .edits import Occluder, Ramp, Vignette, thin_changes
 from .gopro import N_FRAMES, gopro_frame, gopro_frame_indices, gopro_pair
 from .pairs import PairPlan, RealismPair, make_pair, plan_pair, write_pair
 from .render import (
@@ -51,19 +53,24 @@ from .scenes import (
 from .sensor import apply_sensor, full_scale, jpeg, output_dtype, quantise
 
 __all__ = [
+    "CASES",
     "N_FRAMES",
     "Box",
     "CameraPath",
     "ChangeObject",
     "ChangedScene",
     "CroppedScene",
+    "Occluder",
     "PairPlan",
+    "Ramp",
     "RealismPair",
     "UpsampledScene",
+    "Vignette",
     "apply_sensor",
     "change_boxes",
     "compose",
     "default_focal",
+    "failure_pair",
     "full_scale",
     "gopro_frame",
     "gopro_frame_indices",
@@ -87,11 +94,13 @@ __all__ = [
     "shake_for",
     "shared_data_dir",
     "source_box",
+    "thin_changes",
     "true_centroid",
     "truth_window",
     "upsampled",
     "valid_window",
     "viewpoint_homography",
+    "wedge_mask",
     "whu_image",
     "write_pair",
 ]

@@ -13,6 +13,7 @@ here comes from reblur's own simulator or pose model.
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -86,6 +87,9 @@ class PairPlan:
         JSON-able description.
     boxes : list of Box
         :func:`~reblur.testbed.scenes.change_boxes` of ``changed`` and ``homographies``.
+    illumination : callable, optional
+        ``illumination(box) -> gain`` multiplied into the rendered observation in its own
+        frame (:class:`~reblur.testbed.edits.Ramp`, :class:`~reblur.testbed.edits.Vignette`).
     """
 
     scene: Any
@@ -97,6 +101,7 @@ class PairPlan:
     seed: int
     info: dict
     boxes: list[Box]
+    illumination: Any = None
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -119,6 +124,9 @@ class PairPlan:
         """The noise-free rendered observation of a box (float64 in [0, 1]), before the
         sensor: plans that differ only in their sensor share it."""
         image, _ = render_window(self.changed, self.homographies, box)
+        if self.illumination is not None:
+            g = self.illumination(box)
+            image = np.clip(image * (g[:, :, None] if image.ndim == 3 else g), 0.0, 1.0)
         return image
 
     def sense_observed(self, image: np.ndarray, box: Box) -> np.ndarray:
@@ -148,8 +156,10 @@ def _crop(scene: Any, size: tuple[int, int] | None) -> Any:
 
 
 def _object_info(changed: ChangedScene) -> list[dict]:
-    keys = ("kind", "cx", "cy", "angle", "a", "b", "a2", "delta", "local_range")
-    return [{k: getattr(o, k) for k in keys} | {"harmonics": [list(p) for p in o.harmonics]}
+    keys = ("kind", "cx", "cy", "angle", "a", "b", "a2", "delta", "local_range", "level",
+            "amplitude", "seed")
+    return [{k: getattr(o, k) for k in keys if hasattr(o, k)}
+            | {"harmonics": [list(p) for p in getattr(o, "harmonics", ())]}
             for o in changed.objects]
 
 
@@ -166,6 +176,8 @@ def plan_pair(
     motion: dict | None = None,
     viewpoint: dict | None = None,
     changes: dict | None = None,
+    objects: Sequence[Any] = (),
+    illumination: Any = None,
 ) -> PairPlan:
     """Draw a pair's changes, camera path and viewpoint (no pixels are computed).
 
@@ -191,6 +203,12 @@ def plan_pair(
         Extra keyword arguments of :func:`~reblur.testbed.camera.random_camera_path`,
         :func:`~reblur.testbed.camera.viewpoint_homography` and
         :func:`~reblur.testbed.scenes.paste_changes`.
+    objects : sequence, optional
+        Further change objects, added after the pasted ones (occluders, thin changes: see
+        :mod:`reblur.testbed.edits`); the pasted ones avoid nothing, so use ``n_changes=0``
+        or place these away from them.
+    illumination : callable, optional
+        ``illumination(box) -> gain`` of the observation (see :class:`PairPlan`).
 
     Returns
     -------
@@ -204,6 +222,8 @@ def plan_pair(
     base = _crop(scene, size)
     rng = np.random.default_rng(int(seed))
     changed = paste_changes(base, rng, n_changes=n_changes, **(changes or {}))
+    if objects:
+        changed = ChangedScene(base, changed.objects + tuple(objects))
     path = random_camera_path(base.shape, rng, **(motion or {}))
     view = viewpoint_homography(base.shape, rng, focal=path.focal, **(viewpoint or {}))
     total = compose(view, path.homographies())
@@ -213,8 +233,11 @@ def plan_pair(
             "n_sub": len(path.poses), "poses": path.poses.tolist(), "view": view.tolist(),
             "homographies": total.tolist(), "objects": _object_info(changed),
             "convention": "homographies map reference (x, y) to observation; H_k @ H_view"}
+    if illumination is not None:
+        info["illumination"] = (illumination.to_dict() if hasattr(illumination, "to_dict")
+                                else repr(illumination))
     return PairPlan(base, changed, path, view, total, sensor, int(seed), info,
-                    change_boxes(changed, total))
+                    change_boxes(changed, total), illumination)
 
 
 def make_pair(

@@ -251,8 +251,9 @@ class ChangeObject:
         return np.hypot(p, q) <= edge
 
 
-def _mask_in(objects: tuple[ChangeObject, ...], box: Box) -> tuple[np.ndarray, list]:
-    """Per-object indicators on the pixel centres of a box (only intersecting objects)."""
+def _mask_in(objects: tuple[Any, ...], box: Box) -> tuple[np.ndarray, np.ndarray, list]:
+    """Pixel-centre coordinates ``(ys, xs)`` of a box and per-object indicators on them
+    (only intersecting objects)."""
     y0, y1, x0, x1 = box
     ys, xs = np.mgrid[y0:y1, x0:x1].astype(np.float64)
     hits = []
@@ -260,7 +261,7 @@ def _mask_in(objects: tuple[ChangeObject, ...], box: Box) -> tuple[np.ndarray, l
         b = o.bbox
         if b[0] < y1 and b[1] > y0 and b[2] < x1 and b[3] > x0:
             hits.append((o, o.contains(xs, ys)))
-    return xs, hits
+    return ys, xs, hits
 
 
 class ChangedScene:
@@ -270,8 +271,10 @@ class ChangedScene:
     ----------
     base : array-like
         The unchanged scene (array or reader).
-    objects : tuple of ChangeObject
-        The changes.
+    objects : tuple of ChangeObject or Occluder-like objects
+        The changes.  An object with a ``paint(xs, ys)`` method (for instance
+        :class:`reblur.testbed.edits.Occluder`) *replaces* the scene inside its outline by
+        what it paints there; the others add their ``delta``.
     """
 
     def __init__(self, base: Any, objects: tuple[ChangeObject, ...]) -> None:
@@ -282,14 +285,18 @@ class ChangedScene:
     def __getitem__(self, key: Any) -> np.ndarray:
         box = _window(key, self.shape)
         out = np.array(self.base[box[0]:box[1], box[2]:box[3]], dtype=np.float64)
-        _, hits = _mask_in(self.objects, box)
+        ys, xs, hits = _mask_in(self.objects, box)
         for o, m in hits:
-            out[m] += o.delta
+            if hasattr(o, "paint"):
+                v = o.paint(xs[m], ys[m])
+                out[m] = v[:, None] if out.ndim == 3 else v
+            else:
+                out[m] += o.delta
         return np.clip(out, 0.0, 1.0)
 
     def footprint(self, box: Box) -> np.ndarray:
         """Union of the objects' indicators on a window's pixel centres (scene frame)."""
-        _, hits = _mask_in(self.objects, box)
+        _, _, hits = _mask_in(self.objects, box)
         mask = np.zeros((box[1] - box[0], box[3] - box[2]), dtype=bool)
         for _, m in hits:
             mask |= m
@@ -332,7 +339,7 @@ def _place(rng, scene, shape: dict, margin: float, taken: list[Box], min_range: 
     if p98 - p2 < min_range:
         return None
     inside = _gray(np.asarray(scene[b[0]:b[1], b[2]:b[3]], np.float64))[
-        _mask_in((obj,), b)[1][0][1]]
+        _mask_in((obj,), b)[2][0][1]]
     mag = rng.uniform(*contrast) * (p98 - p2)
     sign = 1.0 if rng.random() < 0.5 else -1.0
     if (sign > 0 and inside.max() + mag > 1) or (sign < 0 and inside.min() - mag < 0):
