@@ -135,6 +135,17 @@ elif mode == "slow":
             return f(*args, **kwargs)
         return wrapped
     R.write_png, R.write_tiff, R.write_json = map(slow, (R.write_png, R.write_tiff, R.write_json))
+elif mode == "compute":
+    # the masks go to a work store on disk (as for inputs over 64 MP); the marker appears
+    # when the computation starts
+    import reblur
+    import reblur.cli as C
+    C.LARGE_MASK_PIXELS = 0
+    detect = reblur.detect_changes
+    def marked(*args, **kwargs):
+        open(marker, "a").close()
+        return detect(*args, **kwargs)
+    reblur.detect_changes = marked
 from reblur.cli import main
 sys.argv = ["reblur", *sys.argv[3:]]
 main()
@@ -406,3 +417,94 @@ def test_other_formats_sized_from_their_header(tmp_path):
         np.testing.assert_array_equal(open_image(tmp_path / name).read(), a)
         with pytest.raises(InputError, match=r"3,840 pixels \(80x48\), more than the limit"):
             open_image(tmp_path / name, max_pixels=3000)
+
+
+# ---------------------------------------------------------------------------- interrupts
+def _signal_when_marked(proc: subprocess.Popen, marker: Path, sig: int, delay: float) -> None:
+    import time
+
+    t_end = time.monotonic() + 120
+    while not marker.exists():
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < t_end
+        time.sleep(0.02)
+    time.sleep(delay)
+    proc.send_signal(sig)
+
+
+@pytest.mark.parametrize("mode, delay", [("compute", 0.5), ("slow", 0.3)],
+                         ids=["computing", "writing"])
+def test_ctrl_c_exits_130_and_leaves_nothing(tmp_path, pair, mode, delay):
+    """SIGINT (Ctrl-C) while computing (with the masks' work store on disk) and while
+    writing: exit status 130, one line "interrupted", no temporary left anywhere."""
+    import signal
+
+    out = tmp_path / "res"
+    marker = tmp_path / "marker"
+    proc = drive(mode, marker, *detect_args(pair, out, "--workers", 2))
+    _signal_when_marked(proc, marker, signal.SIGINT, delay)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert (proc.returncode, stdout, stderr) == (130, "", "reblur: error: interrupted\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in", "marker"]
+
+
+# ---------------------------------------------------------------------------- options
+@pytest.mark.parametrize("args, pattern", [
+    (("--threshold", "nan"), r"'--threshold': 'nan' is not a finite number"),
+    (("--threshold", "inf"), r"'--threshold': 'inf' is not a finite number"),
+    (("--threshold", "-1"), r"'--threshold': -1\.0 is not in the range x>0"),
+    (("--rz-max", "inf"), r"'--rz-max': 'inf' is not a finite number"),
+    (("--rz-max", "90"), r"'--rz-max': 90\.0 is not in the range 0<=x<=45"),
+    (("--rz-step", "nan"), r"'--rz-step': 'nan' is not a finite number"),
+    (("--lam", "1e308"), r"'--lam': 1e\+308 is not in the range 0<x<=1000"),
+    (("--lam", "-inf"), r"'--lam': '-inf' is not a finite number"),
+    (("--rz-step", "1e-9"), r"pose grid would hold 3,750,000,000,625 poses \(25x25 "
+                            r"translations x 6,000,000,001 rotations\), more than the budget "
+                            r"of 33,554,432 poses"),
+    (("--t-max", "3000", "--rz-step", "0.5"), r"pose grid would hold 468,156,013 poses"),
+], ids=lambda v: " ".join(v) if isinstance(v, tuple) else None)
+def test_absurd_option_values_refused_up_front(tmp_path, args, pattern):
+    """Refused before any input is opened (the inputs do not even exist): usage error 2."""
+    from click.testing import CliRunner
+
+    from reblur.cli import main
+
+    res = CliRunner().invoke(main, ["detect", str(tmp_path / "nope.png"),
+                                    str(tmp_path / "nope2.png"), "--out",
+                                    str(tmp_path / "res"), *args])
+    assert res.exit_code == 2, res.output
+    lines = res.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("reblur: error: Invalid value for "), lines
+    assert re.search(pattern, lines[0]), lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("option, value", [("--noise", "nan"), ("--rz-max", "inf"),
+                                           ("--shift-frac", "2"), ("--t-max", "-1")])
+def test_simulate_refuses_absurd_values(tmp_path, option, value):
+    from click.testing import CliRunner
+
+    from reblur.cli import main
+
+    res = CliRunner().invoke(main, ["simulate", str(tmp_path / "nope.png"), "--out",
+                                    str(tmp_path / "sim"), option, value])
+    assert res.exit_code == 2, res.output
+    assert re.fullmatch(rf"reblur: error: Invalid value for '{option}': .*\n", res.output)
+
+
+def test_pose_budget_in_the_library():
+    """The grid's size is computed from its ranges before anything is allocated: a grid of
+    6e9 rotations is refused at once, and the count matches the grid actually built."""
+    from reblur.grid import MAX_POSES, PoseGrid, grid_size_for
+
+    for kw in (dict(t_max=3, rz_max=1.0, rz_step=0.3), dict(t_max=0, rz_max=0.0, rz_step=None),
+               dict(t_max=5, rz_max=2.0, corner_px=1.0, rz_step=None)):
+        grid = PoseGrid.from_ranges((300, 400), **kw)
+        assert grid_size_for((300, 400), **kw) == grid.size
+    assert PoseGrid.from_ranges((300, 400), t_max=3, rz_max=1.0, rz_step=0.3).rz == (
+        -1.2, -0.8999999999999999, -0.6, -0.3, 0.0, 0.3, 0.6, 0.8999999999999999, 1.2)
+    with pytest.raises(ValueError, match=rf"more than the budget of {MAX_POSES:,} poses"):
+        PoseGrid.from_ranges((300, 400), rz_max=3.0, rz_step=1e-9)
+    for bad in (dict(rz_max=float("inf")), dict(rz_step=float("nan")), dict(t_max=-1)):
+        with pytest.raises(ValueError, match=r"must be a finite number >= 0"):
+            PoseGrid.from_ranges((300, 400), **bad)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import shutil
 import sys
@@ -75,8 +76,23 @@ def _fail(message: str, code: int) -> None:
     sys.exit(code)
 
 
+class _Interrupted(Exception):
+    """A KeyboardInterrupt (Ctrl-C) that ended a command, past click's own handler (which
+    would turn it into ``Abort`` and print a blank line)."""
+
+
 class _ReblurGroup(click.Group):
-    """Click group whose errors are one line on stderr, with a traceback only under -v."""
+    """Click group whose errors are one line on stderr, with a traceback only under -v.
+
+    Ctrl-C exits 130 with "interrupted" (the shell's convention for SIGINT), after the
+    command's own clean-up (:func:`reblur.outdir.output_set` removes its temporaries).
+    """
+
+    def invoke(self, ctx: click.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt:
+            raise _Interrupted() from None
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
         if not standalone_mode:
@@ -85,14 +101,16 @@ class _ReblurGroup(click.Group):
             rv = super().main(
                 args, prog_name or "reblur", complete_var, standalone_mode=False, **extra
             )
-        except click.exceptions.Abort:
+        except click.exceptions.Abort as exc:
+            if isinstance(exc.__cause__, KeyboardInterrupt):  # Ctrl-C while parsing
+                _fail("interrupted", 130)
             _fail("aborted", 1)
         except click.UsageError as exc:
             cmd = exc.ctx.command_path if exc.ctx is not None else "reblur"
             _fail(f"{exc.format_message()} (see '{cmd} --help')", exc.exit_code)
         except click.ClickException as exc:
             _fail(exc.format_message(), exc.exit_code)
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, _Interrupted):
             _fail("interrupted", 130)
         except Exception as exc:  # noqa: BLE001 - the one place every error is reported
             if _STATE["verbose"]:
@@ -102,6 +120,34 @@ class _ReblurGroup(click.Group):
 
 
 # ---------------------------------------------------------------------------- options
+class _Finite(click.FloatRange):
+    """A float option that must be finite (no nan, inf) and within its range."""
+
+    name = "float"
+
+    def convert(self, value: Any, param: click.Parameter | None,
+                ctx: click.Context | None) -> float:
+        number = click.FLOAT.convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number.", param, ctx)
+        return super().convert(number, param, ctx)
+
+
+def _check_grid(t_max: int, rz_max: float, rz_step: float | None) -> None:
+    """Refuse a pose grid over the budget before any input is read (its size does not depend
+    on the images when the rotation step is given)."""
+    if rz_step is None:
+        return
+    from .grid import grid_size_for
+
+    try:
+        grid_size_for((1, 1), t_max=t_max, rz_max=rz_max, rz_step=rz_step)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc).replace("rz_step", "--rz-step").replace(
+            "rz_max", "--rz-max").replace("t_max", "--t-max"),
+            param_hint="'--rz-step' / '--rz-max' / '--t-max'") from None
+
+
 def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | None):
     if value is None:
         return None
@@ -297,18 +343,20 @@ def main() -> None:
               help="Output directory (created; must not hold results unless --overwrite).")
 @click.option("--t-max", type=click.IntRange(min=0), default=12, show_default=True,
               help="Pose grid: largest in-plane translation |tx|, |ty| (pixels).")
-@click.option("--rz-max", type=click.FloatRange(min=0), default=3.0, show_default=True,
-              help="Pose grid: largest in-plane rotation |rz| (degrees).")
-@click.option("--rz-step", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--rz-max", type=_Finite(min=0, max=45), default=3.0, show_default=True,
+              help="Pose grid: largest in-plane rotation |rz| (degrees, at most 45).")
+@click.option("--rz-step", type=_Finite(min=0, min_open=True, max=45), default=None,
               help="Pose grid: rotation step (degrees).  Default: the step that moves the "
                    "farthest pixel by one pixel (0.5 deg is the paper's, too coarse for "
                    "large images).")
-@click.option("--lam", type=click.FloatRange(min=0), default=0.1, show_default=True,
-              help="l1 weight lambda of the joint blur/change estimate (intensities in [0, 1]).")
+@click.option("--lam", type=_Finite(min=0, min_open=True, max=1000), default=0.1,
+              show_default=True,
+              help="l1 weight lambda of the joint blur/change estimate (intensities in [0, 1]; "
+                   "at most 1000).")
 @click.option("--tile-size", type=click.IntRange(min=64), default=1024, show_default=True,
               help="Tile side (pixels) for reblurring and deciding; bounds the memory.")
-@click.option("--threshold", type=float, default=None,
-              help="Decision threshold; default: chosen from the data.")
+@click.option("--threshold", type=_Finite(min=0, min_open=True), default=None,
+              help="Decision threshold (> 0); default: chosen from the data.")
 @click.option("--truth", type=_PATH, default=None,
               help="True change mask (non-zero = change): scores go into report.json.")
 @max_pixels_option(DEFAULT_MAX_PIXELS)
@@ -339,6 +387,7 @@ def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float
     from .report import OUTPUT_NAMES, summary_line
 
     t0 = time.perf_counter()
+    _check_grid(t_max, rz_max, rz_step)
     inputs = [reference, observed] + ([truth] if truth is not None else [])
     out_dir = _check_output_dir(out, inputs, OUTPUT_NAMES, overwrite)
     with output_set(out_dir, OUTPUT_NAMES, overwrite=overwrite, last=REPORT_NAMES) as stage:
@@ -435,19 +484,19 @@ def demo(out: Path, overwrite: bool, quiet: bool) -> None:
 @click.option("--after", type=_PATH, default=None,
               help="A real later image of the same scene (aligned with IMAGE) to blur.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
-@click.option("--t-max", type=click.FloatRange(min=0), default=6.0, show_default=True,
+@click.option("--t-max", type=_Finite(min=0, max=1000), default=6.0, show_default=True,
               help="Camera shake: largest translation (pixels).")
-@click.option("--rz-max", type=click.FloatRange(min=0), default=1.0, show_default=True,
+@click.option("--rz-max", type=_Finite(min=0, max=45), default=1.0, show_default=True,
               help="Camera shake: largest in-plane rotation (degrees).")
-@click.option("--shift-frac", type=click.FloatRange(min=0), default=0.02, show_default=True,
+@click.option("--shift-frac", type=_Finite(min=0, max=0.5), default=0.02, show_default=True,
               help="Viewpoint change: largest shift, as a fraction of the image size.")
-@click.option("--rot-deg", type=click.FloatRange(min=0), default=2.0, show_default=True,
+@click.option("--rot-deg", type=_Finite(min=0, max=180), default=2.0, show_default=True,
               help="Viewpoint change: largest rotation (degrees).")
 @click.option("--changes", "n_changes", type=click.IntRange(min=0), default=4,
               show_default=True, help="Number of pasted objects.")
 @click.option("--moving/--no-moving", default=True, show_default=True,
               help="Add an object moving during the exposure.")
-@click.option("--noise", type=click.FloatRange(min=0), default=1.0 / 255.0,
+@click.option("--noise", type=_Finite(min=0, max=1), default=1.0 / 255.0,
               show_default="1/255", help="Gaussian noise sigma (intensities in [0, 1]).")
 @max_pixels_option(100_000_000)
 @overwrite_option
