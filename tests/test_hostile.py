@@ -135,6 +135,9 @@ elif mode == "slow":
             return f(*args, **kwargs)
         return wrapped
     R.write_png, R.write_tiff, R.write_json = map(slow, (R.write_png, R.write_tiff, R.write_json))
+elif mode == "lazy":  # every TIFF and zarr input read window by window, as large ones are
+    import reblur.io
+    reblur.io.LAZY_BYTES = 0
 elif mode == "compute":
     # the masks go to a work store on disk (as for inputs over 64 MP); the marker appears
     # when the computation starts
@@ -508,3 +511,106 @@ def test_pose_budget_in_the_library():
     for bad in (dict(rz_max=float("inf")), dict(rz_step=float("nan")), dict(t_max=-1)):
         with pytest.raises(ValueError, match=r"must be a finite number >= 0"):
             PoseGrid.from_ranges((300, 400), **bad)
+
+
+# ---------------------------------------------------------------------------- windowed reads
+def _flip_tiff_segment(path: Path, index: int) -> None:
+    """Corrupt the compressed data of tile/strip ``index`` (its first two bytes kept)."""
+    with tifffile.TiffFile(path) as tif:
+        off = int(tif.pages[0].dataoffsets[index])
+        n = int(tif.pages[0].databytecounts[index])
+    data = bytearray(path.read_bytes())
+    data[off + 2 : off + n] = bytes(b ^ 0x55 for b in data[off + 2 : off + n])
+    path.write_bytes(bytes(data))
+
+
+def _set_tiff_tag(path: Path, code: int, value: int | None) -> None:
+    """Set a short tag of the first IFD of a little-endian classic TIFF (``None``: rename the
+    tag to an unknown code, as if it were missing)."""
+    import struct
+
+    data = bytearray(path.read_bytes())
+    ifd = struct.unpack("<I", data[4:8])[0]
+    for i in range(struct.unpack("<H", data[ifd : ifd + 2])[0]):
+        e = ifd + 2 + 12 * i
+        if struct.unpack("<H", data[e : e + 2])[0] == code:
+            if value is None:
+                data[e : e + 2] = struct.pack("<H", 65000)
+            else:
+                data[e + 8 : e + 10] = struct.pack("<H", value)
+    path.write_bytes(bytes(data))
+
+
+@pytest.fixture
+def tiled_pair(tmp_path, pair):
+    """The test pair as tiled TIFFs (64 px tiles, deflate)."""
+    d = tmp_path / "tif"
+    d.mkdir()
+    for p in pair:
+        tifffile.imwrite(d / (p.stem + ".tif"), open_image(p).read(), tile=(64, 64),
+                         compression="deflate")
+    return d / "ref.tif", d / "obs.tif"
+
+
+def test_corrupt_tile_of_a_lazily_read_tiff_is_named(pair, tiled_pair):
+    ref, _ = tiled_pair
+    _flip_tiff_segment(ref, 10)  # not the first tile: found while the windows are read
+    img = open_image(ref, lazy=True)
+    np.testing.assert_array_equal(img.array[0:64, 0:64], open_image(pair[0]).read()[0:64, 0:64])
+    with pytest.raises(InputError, match=r"ref\.tif: cannot decode the image data at rows "
+                                         r"128-191, columns 128-191 \(.*\): the file is corrupt"):
+        img.array[128:192, 128:192]
+
+
+def test_corrupt_chunk_of_a_lazily_read_zarr_is_named(tmp_path):
+    a = textured(np.random.default_rng(15), 128, 128, bands=1)
+    store = tmp_path / "ref.zarr"
+    zarr.create_array(str(store), shape=a.shape, chunks=(64, 64), dtype="u1",
+                      fill_value=0)[...] = a
+    chunk = store / "c" / "1" / "1"
+    chunk.write_bytes(bytes(b ^ 0x55 for b in chunk.read_bytes()))
+    img = open_image(store, lazy=True)
+    np.testing.assert_array_equal(img.array[0:64, 0:64], a[0:64, 0:64])
+    with pytest.raises(InputError, match=r"ref\.zarr: cannot decode the image data at rows "
+                                         r"32-99, columns 0-127"):
+        img.array[32:100, :]
+    # the first chunk corrupt: refused when opened
+    first = store / "c" / "0" / "0"
+    first.write_bytes(bytes(b ^ 0x55 for b in first.read_bytes()))
+    with pytest.raises(InputError, match=r"ref\.zarr: cannot decode the image data at rows "
+                                         r"0-63, columns 0-63"):
+        open_image(store, lazy=True)
+
+
+@pytest.mark.parametrize("lazy", [False, True])
+def test_undecodable_tiff_compression_refused_at_open(tiled_pair, lazy):
+    ref, _ = tiled_pair
+    _set_tiff_tag(ref, 259, 60123)  # Compression: a code no codec knows
+    with pytest.raises(InputError, match=r"ref\.tif: TIFF compression 60123 cannot be decoded"):
+        open_image(ref, lazy=lazy)
+    _set_tiff_tag(ref, 259, 34887)  # LERC: a known codec, but the data is deflate
+    with pytest.raises(InputError, match=r"ref\.tif: cannot decode (TIFF|the) image data"):
+        open_image(ref, lazy=lazy)
+
+
+def test_corrupt_large_tiff_in_the_cli_is_one_named_line(tmp_path, tiled_pair):
+    """The CLI with every input read window by window (as inputs over 512 MB are): a corrupt
+    tile deep in the file gives one line naming it; no internal error, no asyncio noise."""
+    ref, obs = tiled_pair
+    _flip_tiff_segment(ref, 10)
+    out = tmp_path / "res"
+    proc = drive("lazy", tmp_path / "m", "detect", ref, obs, "--out", out, *FAST,
+                 "--workers", 2)
+    stdout, stderr = proc.communicate(timeout=120)
+    res = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
+    assert_one_line_error(res, r"ref\.tif: cannot decode the image data at rows \d+-\d+, "
+                               r"columns \d+-\d+ \(.*\): the file is corrupt or truncated")
+    assert not out.exists()
+
+
+def test_tifffile_log_lines_become_part_of_the_one_line(tmp_path, tiled_pair):
+    ref, obs = tiled_pair
+    _set_tiff_tag(ref, 325, None)  # TileByteCounts missing: tifffile logs two ERROR lines
+    res = run("detect", ref, obs, "--out", tmp_path / "res", "-q")
+    assert_one_line_error(res, r"ref\.tif: TIFF header is corrupt: the image's tile or strip "
+                               r"table is missing or invalid \(tifffile: .*ByteCounts")

@@ -160,6 +160,12 @@ def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | No
     return value
 
 
+def _quiet_unraisable(unraisable: Any) -> None:
+    """``sys.unraisablehook`` without -v: what a library could not raise (a coroutine
+    garbage-collected at exit) is logged at debug level, not printed."""
+    log.debug("ignored in %r: %s", unraisable.object, unraisable.exc_value)
+
+
 def _set_verbosity(ctx: click.Context, param: click.Parameter, value: int) -> int:
     _STATE["verbose"] = max(_STATE["verbose"], int(value or 0))
     level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(_STATE["verbose"], 2)]
@@ -175,6 +181,12 @@ def _set_verbosity(ctx: click.Context, param: click.Parameter, value: int) -> in
     for noisy in ("rasterio", "matplotlib", "PIL", "tifffile", "numcodecs", "zarr"):
         logging.getLogger(noisy).setLevel(logging.WARNING if _STATE["verbose"] >= 2
                                           else logging.ERROR)
+    # zarr's event loop, torn down at exit after a failed read, reports its pending tasks
+    # ("Task was destroyed but it is pending!", with their stacks): only with -v
+    logging.getLogger("asyncio").setLevel(logging.ERROR if _STATE["verbose"]
+                                          else logging.CRITICAL + 1)
+    # ... and the coroutines it drops then ("Exception ignored in: <coroutine ...>")
+    sys.unraisablehook = sys.__unraisablehook__ if _STATE["verbose"] else _quiet_unraisable
     return value
 
 

@@ -22,7 +22,12 @@ than :data:`MIN_SIDE` pixels on a side, more than ``max_pixels`` pixels or, for 
 decoded in memory (PNG, JPEG, WebP, JPEG XL, ...), more than :data:`IN_MEMORY_MAX_BYTES`
 decoded bytes (decompression-bomb guards checked from the header -- size, bands and bit
 depth -- before any pixel is decoded; a format whose header cannot be read is refused), NaN or
-Inf pixels (refused: a float image is scanned window by window, never loaded whole).
+Inf pixels (refused: a float image is scanned window by window, never loaded whole).  A TIFF
+compression no installed codec decodes is refused when the file is opened, and the first chunk
+of a lazily read image is decoded then; any later window that fails to decode (a corrupt tile
+met by the estimate, a tile thread or a Dask worker) raises the same one-line
+:class:`InputError`, naming the file and the window.  tifffile's own log lines are kept off
+the terminal while reading and folded into that message.
 
 Writing
 -------
@@ -37,10 +42,12 @@ from __future__ import annotations
 
 import contextlib
 import json
+import logging
 import math
 import os
 import struct
 import tempfile
+import threading
 import warnings
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
@@ -384,6 +391,143 @@ def chunk_cached(image, tile_size: int, halo: int):
     rows = 2 * int(tile_size) + 4 * int(halo) + 2 * ch
     budget = min(max(rows * int(image.shape[1]) * px, 64 * 2**20), 256 * 2**20)
     return ChunkCache(image, max_bytes=budget, chunks=(ch, cw))
+
+
+class _Guarded:
+    """Window reader of a lazily read file whose read and decode failures become one
+    :class:`InputError` naming the file and the window.
+
+    The windows of a large image are decoded long after :func:`open_image` returned (in the
+    estimate, the tile threads or Dask workers): a corrupt tile or chunk found there must
+    still say which file is broken, not surface as a codec's bare exception.  Slicing
+    returns numpy arrays; ``source`` is the wrapped reader (:func:`reblur.dask_backend.portable`
+    makes it picklable).
+    """
+
+    def __init__(self, source, path: Path):
+        self.source = source
+        self.path = path
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return tuple(int(s) for s in self.source.shape)
+
+    @property
+    def dtype(self) -> np.dtype:
+        return np.dtype(self.source.dtype)
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape))
+
+    @property
+    def nbytes(self) -> int:
+        return self.size * self.dtype.itemsize
+
+    @property
+    def chunks(self):
+        return getattr(self.source, "chunks", None)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __repr__(self) -> str:
+        return f"_Guarded({self.path}, shape={self.shape}, dtype={self.dtype})"
+
+    def __getitem__(self, key) -> np.ndarray:
+        try:
+            with _tifffile_quiet():
+                return np.asarray(self.source[key])
+        except (InputError, MemoryError):
+            raise
+        except Exception as exc:  # noqa: BLE001 - every read failure means a corrupt file
+            raise _fail(self.path, f"cannot decode the image data{_where(key, self.shape)} "
+                                   f"({_first_line(exc)}): the file is corrupt or "
+                                   "truncated") from exc
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        a = self[...]
+        return a if dtype is None else a.astype(dtype, copy=False)
+
+
+def _where(key, shape: tuple[int, ...]) -> str:
+    """`` at rows a-b, columns c-d`` for a window ``key`` of an array of ``shape`` (empty
+    when it is not a window of slices)."""
+    if not isinstance(key, tuple):
+        key = (key,)
+    key = key + (slice(None),) * max(0, 2 - len(key))
+    parts = []
+    for name, k, n in zip(("rows", "columns"), key[:2], shape[:2], strict=False):
+        if not isinstance(k, slice) or k.step not in (None, 1):
+            return ""
+        a, b, _ = k.indices(n)
+        parts.append(f"{name} {a}-{b - 1}")
+    return f" at {', '.join(parts)}"
+
+
+def _first_line(exc: BaseException) -> str:
+    msg = str(exc).strip()
+    return msg.splitlines()[0] if msg else type(exc).__name__
+
+
+class _TifffileLog(logging.Filter):
+    """Keeps tifffile's own log lines off the terminal while reblur reads a file: what it
+    logs (a missing tag, a corrupt structure) is kept here and reported in reblur's one
+    error line instead.  Other records pass."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.depth = 0
+        self.kept: list[str] = []
+        self.lock = threading.Lock()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if self.depth <= 0:
+            return True
+        with self.lock:
+            if len(self.kept) < 16:
+                self.kept.append(record.getMessage())
+        return False
+
+
+_TIFF_LOG = _TifffileLog()
+logging.getLogger("tifffile").addFilter(_TIFF_LOG)
+
+
+@contextlib.contextmanager
+def _tifffile_quiet() -> Iterator[Callable[[], list[str]]]:
+    """Silence tifffile's logger within the block; yield a function that returns the
+    messages it logged so far (those of any thread while the block runs)."""
+    with _TIFF_LOG.lock:
+        _TIFF_LOG.depth += 1
+        start = len(_TIFF_LOG.kept)
+
+    def logged() -> list[str]:
+        with _TIFF_LOG.lock:
+            return list(_TIFF_LOG.kept[start:])
+
+    try:
+        yield logged
+    finally:
+        with _TIFF_LOG.lock:
+            _TIFF_LOG.depth -= 1
+            if _TIFF_LOG.depth == 0:
+                _TIFF_LOG.kept.clear()
+
+
+def _check_first_window(path: Path, array) -> None:
+    """Decode the first chunk of a lazily read image now, at open time: an undecodable
+    codec or corrupt data is refused before the work starts (the other chunks are checked
+    as they are read)."""
+    ch = getattr(array, "chunks", None)
+    h, w = (int(v) for v in array.shape[:2])
+    ry = int(ch[0]) if ch else min(h, 256)
+    rx = int(ch[1]) if ch and len(ch) > 1 else min(w, 256)
+    array[0 : min(h, max(1, ry)), 0 : min(w, max(1, rx))]
 
 
 def _luminance(a: np.ndarray) -> np.ndarray:
@@ -830,6 +974,40 @@ def _read_geo(path: Path) -> dict[str, Any] | None:
 
 
 def _read_tiff(path: Path, max_pixels: int, lazy: bool | None) -> Image:
+    """Open a TIFF (:func:`_open_tiff`), tifffile's own log lines kept off the terminal: what
+    it logged goes into the error message when the file is refused."""
+    with _tifffile_quiet() as logged:
+        try:
+            return _open_tiff(path, max_pixels, lazy, logged)
+        except InputError as exc:
+            said = logged()
+            if not said or "tifffile:" in str(exc):
+                raise
+            raise InputError(f"{exc} (tifffile: {_one(said[0])})") from exc.__cause__
+
+
+def _one(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _check_tiff_codec(path: Path, page) -> None:
+    """Refuse a TIFF whose compression this installation cannot decode (an unknown code, or
+    a codec imagecodecs lacks), at open time rather than when the first tile is read."""
+    import tifffile
+
+    comp = page.compression
+    if int(comp) == 1:
+        return
+    name = getattr(comp, "name", str(int(comp)))
+    try:
+        tifffile.TIFF.DECOMPRESSORS[comp]
+    except Exception as exc:  # noqa: BLE001 - unknown code or missing codec
+        why = _first_line(exc).strip("'\"")
+        raise _fail(path, f"TIFF compression {name} cannot be decoded ({why})") from exc
+
+
+def _open_tiff(path: Path, max_pixels: int, lazy: bool | None,
+               logged: Callable[[], list[str]]) -> Image:
     import tifffile
 
     try:
@@ -863,6 +1041,11 @@ def _read_tiff(path: Path, max_pixels: int, lazy: bool | None) -> Image:
         _check_dtype(path, dtype)
         if int(page.photometric) == 3:  # palette
             raise _fail(path, "palette (indexed colour) TIFF images are not supported")
+        _check_tiff_codec(path, page)
+        said = [m for m in logged() if "ByteCounts" in m or "data offset" in m]
+        if said:
+            raise _fail(path, "TIFF header is corrupt: the image's tile or strip table is "
+                              f"missing or invalid (tifffile: {_one(said[0])})")
         # truncated file: every segment of the image must lie inside the file
         size = os.path.getsize(path)
         for p in series.pages:
@@ -899,7 +1082,8 @@ def _read_tiff(path: Path, max_pixels: int, lazy: bool | None) -> Image:
             z = zarr.open(store, mode="r")
             if len(z.shape) != len(ax):
                 z = _Squeezed(z, axes, shape)
-            arr = LazyBands(z, channel_first=True) if channel_first else z
+            arr = _Guarded(LazyBands(z, channel_first=True) if channel_first else z, path)
+            _check_first_window(path, arr)
             img = Image(arr, path, "tiff", _closer=tif.close)
     except InputError:
         tif.close()
@@ -961,7 +1145,9 @@ def _read_zarr(path: Path, max_pixels: int, lazy: bool | None) -> Image:
     if lazy is None:
         lazy = nbytes > LAZY_BYTES
     if lazy:
-        return Image(node, path, "zarr")
+        arr = _Guarded(node, path)
+        _check_first_window(path, arr)
+        return Image(arr, path, "zarr")
     try:
         arr = np.asarray(node[...])
     except MemoryError:
