@@ -272,22 +272,69 @@ def test_killed_runs_leave_no_or_complete_results_and_are_cleaned(tmp_path, pair
 
 
 def test_overwrite_into_a_folder_with_other_files(tmp_path, pair):
-    """A folder that also holds a file of the user's (here: the inputs) is filled file by
-    file; the other file stays, stale results go, the set is complete."""
+    """A folder that also holds files of the user's (here: the inputs, and a changes.tif no
+    earlier report lists) is filled file by file; those files stay, with a warning for the
+    one that has a result's name, and the new set is complete."""
+    import json
+
     ref, obs = pair
     out = ref.parent
-    (out / "changes.tif").write_bytes(b"stale result of an older run")
+    (out / "changes.tif").write_bytes(b"a user's own file, not a reblur result")
     res = run(*detect_args(pair, out))
     assert_one_line_error(res, r"already holds results \(changes\.tif\)")
     res = run(*detect_args(pair, out, "--overwrite"))
     assert res.returncode == 0, res.stderr
+    assert res.stderr == (f"reblur: WARNING: left {out / 'changes.tif'} in place: this run does "
+                          "not write it and the earlier report does not list it (it is not "
+                          "part of the new result set)\n")
+    assert (out / "changes.tif").read_bytes() == b"a user's own file, not a reblur result"
     inputs = {ref.name: ref.read_bytes(), obs.name: obs.read_bytes()}
-    for p in (ref, obs):
+    for p in (ref, obs, out / "changes.tif"):
         p.rename(tmp_path / p.name)
     assert_complete(out)
-    assert not (out / "changes.tif").exists()
+    assert "changes.tif" not in json.loads((out / "report.json").read_text())["files"]
     assert {n: (tmp_path / n).read_bytes() for n in inputs} == inputs
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["in", *inputs])
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["in", "changes.tif", *inputs])
+
+
+@pytest.mark.parametrize("other", [False, True], ids=["swapped", "file-by-file"])
+def test_overwrite_removes_only_the_earlier_sets_files(tmp_path, other):
+    """--overwrite removes the files the earlier report.json lists (its changes.tif of a
+    larger input, which this run does not write) and leaves a file of a result's name it
+    does not list; whether the folder is swapped whole or filled file by file."""
+    import json
+
+    import reblur.outdir as od
+
+    names = ("changes.png", "changes.tif", "changes.geojson", "unknown.tif", "report.json")
+    out = tmp_path / "res"
+    out.mkdir()
+    earlier = {"changes.png": "changes.png", "changes.tif": "changes.tif",
+               "changes.geojson": "changes.geojson", "report.json": "report.json"}
+    for n in earlier:
+        (out / n).write_text("earlier")
+    (out / "report.json").write_text(json.dumps({"files": earlier}))
+    (out / "unknown.tif").write_text("not listed: someone else's")
+    if other:
+        (out / "notes.txt").write_text("mine")
+    with od.output_set(out, names, overwrite=True, last=("report.json",),
+                       manifest="report.json") as stage:
+        (stage / "changes.png").write_text("new")
+        (stage / "report.json").write_text(json.dumps({"files": {"changes.png": "changes.png",
+                                                                 "report.json": "report.json"}}))
+    got = {p.name: p.read_text() for p in out.iterdir()}
+    assert got.pop("changes.png") == "new"
+    assert json.loads(got.pop("report.json"))["files"] == {"changes.png": "changes.png",
+                                                           "report.json": "report.json"}
+    assert got == {"unknown.tif": "not listed: someone else's",
+                   **({"notes.txt": "mine"} if other else {})}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["res"]
+    # without a manifest (reblur simulate's set), every file of the names is a result
+    (out / "changes.tif").write_text("earlier")
+    with od.output_set(out, names, overwrite=True) as stage:
+        (stage / "changes.png").write_text("newer")
+    assert sorted(p.name for p in out.iterdir()) == ["changes.png"] + (
+        ["notes.txt"] if other else [])
 
 
 def test_second_run_into_a_locked_folder_is_refused(tmp_path, pair):
@@ -614,3 +661,112 @@ def test_tifffile_log_lines_become_part_of_the_one_line(tmp_path, tiled_pair):
     res = run("detect", ref, obs, "--out", tmp_path / "res", "-q")
     assert_one_line_error(res, r"ref\.tif: TIFF header is corrupt: the image's tile or strip "
                                r"table is missing or invalid \(tifffile: .*ByteCounts")
+
+
+# ---------------------------------------------------------------------------- diagnoses
+def test_symlink_loops_are_named(tmp_path, pair):
+    (tmp_path / "a.png").symlink_to(tmp_path / "b.png")
+    (tmp_path / "b.png").symlink_to(tmp_path / "a.png")
+    (tmp_path / "o1").symlink_to(tmp_path / "o2")
+    (tmp_path / "o2").symlink_to(tmp_path / "o1")
+    with pytest.raises(InputError, match=r"a\.png: symlink loop: the path cannot be resolved"):
+        open_image(tmp_path / "a.png")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    for args in ((tmp_path / "a.png", pair[1], "--out", tmp_path / "res"),
+                 (*pair, "--out", tmp_path / "o1" / "res")):
+        res = run("detect", *args, "-q")
+        assert_one_line_error(res, r"(a\.png|o1/res): symlink loop: the path cannot be resolved")
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_sizes_far_apart_are_named_not_textureless(tmp_path):
+    """A thumbnail-sized observation of a large reference: the sizes are the problem (it
+    was reported as "images are textureless")."""
+    from reblur.io import MAX_SIZE_RATIO, Image, check_sizes
+
+    rng = np.random.default_rng(16)
+    big = textured(rng, 1024, 1024, bands=1)
+    small = cv2.resize(big, (64, 64), interpolation=cv2.INTER_AREA)
+    write_png(tmp_path / "big.png", big)
+    write_png(tmp_path / "small.png", small)
+    res = run("detect", tmp_path / "big.png", tmp_path / "small.png", "--out", tmp_path / "res")
+    line = assert_one_line_error(res, r"the sizes of .*small\.png \(64x64\) and .*big\.png "
+                                      r"\(1024x1024\) disagree by a factor of 16: the "
+                                      r"observation is not a view of the reference at a "
+                                      r"compatible scale")
+    assert "textureless" not in line
+    assert not (tmp_path / "res").exists()
+    # the limit: half the size passes, a quarter does not, either way round
+    for side, ok in ((512, True), (257, True), (256, False)):
+        a = Image.from_array(np.zeros((side, 1024), np.uint8), "a")
+        b = Image.from_array(np.zeros((1024, 1024), np.uint8), "b")
+        for pair_ in ((a, b), (b, a)):
+            if ok:
+                check_sizes(*pair_)
+            else:
+                with pytest.raises(InputError, match=rf"factor of {1024 / side:g}"):
+                    check_sizes(*pair_)
+    assert MAX_SIZE_RATIO == 4
+
+
+def test_wide_integer_data_rescaled_from_the_range_it_uses(tmp_path):
+    """int64 data holding 8-bit values was "textureless" (values / 2**63): it is read as
+    float32 from the range it uses, lazily too; masks keep their values."""
+    a = textured(np.random.default_rng(17), 80, 96, bands=1).astype(np.int64) * 3 - 100
+    lo, hi = int(a.min()), int(a.max())
+    expect = ((a - lo) / (hi - lo)).astype(np.float32)
+    for dtype in (np.int64, np.uint32, np.int32):
+        b = a - lo if dtype == np.uint32 else a
+        tifffile.imwrite(tmp_path / "w.tif", b.astype(dtype), tile=(32, 32))
+        for lazy in (False, True):
+            img = open_image(tmp_path / "w.tif", lazy=lazy)
+            assert img.dtype == np.float32
+            np.testing.assert_allclose(img.read(), expect, atol=1e-6)
+            assert any("rescaled" in n and f"[{lo - (lo if dtype == np.uint32 else 0)}" in n
+                       for n in img.notes), img.notes
+    # 8/16-bit data keep their type; a constant wide image is left as it is
+    tifffile.imwrite(tmp_path / "c.tif", np.full((40, 40), 7, np.int64))
+    assert open_image(tmp_path / "c.tif").dtype == np.int64
+    tifffile.imwrite(tmp_path / "u.tif", a.astype(np.uint16) + 100)
+    assert open_image(tmp_path / "u.tif").dtype == np.uint16
+
+
+def test_wide_integer_pair_detects_the_change_and_names_are_escaped(tmp_path, pair):
+    """The test pair stored as int64 (it was refused as "textureless") finds the painted
+    change, written into a folder whose name holds a newline and a terminal escape: every
+    printed line keeps them escaped."""
+    ref, obs = (open_image(p).read().astype(np.int64) for p in pair)
+    d = tmp_path / "in64"
+    d.mkdir()
+    tifffile.imwrite(d / "ref.tif", ref, photometric="rgb")
+    tifffile.imwrite(d / "obs.tif", obs, photometric="rgb")
+    out = tmp_path / "res\n\x1b[31mred"
+    res = run("detect", d / "ref.tif", d / "obs.tif", "--out", out, *FAST, "-v")
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.endswith("-> " + str(tmp_path) + "/res\\n\\x1b[31mred/overlay.png\n")
+    assert res.stdout.count("\n") == 1
+    for stream in (res.stdout, res.stderr):
+        assert "\x1b" not in stream
+    assert all(line.startswith("reblur: ") for line in res.stderr.splitlines()), res.stderr
+    changes = cv2.imread(str(out / "changes.png"), cv2.IMREAD_UNCHANGED) > 0
+    truth = np.zeros_like(changes)
+    truth[60:80, 60:90] = True  # painted in the observation, whose frame changes.png is in
+    near = np.zeros_like(changes)
+    near[50:90, 50:100] = True  # the change and a 10 px rim (the closing of the regions)
+    assert (changes & truth).sum() >= 0.95 * truth.sum()
+    assert not (changes & ~near).any()
+
+
+@pytest.mark.parametrize("name", ["no\nsuch\x1b]0;owned\x07.png", "bad\udcff\x9b2J.png"],
+                         ids=["newline-osc", "not-utf8-csi"])
+def test_error_lines_escape_control_characters(tmp_path, pair, name):
+    from reblur.io import display_path
+
+    p = os.fsencode(tmp_path / name)
+    res = subprocess.run([sys.executable, "-m", "reblur", "detect", p, os.fsencode(pair[1]),
+                          "--out", os.fsencode(tmp_path / "res")], capture_output=True)
+    assert res.returncode == 1 and res.stdout == b""
+    line = res.stderr.decode("utf-8")  # undecodable bytes would fail here
+    assert line == f"reblur: error: {display_path(tmp_path / name)}: no such file\n"
+    assert line.count("\n") == 1 and "\x1b" not in line and "\x07" not in line
+    assert display_path(name) in (r"no\nsuch\x1b]0;owned\x07.png", r"bad\xff\x9b2J.png")

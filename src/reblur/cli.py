@@ -31,6 +31,8 @@ from .io import (
     DEFAULT_MAX_PIXELS,
     Image,
     InputError,
+    check_sizes,
+    display_path,
     open_image,
     read_mask,
     reconcile_bands,
@@ -63,7 +65,7 @@ def _describe(exc: BaseException) -> str:
     if isinstance(exc, MemoryError):
         return "out of memory (try a smaller --tile-size, or fewer --workers)"
     if isinstance(exc, OSError):
-        where = f"{exc.filename}: " if exc.filename else ""
+        where = f"{_show(exc.filename)}: " if exc.filename else ""
         return _one_line(f"{where}{exc.strerror or exc}")
     name = type(exc).__name__
     if type(exc).__module__.startswith("reblur"):
@@ -72,8 +74,24 @@ def _describe(exc: BaseException) -> str:
 
 
 def _fail(message: str, code: int) -> None:
-    click.echo(f"reblur: error: {_one_line(message)}", err=True)
+    # paths in messages are escaped where they are written (display_path); what is left
+    # non-printable (a library's message quoting a file name) is escaped here
+    click.echo(f"reblur: error: {display_path(_one_line(message))}", err=True)
     sys.exit(code)
+
+
+def _show(path: Any) -> str:
+    """A path as printed in messages: non-printable characters escaped (:func:`display_path`)."""
+    return display_path(path)
+
+
+class _PrintableFormatter(logging.Formatter):
+    """Log lines with non-printable characters of the message escaped (a file name with a
+    newline or a terminal escape sequence stays one inert line); tracebacks unchanged."""
+
+    def formatMessage(self, record: logging.LogRecord) -> str:
+        record.message = display_path(record.message)
+        return super().formatMessage(record)
 
 
 class _Interrupted(Exception):
@@ -170,7 +188,7 @@ def _set_verbosity(ctx: click.Context, param: click.Parameter, value: int) -> in
     _STATE["verbose"] = max(_STATE["verbose"], int(value or 0))
     level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(_STATE["verbose"], 2)]
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter("reblur: %(levelname)s: %(message)s"))
+    handler.setFormatter(_PrintableFormatter("reblur: %(levelname)s: %(message)s"))
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(level)
@@ -254,6 +272,15 @@ def _same_or_inside(a: Path, b: Path) -> bool:
     return a == b or b in a.parents
 
 
+def _resolve(path: Path) -> Path:
+    """``path`` made absolute with its symlinks resolved; a loop is one clear error."""
+    try:
+        return path.expanduser().resolve()
+    except (RuntimeError, OSError) as exc:  # 3.11: RuntimeError("Symlink loop from ...")
+        raise click.ClickException(
+            f"{_show(path)}: symlink loop: the path cannot be resolved") from exc
+
+
 def _check_output_dir(
     out: Path, inputs: list[Path], names: tuple[str, ...], overwrite: bool
 ) -> Path:
@@ -261,21 +288,22 @@ def _check_output_dir(
 
     Writes nothing: a missing directory is created (to prove it can be) and removed again.
     """
-    out_r = out.expanduser().resolve()
+    out_r = _resolve(out)
     for p in inputs:
-        p_r = p.expanduser().resolve()
+        p_r = _resolve(p)
         if _same_or_inside(out_r, p_r):
-            raise click.ClickException(f"{out}: output directory is (inside) the input {p}")
+            raise click.ClickException(
+                f"{_show(out)}: output directory is (inside) the input {_show(p)}")
         if p_r.parent == out_r and p_r.name in names:
-            raise click.ClickException(f"{out}: writing results there would overwrite the "
-                                       f"input {p}; choose another --out")
+            raise click.ClickException(f"{_show(out)}: writing results there would overwrite "
+                                       f"the input {_show(p)}; choose another --out")
     if out_r.exists():
         if not out_r.is_dir():
-            raise click.ClickException(f"{out}: exists and is not a directory")
+            raise click.ClickException(f"{_show(out)}: exists and is not a directory")
         found = [n for n in names if (out_r / n).exists()]
         if found and not overwrite:
             raise click.ClickException(
-                f"{out}: already holds results ({', '.join(found[:3])}"
+                f"{_show(out)}: already holds results ({', '.join(found[:3])}"
                 f"{', ...' if len(found) > 3 else ''}); use --overwrite to replace them"
             )
         try:
@@ -284,19 +312,20 @@ def _check_output_dir(
             os.unlink(tmp)
         except OSError as exc:
             raise click.ClickException(
-                f"{out}: output directory is not writable ({exc.strerror or exc})"
+                f"{_show(out)}: output directory is not writable ({exc.strerror or exc})"
             ) from exc
         return out_r
     anc = out_r
     while not anc.exists():
         anc = anc.parent
     if not anc.is_dir():
-        raise click.ClickException(f"{out}: cannot create the output directory ({anc} is a file)")
+        raise click.ClickException(
+            f"{_show(out)}: cannot create the output directory ({_show(anc)} is a file)")
     try:
         out_r.mkdir(parents=True)
     except OSError as exc:
         raise click.ClickException(
-            f"{out}: cannot create the output directory ({exc.strerror or exc})"
+            f"{_show(out)}: cannot create the output directory ({exc.strerror or exc})"
         ) from exc
     # remove what the probe created, deepest first
     d = out_r
@@ -312,6 +341,7 @@ def _open_pair(reference: Path, observed: Path, max_pixels: int) -> tuple[Image,
     for note_img in (ref, obs):
         for note in note_img.notes:
             log.info("%s: %s", note_img.name, note)
+    check_sizes(ref, obs)
     return reconcile_bands(ref, obs)
 
 
@@ -331,7 +361,8 @@ def _writing(out: Path):
             if exc.errno is None:
                 raise
             raise click.ClickException(
-                f"{out}: cannot write the results ({exc.strerror or exc}); nothing was written"
+                f"{_show(out)}: cannot write the results ({exc.strerror or exc}); nothing was "
+                "written"
             ) from exc
 
     return guard()
@@ -402,12 +433,13 @@ def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float
     _check_grid(t_max, rz_max, rz_step)
     inputs = [reference, observed] + ([truth] if truth is not None else [])
     out_dir = _check_output_dir(out, inputs, OUTPUT_NAMES, overwrite)
-    with output_set(out_dir, OUTPUT_NAMES, overwrite=overwrite, last=REPORT_NAMES) as stage:
+    with output_set(out_dir, OUTPUT_NAMES, overwrite=overwrite, last=REPORT_NAMES,
+                    manifest="report.json") as stage:
         summary = _detect(stage, out_dir, reference, observed, truth, max_pixels, quiet, t0,
                           dict(t_max=t_max, rz_max=rz_max, rz_step=rz_step, lam=lam,
                                tile_size=tile_size, threshold=threshold, workers=workers,
                                scheduler=scheduler))
-    click.echo(summary_line(summary, out))
+    click.echo(display_path(summary_line(summary, out)))
 
 
 def _detect(stage: Path, out_dir: Path, reference: Path, observed: Path, truth: Path | None,
@@ -476,7 +508,8 @@ def demo(out: Path, overwrite: bool, quiet: bool) -> None:
     obs = Image.from_array(observed, "demo observed")
     import reblur
 
-    with output_set(out_dir, OUTPUT_NAMES, overwrite=overwrite, last=REPORT_NAMES) as stage:
+    with output_set(out_dir, OUTPUT_NAMES, overwrite=overwrite, last=REPORT_NAMES,
+                    manifest="report.json") as stage:
         progress = None if quiet else _Progress()
         try:
             result = reblur.detect_changes(ref.array, obs.array, progress=progress)
@@ -486,8 +519,8 @@ def demo(out: Path, overwrite: bool, quiet: bool) -> None:
         with _writing(out_dir):
             _, summary = write_report(result, stage, reference=ref, observed=obs,
                                       truth=truth, options=dict(command="demo"))
-    click.echo(summary_line(summary, out))
-    click.echo(f"open {out / 'report.html'} for the full report")
+    click.echo(display_path(summary_line(summary, out)))
+    click.echo(f"open {_show(out / 'report.html')} for the full report")
 
 
 @main.command(short_help="Make a synthetic blurred pair with known changes.")
@@ -533,7 +566,7 @@ def simulate(image: Path, out: Path, after: Path | None, seed: int, t_max: float
                          rot_deg, n_changes, moving, noise, max_pixels)
     frac = float(np.mean(pair.truth))
     click.echo(f"simulated {pair.observed.shape[1]}x{pair.observed.shape[0]} pair, "
-               f"{100 * frac:.2f} % changed -> {out}")
+               f"{100 * frac:.2f} % changed -> {_show(out)}")
 
 
 def _simulate(stage: Path, out_dir: Path, image: Path, after: Path | None, seed: int,
@@ -548,8 +581,8 @@ def _simulate(stage: Path, out_dir: Path, image: Path, after: Path | None, seed:
     before = open_image(image, max_pixels=max_pixels).read()
     later = open_image(after, max_pixels=max_pixels).read() if after is not None else None
     if later is not None and later.shape != before.shape:
-        raise click.ClickException(f"{after}: shape {later.shape} differs from {image}'s "
-                                   f"{before.shape}")
+        raise click.ClickException(f"{_show(after)}: shape {later.shape} differs from "
+                                   f"{_show(image)}'s {before.shape}")
     pair = make_pair(
         before, later, rng=np.random.default_rng(seed),
         shake=dict(t_max=t_max, rz_max=rz_max) if (t_max or rz_max) else None,

@@ -41,6 +41,7 @@ existing whole in memory in its output type.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import logging
 import math
@@ -68,6 +69,9 @@ __all__ = [
     "open_image",
     "read_mask",
     "reconcile_bands",
+    "check_sizes",
+    "display_path",
+    "MAX_SIZE_RATIO",
     "check_finite",
     "iter_windows",
     "atomic_path",
@@ -650,8 +654,50 @@ class Image:
 
 
 # ---------------------------------------------------------------------------- validation
+_ESCAPES = {"\n": "\\n", "\r": "\\r", "\t": "\\t"}
+
+
+def display_path(path: Any) -> str:
+    """``path`` as text safe to print on a terminal: every non-printable character escaped.
+
+    A file name may hold anything but ``/`` and NUL: a newline (which would split a one-line
+    message, or read as a space once lines are joined), a terminal escape sequence (which
+    the terminal would act on) or bytes that are not UTF-8 (which cannot even be printed).
+    These are written as Python writes them in a ``repr`` -- ``\\n``, ``\\x1b``,
+    ``\\u200b`` -- and undecodable bytes as ``\\xNN``; printable names are unchanged.
+
+    Examples
+    --------
+    >>> display_path("a\\nb\\x1b[31m.png")
+    'a\\\\nb\\\\x1b[31m.png'
+    >>> display_path("café.png")
+    'café.png'
+    """
+    s = os.fspath(path) if isinstance(path, os.PathLike) else str(path)
+    if isinstance(s, bytes):
+        s = os.fsdecode(s)
+    if s.isprintable():
+        return s
+    out = []
+    for ch in s:
+        o = ord(ch)
+        if ch.isprintable():
+            out.append(ch)
+        elif ch in _ESCAPES:
+            out.append(_ESCAPES[ch])
+        elif 0xDC80 <= o <= 0xDCFF:  # a byte that is not UTF-8 (os.fsdecode's surrogate)
+            out.append(f"\\x{o - 0xDC00:02x}")
+        elif o < 0x100:
+            out.append(f"\\x{o:02x}")
+        elif o < 0x10000:
+            out.append(f"\\u{o:04x}")
+        else:
+            out.append(f"\\U{o:08x}")
+    return "".join(out)
+
+
 def _fail(path, problem: str) -> InputError:
-    return InputError(f"{path}: {problem}")
+    return InputError(f"{display_path(path)}: {problem}")
 
 
 def _check_shape(path, shape: tuple[int, ...], max_pixels: int) -> None:
@@ -1198,6 +1244,7 @@ def open_image(
     max_pixels: int | None = DEFAULT_MAX_PIXELS,
     lazy: bool | None = None,
     check_values: bool = True,
+    rescale: bool = True,
 ) -> Image:
     """Open an image file or zarr store for change detection.
 
@@ -1214,6 +1261,10 @@ def open_image(
         :data:`LAZY_BYTES`.  PNG and JPEG are always decoded into memory.
     check_values : bool
         Scan float images for NaN/Inf (streamed for lazy images).
+    rescale : bool
+        Give 32- and 64-bit integer images as float32 in [0, 1], mapped from the range of
+        values they hold (not their type's; see :func:`_rescale_wide`).  8- and 16-bit
+        images keep their dtype.
 
     Returns
     -------
@@ -1229,6 +1280,13 @@ def open_image(
         pixels, unsupported layout or pixel type, NaN/Inf pixels.
     """
     p = Path(path)
+    try:
+        os.stat(p)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise _fail(p, "symlink loop: the path cannot be resolved") from None
+        if exc.errno == errno.ENAMETOOLONG:
+            raise _fail(p, "file name too long") from None
     if not p.exists():
         raise _fail(p, "no such file")
     if p.is_dir() and not (
@@ -1263,7 +1321,60 @@ def open_image(
         img.array = img.array.astype(np.uint8) if not img.lazy else img.array
     if check_values:
         check_finite(img)
+    if rescale and img.dtype.kind in "iu" and img.dtype.itemsize >= 4:
+        img = _rescale_wide(img)
     return img
+
+
+class _Rescaled:
+    """Lazy float32 view ``(source - lo) / (hi - lo)`` of an on-disk integer image."""
+
+    def __init__(self, source, lo: float, hi: float):
+        self.source = source
+        self.lo, self.hi = float(lo), float(hi)
+        self.shape = tuple(int(v) for v in source.shape)
+        self.ndim = len(self.shape)
+        self.dtype = np.dtype(np.float32)
+        self.chunks = getattr(source, "chunks", None)
+        self.size = int(np.prod(self.shape))
+        self.nbytes = 4 * self.size
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key) -> np.ndarray:
+        a = np.asarray(self.source[key], dtype=np.float64)
+        return ((a - self.lo) / (self.hi - self.lo)).astype(np.float32)
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        a = self[...]
+        return a if dtype is None else a.astype(dtype, copy=False)
+
+
+def _rescale_wide(img: Image) -> Image:
+    """A 32- or 64-bit integer image as float32 in [0, 1], from the range its data use.
+
+    Intensities are otherwise taken relative to the dtype's full range (255 for uint8,
+    65535 for uint16), which is right for the 8- and 16-bit types cameras write; data stored
+    as int32 / int64 / uint32 / uint64 hardly ever spans its type (a 0-255 image as int64
+    would be 28 nano-units of the range, and every later test -- texture, noise, the l1
+    weight -- would find it flat).  A constant image is left as it is.
+    """
+    arr = img.array
+    lo, hi = np.inf, -np.inf
+    for rows in _row_bands(arr):
+        block = np.asarray(arr[rows])
+        if block.size:
+            lo, hi = min(lo, float(block.min())), max(hi, float(block.max()))
+    if not hi > lo:
+        return img
+    if isinstance(arr, np.ndarray):
+        out = ((arr.astype(np.float64) - lo) / (hi - lo)).astype(np.float32)
+    else:
+        out = _Rescaled(arr, lo, hi)
+    note = (f"{img.dtype} data rescaled from the range they use, [{lo:.15g}, {hi:.15g}], "
+            "to float32 in [0, 1]")
+    return replace(img, array=out, notes=img.notes + [note])
 
 
 def read_mask(
@@ -1284,7 +1395,7 @@ def read_mask(
     what : str
         Word for the mask in error messages (``"truth mask"``, ...).
     """
-    img = open_image(path, max_pixels=max_pixels)
+    img = open_image(path, max_pixels=max_pixels, rescale=False)
     if shape is not None and tuple(img.shape[:2]) != tuple(shape[:2]):
         raise _fail(
             img.path,
@@ -1297,6 +1408,39 @@ def read_mask(
         out[rows] = block.any(axis=-1) if block.ndim == 3 else block
     img.close()
     return out
+
+
+#: :func:`check_sizes` refuses a pair whose sides differ by this factor or more: alignment
+#: finds views within a factor 2 of each other's scale (the benchmark's 4000 px reference
+#: and its 2000 px reduction align and flag nothing) and none at a factor 4 (its features
+#: and gradient blocks no longer match), where it used to report "textureless".
+MAX_SIZE_RATIO = 4.0
+
+
+def check_sizes(reference: Image, observed: Image) -> None:
+    """Refuse a pair whose sizes are too far apart for one to be a view of the other.
+
+    reblur compares two views of one scene at about the same scale and extent: the
+    observation is aligned to the reference (a similarity) and blurred poses are sought
+    around that.  A side ratio of :data:`MAX_SIZE_RATIO` or more (a 100x100 observation of a
+    4000x4000 reference: a thumbnail, or a small crop) cannot be aligned; saying so beats
+    the alignment's "textureless" or "too few features".
+
+    Raises
+    ------
+    InputError
+        Naming both files, their sizes and the factor.
+    """
+    (hr, wr), (ho, wo) = reference.shape[:2], observed.shape[:2]
+    ratio = max(hr / ho, ho / hr, wr / wo, wo / wr)
+    if ratio >= MAX_SIZE_RATIO:
+        raise InputError(
+            f"the sizes of {display_path(observed.name)} ({wo}x{ho}) and "
+            f"{display_path(reference.name)} ({wr}x{hr}) disagree by a factor of "
+            f"{ratio:.3g}: the observation is not a view of the reference at a compatible "
+            f"scale and extent (reblur compares views within a factor {MAX_SIZE_RATIO:g} of "
+            "each other's size); resample or crop one to match the other"
+        )
 
 
 def reconcile_bands(reference: Image, observed: Image) -> tuple[Image, Image]:
@@ -1319,7 +1463,8 @@ def reconcile_bands(reference: Image, observed: Image) -> tuple[Image, Image]:
             return _to_gray(reference), observed
         return reference, _to_gray(observed)
     raise InputError(
-        f"{reference.name} has {a} band{'s' * (a != 1)} and {observed.name} has {b}: "
+        f"{display_path(reference.name)} has {a} band{'s' * (a != 1)} and "
+        f"{display_path(observed.name)} has {b}: "
         "band counts cannot be reconciled (only RGB vs gray is converted; alpha is dropped)"
     )
 
