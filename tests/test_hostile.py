@@ -770,3 +770,71 @@ def test_error_lines_escape_control_characters(tmp_path, pair, name):
     assert line == f"reblur: error: {display_path(tmp_path / name)}: no such file\n"
     assert line.count("\n") == 1 and "\x1b" not in line and "\x07" not in line
     assert display_path(name) in (r"no\nsuch\x1b]0;owned\x07.png", r"bad\xff\x9b2J.png")
+
+
+# ---------------------------------------------------------------------------- work store
+def test_large_run_work_store_never_in_the_output_folder(tmp_path, pair):
+    """The masks' work store of a large run (forced here on a small pair) lives in the
+    temporary sibling: a run killed while computing leaves no output folder, only its
+    temporary, which the next run removes even when that run fails."""
+    import signal
+
+    out = tmp_path / "res"
+    marker = tmp_path / "marker"
+    proc = drive("compute", marker, *detect_args(pair, out))
+    seen: list[str] = []
+
+    def work_store_exists() -> bool:
+        seen[:] = [str(p.relative_to(tmp_path)) for p in tmp_path.glob(".res.reblur-tmp-*/*")]
+        return any(".reblur-work-" in s for s in seen)
+
+    import time
+
+    t_end = time.monotonic() + 60
+    while not (marker.exists() and work_store_exists()):
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < t_end
+        time.sleep(0.02)
+    assert not out.exists()  # not created before the results are complete
+    proc.send_signal(signal.SIGKILL)
+    proc.communicate(timeout=30)
+    left = sorted(p.name for p in tmp_path.iterdir() if p.name not in ("in", "marker"))
+    assert len(left) == 2 and left[0] == ".res.reblur-lock"  # released by the kernel
+    assert left[1].startswith(f".res.reblur-tmp-{proc.pid}-")
+    # the next run fails (its truth mask has the wrong size) and still cleans up after both
+    write_png(tmp_path / "in" / "truth.png", np.zeros((40, 40), bool))
+    res = run(*detect_args(pair, out, "--truth", tmp_path / "in" / "truth.png"))
+    assert_one_line_error(res, r"truth mask is 40x40 pixels")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in", "marker"]
+
+
+# ---------------------------------------------------------------------------- a real full disk
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 160 KB tmpfs (the test pair's results take about 260 KB): skipped where mounting
+    is not permitted."""
+    import shutil
+
+    where = tmp_path / "disk"
+    where.mkdir()
+    if shutil.which("mount") is None or os.geteuid() != 0:
+        pytest.skip("mounting a tmpfs needs root and mount(8)")
+    res = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=160k", "tmpfs", str(where)],
+                         capture_output=True, text=True)
+    if res.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {res.stderr.strip()}")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+def test_real_disk_full_leaves_no_output(small_disk, pair):
+    """The disk fills while the results are written (no writer patched): one line, no
+    output folder, no temporary or lock left on the disk.  (With --overwrite an earlier set
+    stays intact: test_disk_full_mid_write_leaves_no_output.)"""
+    out = small_disk / "res"
+    res = run(*detect_args(pair, out))
+    assert_one_line_error(res, r"res: cannot write the results \(No space left on device\); "
+                               r"nothing was written")
+    assert list(small_disk.iterdir()) == []
