@@ -135,6 +135,14 @@ elif mode == "slow":
             return f(*args, **kwargs)
         return wrapped
     R.write_png, R.write_tiff, R.write_json = map(slow, (R.write_png, R.write_tiff, R.write_json))
+elif mode == "codec-warns":  # imagecodecs logs a warning before its decoder fails
+    import logging
+    import imagecodecs
+    decode = imagecodecs.png_decode
+    def noisy(*args, **kwargs):
+        logging.getLogger("imagecodecs").warning("PNG warning: IDAT: incorrect data check")
+        return decode(*args, **kwargs)
+    imagecodecs.png_decode = noisy
 elif mode == "lazy":  # every TIFF and zarr input read window by window, as large ones are
     import reblur.io
     reblur.io.LAZY_BYTES = 0
@@ -838,3 +846,148 @@ def test_real_disk_full_leaves_no_output(small_disk, pair):
     assert_one_line_error(res, r"res: cannot write the results \(No space left on device\); "
                                r"nothing was written")
     assert list(small_disk.iterdir()) == []
+
+
+# ---------------------------------------------------------------------------- property-based
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+_SAMPLE: dict = {}
+
+
+def _samples() -> dict[str, tuple[dict[str, bytes], np.ndarray, tuple[int, int]]]:
+    """Valid inputs of each format, as ``{name: (files, decoded array, payload span)}``:
+    ``files`` maps a relative path to its bytes (a zarr store is a directory), the payload
+    span is where the format's integrity check covers the bytes (flips there must be
+    caught: PNG's chunk CRCs, the TIFF tiles' deflate checksums, a crc32c zarr codec)."""
+    if _SAMPLE:
+        return _SAMPLE
+    import tempfile
+
+    from zarr.codecs import Crc32cCodec, ZstdCodec
+
+    a = textured(np.random.default_rng(18), 48, 40)
+    with tempfile.TemporaryDirectory() as d:
+        d = Path(d)
+        write_png(d / "a.png", a)
+        png = (d / "a.png").read_bytes()
+        _SAMPLE["png"] = ({"a.png": png}, a, (8, len(png)))
+        jpg = cv2.imencode(".jpg", a[..., ::-1])[1].tobytes()
+        _SAMPLE["jpeg"] = ({"a.jpg": jpg}, open_image_bytes(d, "a.jpg", jpg), (0, 0))
+        tifffile.imwrite(d / "a.tif", a, tile=(16, 16), compression="deflate",
+                         photometric="rgb")
+        with tifffile.TiffFile(d / "a.tif") as tif:
+            offs, cnts = tif.pages[0].dataoffsets, tif.pages[0].databytecounts
+        _SAMPLE["tiff"] = ({"a.tif": (d / "a.tif").read_bytes()}, a,
+                           (int(min(offs)), int(max(np.add(offs, cnts)))))
+        z = zarr.create_array(str(d / "a.zarr"), shape=a.shape, chunks=(16, 16, 3),
+                              dtype="u1", fill_value=0,
+                              compressors=[ZstdCodec(), Crc32cCodec()])
+        z[...] = a
+        files = {str(p.relative_to(d)): p.read_bytes() for p in (d / "a.zarr").rglob("*")
+                 if p.is_file()}
+        _SAMPLE["zarr"] = (files, a, (0, 0))
+    return _SAMPLE
+
+
+def open_image_bytes(d: Path, name: str, data: bytes) -> np.ndarray:
+    (d / name).write_bytes(data)
+    return open_image(d / name).read()
+
+
+@st.composite
+def _mutations(draw):
+    """``(format, file to mutate, new bytes, must be caught)``."""
+    fmt = draw(st.sampled_from(["png", "jpeg", "tiff", "zarr"]))
+    files, _, (p0, p1) = _samples()[fmt]
+    if fmt == "zarr":
+        name = draw(st.sampled_from(sorted(files)))  # a chunk, or the metadata
+    else:
+        name = next(iter(files))
+    data = bytearray(files[name])
+    if draw(st.booleans()):
+        cut = draw(st.integers(0, len(data) - 1))
+        return fmt, name, bytes(data[:cut]), True  # truncated: refused, whatever the format
+    in_payload = draw(st.booleans()) and p1 > p0
+    caught = True
+    for _ in range(draw(st.integers(1, 3))):
+        if in_payload:
+            i = draw(st.integers(p0, p1 - 1))
+        elif fmt == "zarr" and name.startswith("a.zarr/c/"):
+            i = draw(st.integers(0, len(data) - 1))  # a chunk: crc32c covers it all
+        else:
+            i = draw(st.integers(0, len(data) - 1))
+            caught = fmt == "png" and i >= 8  # PNG: every chunk has a CRC
+        data[i] ^= draw(st.integers(1, 255))
+    return fmt, name, bytes(data), caught
+
+
+def _write(d: Path, fmt: str, name: str, data: bytes) -> Path:
+    files = _samples()[fmt][0]
+    for rel, b in files.items():
+        (d / rel).parent.mkdir(parents=True, exist_ok=True)
+        (d / rel).write_bytes(data if rel == name else b)
+    return d / ("a.zarr" if fmt == "zarr" else name)
+
+
+@settings(max_examples=60, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.too_slow])
+@given(mutation=_mutations(), lazy=st.booleans())
+def test_readers_never_accept_changed_content(mutation, lazy):
+    """Random truncations and byte flips of valid PNG, JPEG, TIFF and zarr inputs: the reader
+    refuses them with one line naming the file (any other exception fails the test, with its
+    traceback), or gives back exactly the original pixels wherever the format can tell (a
+    truncation anywhere; a flip under a checksum).  Without a checksum (JPEG data, TIFF
+    tags, zarr metadata) a flip may change what the file says: not caught, never a crash."""
+    import tempfile
+
+    fmt, name, data, caught = mutation
+    _, original, _ = _samples()[fmt]
+    with tempfile.TemporaryDirectory() as d:
+        path = _write(Path(d), fmt, name, data)
+        try:
+            with open_image(path, lazy=lazy and fmt in ("tiff", "zarr")) as img:
+                got = img.read()
+        except InputError as exc:
+            msg = str(exc)
+            assert "\n" not in msg and msg.startswith(f"{path}: "), msg
+            return
+    if caught and data != _samples()[fmt][0][name]:
+        assert got.shape == original.shape and got.dtype == original.dtype
+        np.testing.assert_array_equal(got, original)
+
+
+@settings(max_examples=4, deadline=None, derandomize=True)
+@given(fmt=st.sampled_from(["png", "jpeg", "tiff", "zarr"]), frac=st.floats(0.05, 0.95))
+def test_truncated_inputs_refused_by_the_cli(fmt, frac):
+    """The CLI on a truncated reference (a zarr store: its first chunk): exit 1, one line
+    naming it, no output folder."""
+    import tempfile
+
+    files, _, _ = _samples()[fmt]
+    name = "a.zarr/c/0/0/0" if fmt == "zarr" else next(iter(files))
+    data = files[name][: int(frac * len(files[name]))]
+    with tempfile.TemporaryDirectory() as d:
+        d = Path(d)
+        bad = _write(d, fmt, name, data)
+        good = d / "good.png"
+        write_png(good, _samples()["png"][1])
+        line = assert_one_line_error(run("detect", bad, good, "--out", d / "res", "-q"))
+        assert bad.name in line
+        assert not (d / "res").exists()
+
+
+def test_codec_log_lines_stay_off_stderr(tmp_path, pair):
+    """imagecodecs logs libpng's warnings ("PNG warning: IDAT: incorrect data check") before
+    it raises: only the error line reaches stderr."""
+    data = bytearray(pair[0].read_bytes())
+    i = data.find(b"IDAT") + 200
+    data[i] ^= 0x5A
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(bytes(data))
+    proc = drive("codec-warns", tmp_path / "m", "detect", bad, pair[1], "--out",
+                 tmp_path / "res", "-q")
+    stdout, stderr = proc.communicate(timeout=60)
+    assert_one_line_error(subprocess.CompletedProcess(proc.args, proc.returncode, stdout,
+                                                      stderr),
+                          r"bad\.png: cannot decode PNG image")

@@ -196,7 +196,8 @@ def _set_verbosity(ctx: click.Context, param: click.Parameter, value: int) -> in
     # third-party warnings only with -v: without it, stderr carries at most the error line
     logging.getLogger("py.warnings").setLevel(logging.WARNING if _STATE["verbose"]
                                               else logging.ERROR)
-    for noisy in ("rasterio", "matplotlib", "PIL", "tifffile", "numcodecs", "zarr"):
+    for noisy in ("rasterio", "matplotlib", "PIL", "tifffile", "numcodecs", "zarr",
+                  "imagecodecs"):
         logging.getLogger(noisy).setLevel(logging.WARNING if _STATE["verbose"] >= 2
                                           else logging.ERROR)
     # zarr's event loop, torn down at exit after a failed read, reports its pending tasks
