@@ -135,6 +135,28 @@ elif mode == "slow":
             return f(*args, **kwargs)
         return wrapped
     R.write_png, R.write_tiff, R.write_json = map(slow, (R.write_png, R.write_tiff, R.write_json))
+elif mode == "codec-warns":  # imagecodecs logs a warning before its decoder fails
+    import logging
+    import imagecodecs
+    decode = imagecodecs.png_decode
+    def noisy(*args, **kwargs):
+        logging.getLogger("imagecodecs").warning("PNG warning: IDAT: incorrect data check")
+        return decode(*args, **kwargs)
+    imagecodecs.png_decode = noisy
+elif mode == "lazy":  # every TIFF and zarr input read window by window, as large ones are
+    import reblur.io
+    reblur.io.LAZY_BYTES = 0
+elif mode == "compute":
+    # the masks go to a work store on disk (as for inputs over 64 MP); the marker appears
+    # when the computation starts
+    import reblur
+    import reblur.cli as C
+    C.LARGE_MASK_PIXELS = 0
+    detect = reblur.detect_changes
+    def marked(*args, **kwargs):
+        open(marker, "a").close()
+        return detect(*args, **kwargs)
+    reblur.detect_changes = marked
 from reblur.cli import main
 sys.argv = ["reblur", *sys.argv[3:]]
 main()
@@ -258,22 +280,69 @@ def test_killed_runs_leave_no_or_complete_results_and_are_cleaned(tmp_path, pair
 
 
 def test_overwrite_into_a_folder_with_other_files(tmp_path, pair):
-    """A folder that also holds a file of the user's (here: the inputs) is filled file by
-    file; the other file stays, stale results go, the set is complete."""
+    """A folder that also holds files of the user's (here: the inputs, and a changes.tif no
+    earlier report lists) is filled file by file; those files stay, with a warning for the
+    one that has a result's name, and the new set is complete."""
+    import json
+
     ref, obs = pair
     out = ref.parent
-    (out / "changes.tif").write_bytes(b"stale result of an older run")
+    (out / "changes.tif").write_bytes(b"a user's own file, not a reblur result")
     res = run(*detect_args(pair, out))
     assert_one_line_error(res, r"already holds results \(changes\.tif\)")
     res = run(*detect_args(pair, out, "--overwrite"))
     assert res.returncode == 0, res.stderr
+    assert res.stderr == (f"reblur: WARNING: left {out / 'changes.tif'} in place: this run does "
+                          "not write it and the earlier report does not list it (it is not "
+                          "part of the new result set)\n")
+    assert (out / "changes.tif").read_bytes() == b"a user's own file, not a reblur result"
     inputs = {ref.name: ref.read_bytes(), obs.name: obs.read_bytes()}
-    for p in (ref, obs):
+    for p in (ref, obs, out / "changes.tif"):
         p.rename(tmp_path / p.name)
     assert_complete(out)
-    assert not (out / "changes.tif").exists()
+    assert "changes.tif" not in json.loads((out / "report.json").read_text())["files"]
     assert {n: (tmp_path / n).read_bytes() for n in inputs} == inputs
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["in", *inputs])
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["in", "changes.tif", *inputs])
+
+
+@pytest.mark.parametrize("other", [False, True], ids=["swapped", "file-by-file"])
+def test_overwrite_removes_only_the_earlier_sets_files(tmp_path, other):
+    """--overwrite removes the files the earlier report.json lists (its changes.tif of a
+    larger input, which this run does not write) and leaves a file of a result's name it
+    does not list; whether the folder is swapped whole or filled file by file."""
+    import json
+
+    import reblur.outdir as od
+
+    names = ("changes.png", "changes.tif", "changes.geojson", "unknown.tif", "report.json")
+    out = tmp_path / "res"
+    out.mkdir()
+    earlier = {"changes.png": "changes.png", "changes.tif": "changes.tif",
+               "changes.geojson": "changes.geojson", "report.json": "report.json"}
+    for n in earlier:
+        (out / n).write_text("earlier")
+    (out / "report.json").write_text(json.dumps({"files": earlier}))
+    (out / "unknown.tif").write_text("not listed: someone else's")
+    if other:
+        (out / "notes.txt").write_text("mine")
+    with od.output_set(out, names, overwrite=True, last=("report.json",),
+                       manifest="report.json") as stage:
+        (stage / "changes.png").write_text("new")
+        (stage / "report.json").write_text(json.dumps({"files": {"changes.png": "changes.png",
+                                                                 "report.json": "report.json"}}))
+    got = {p.name: p.read_text() for p in out.iterdir()}
+    assert got.pop("changes.png") == "new"
+    assert json.loads(got.pop("report.json"))["files"] == {"changes.png": "changes.png",
+                                                           "report.json": "report.json"}
+    assert got == {"unknown.tif": "not listed: someone else's",
+                   **({"notes.txt": "mine"} if other else {})}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["res"]
+    # without a manifest (reblur simulate's set), every file of the names is a result
+    (out / "changes.tif").write_text("earlier")
+    with od.output_set(out, names, overwrite=True) as stage:
+        (stage / "changes.png").write_text("newer")
+    assert sorted(p.name for p in out.iterdir()) == ["changes.png"] + (
+        ["notes.txt"] if other else [])
 
 
 def test_second_run_into_a_locked_folder_is_refused(tmp_path, pair):
@@ -406,3 +475,519 @@ def test_other_formats_sized_from_their_header(tmp_path):
         np.testing.assert_array_equal(open_image(tmp_path / name).read(), a)
         with pytest.raises(InputError, match=r"3,840 pixels \(80x48\), more than the limit"):
             open_image(tmp_path / name, max_pixels=3000)
+
+
+# ---------------------------------------------------------------------------- interrupts
+def _signal_when_marked(proc: subprocess.Popen, marker: Path, sig: int, delay: float) -> None:
+    import time
+
+    t_end = time.monotonic() + 120
+    while not marker.exists():
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < t_end
+        time.sleep(0.02)
+    time.sleep(delay)
+    proc.send_signal(sig)
+
+
+@pytest.mark.parametrize("mode, delay", [("compute", 0.5), ("slow", 0.3)],
+                         ids=["computing", "writing"])
+def test_ctrl_c_exits_130_and_leaves_nothing(tmp_path, pair, mode, delay):
+    """SIGINT (Ctrl-C) while computing (with the masks' work store on disk) and while
+    writing: exit status 130, one line "interrupted", no temporary left anywhere."""
+    import signal
+
+    out = tmp_path / "res"
+    marker = tmp_path / "marker"
+    proc = drive(mode, marker, *detect_args(pair, out, "--workers", 2))
+    _signal_when_marked(proc, marker, signal.SIGINT, delay)
+    stdout, stderr = proc.communicate(timeout=60)
+    assert (proc.returncode, stdout, stderr) == (130, "", "reblur: error: interrupted\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in", "marker"]
+
+
+# ---------------------------------------------------------------------------- options
+@pytest.mark.parametrize("args, pattern", [
+    (("--threshold", "nan"), r"'--threshold': 'nan' is not a finite number"),
+    (("--threshold", "inf"), r"'--threshold': 'inf' is not a finite number"),
+    (("--threshold", "-1"), r"'--threshold': -1\.0 is not in the range x>0"),
+    (("--rz-max", "inf"), r"'--rz-max': 'inf' is not a finite number"),
+    (("--rz-max", "90"), r"'--rz-max': 90\.0 is not in the range 0<=x<=45"),
+    (("--rz-step", "nan"), r"'--rz-step': 'nan' is not a finite number"),
+    (("--lam", "1e308"), r"'--lam': 1e\+308 is not in the range 0<x<=1000"),
+    (("--lam", "-inf"), r"'--lam': '-inf' is not a finite number"),
+    (("--rz-step", "1e-9"), r"pose grid would hold 3,750,000,000,625 poses \(25x25 "
+                            r"translations x 6,000,000,001 rotations\), more than the budget "
+                            r"of 33,554,432 poses"),
+    (("--t-max", "3000", "--rz-step", "0.5"), r"pose grid would hold 468,156,013 poses"),
+], ids=lambda v: " ".join(v) if isinstance(v, tuple) else None)
+def test_absurd_option_values_refused_up_front(tmp_path, args, pattern):
+    """Refused before any input is opened (the inputs do not even exist): usage error 2."""
+    from click.testing import CliRunner
+
+    from reblur.cli import main
+
+    res = CliRunner().invoke(main, ["detect", str(tmp_path / "nope.png"),
+                                    str(tmp_path / "nope2.png"), "--out",
+                                    str(tmp_path / "res"), *args])
+    assert res.exit_code == 2, res.output
+    lines = res.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("reblur: error: Invalid value for "), lines
+    assert re.search(pattern, lines[0]), lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("option, value", [("--noise", "nan"), ("--rz-max", "inf"),
+                                           ("--shift-frac", "2"), ("--t-max", "-1")])
+def test_simulate_refuses_absurd_values(tmp_path, option, value):
+    from click.testing import CliRunner
+
+    from reblur.cli import main
+
+    res = CliRunner().invoke(main, ["simulate", str(tmp_path / "nope.png"), "--out",
+                                    str(tmp_path / "sim"), option, value])
+    assert res.exit_code == 2, res.output
+    assert re.fullmatch(rf"reblur: error: Invalid value for '{option}': .*\n", res.output)
+
+
+def test_pose_budget_in_the_library():
+    """The grid's size is computed from its ranges before anything is allocated: a grid of
+    6e9 rotations is refused at once, and the count matches the grid actually built."""
+    from reblur.grid import MAX_POSES, PoseGrid, grid_size_for
+
+    for kw in (dict(t_max=3, rz_max=1.0, rz_step=0.3), dict(t_max=0, rz_max=0.0, rz_step=None),
+               dict(t_max=5, rz_max=2.0, corner_px=1.0, rz_step=None)):
+        grid = PoseGrid.from_ranges((300, 400), **kw)
+        assert grid_size_for((300, 400), **kw) == grid.size
+    assert PoseGrid.from_ranges((300, 400), t_max=3, rz_max=1.0, rz_step=0.3).rz == (
+        -1.2, -0.8999999999999999, -0.6, -0.3, 0.0, 0.3, 0.6, 0.8999999999999999, 1.2)
+    with pytest.raises(ValueError, match=rf"more than the budget of {MAX_POSES:,} poses"):
+        PoseGrid.from_ranges((300, 400), rz_max=3.0, rz_step=1e-9)
+    for bad in (dict(rz_max=float("inf")), dict(rz_step=float("nan")), dict(t_max=-1)):
+        with pytest.raises(ValueError, match=r"must be a finite number >= 0"):
+            PoseGrid.from_ranges((300, 400), **bad)
+
+
+# ---------------------------------------------------------------------------- windowed reads
+def _flip_tiff_segment(path: Path, index: int) -> None:
+    """Corrupt the compressed data of tile/strip ``index`` (its first two bytes kept)."""
+    with tifffile.TiffFile(path) as tif:
+        off = int(tif.pages[0].dataoffsets[index])
+        n = int(tif.pages[0].databytecounts[index])
+    data = bytearray(path.read_bytes())
+    data[off + 2 : off + n] = bytes(b ^ 0x55 for b in data[off + 2 : off + n])
+    path.write_bytes(bytes(data))
+
+
+def _set_tiff_tag(path: Path, code: int, value: int | None) -> None:
+    """Set a short tag of the first IFD of a little-endian classic TIFF (``None``: rename the
+    tag to an unknown code, as if it were missing)."""
+    import struct
+
+    data = bytearray(path.read_bytes())
+    ifd = struct.unpack("<I", data[4:8])[0]
+    for i in range(struct.unpack("<H", data[ifd : ifd + 2])[0]):
+        e = ifd + 2 + 12 * i
+        if struct.unpack("<H", data[e : e + 2])[0] == code:
+            if value is None:
+                data[e : e + 2] = struct.pack("<H", 65000)
+            else:
+                data[e + 8 : e + 10] = struct.pack("<H", value)
+    path.write_bytes(bytes(data))
+
+
+@pytest.fixture
+def tiled_pair(tmp_path, pair):
+    """The test pair as tiled TIFFs (64 px tiles, deflate)."""
+    d = tmp_path / "tif"
+    d.mkdir()
+    for p in pair:
+        tifffile.imwrite(d / (p.stem + ".tif"), open_image(p).read(), tile=(64, 64),
+                         compression="deflate")
+    return d / "ref.tif", d / "obs.tif"
+
+
+def test_corrupt_tile_of_a_lazily_read_tiff_is_named(pair, tiled_pair):
+    ref, _ = tiled_pair
+    _flip_tiff_segment(ref, 10)  # not the first tile: found while the windows are read
+    img = open_image(ref, lazy=True)
+    np.testing.assert_array_equal(img.array[0:64, 0:64], open_image(pair[0]).read()[0:64, 0:64])
+    with pytest.raises(InputError, match=r"ref\.tif: cannot decode the image data at rows "
+                                         r"128-191, columns 128-191 \(.*\): the file is corrupt"):
+        img.array[128:192, 128:192]
+
+
+def test_corrupt_chunk_of_a_lazily_read_zarr_is_named(tmp_path):
+    a = textured(np.random.default_rng(15), 128, 128, bands=1)
+    store = tmp_path / "ref.zarr"
+    zarr.create_array(str(store), shape=a.shape, chunks=(64, 64), dtype="u1",
+                      fill_value=0)[...] = a
+    chunk = store / "c" / "1" / "1"
+    chunk.write_bytes(bytes(b ^ 0x55 for b in chunk.read_bytes()))
+    img = open_image(store, lazy=True)
+    np.testing.assert_array_equal(img.array[0:64, 0:64], a[0:64, 0:64])
+    with pytest.raises(InputError, match=r"ref\.zarr: cannot decode the image data at rows "
+                                         r"32-99, columns 0-127"):
+        img.array[32:100, :]
+    # the first chunk corrupt: refused when opened
+    first = store / "c" / "0" / "0"
+    first.write_bytes(bytes(b ^ 0x55 for b in first.read_bytes()))
+    with pytest.raises(InputError, match=r"ref\.zarr: cannot decode the image data at rows "
+                                         r"0-63, columns 0-63"):
+        open_image(store, lazy=True)
+
+
+@pytest.mark.parametrize("lazy", [False, True])
+def test_undecodable_tiff_compression_refused_at_open(tiled_pair, lazy):
+    ref, _ = tiled_pair
+    _set_tiff_tag(ref, 259, 60123)  # Compression: a code no codec knows
+    with pytest.raises(InputError, match=r"ref\.tif: TIFF compression 60123 cannot be decoded"):
+        open_image(ref, lazy=lazy)
+    _set_tiff_tag(ref, 259, 34887)  # LERC: a known codec, but the data is deflate
+    with pytest.raises(InputError, match=r"ref\.tif: cannot decode (TIFF|the) image data"):
+        open_image(ref, lazy=lazy)
+
+
+def test_corrupt_large_tiff_in_the_cli_is_one_named_line(tmp_path, tiled_pair):
+    """The CLI with every input read window by window (as inputs over 512 MB are): a corrupt
+    tile deep in the file gives one line naming it; no internal error, no asyncio noise."""
+    ref, obs = tiled_pair
+    _flip_tiff_segment(ref, 10)
+    out = tmp_path / "res"
+    proc = drive("lazy", tmp_path / "m", "detect", ref, obs, "--out", out, *FAST,
+                 "--workers", 2)
+    stdout, stderr = proc.communicate(timeout=120)
+    res = subprocess.CompletedProcess(proc.args, proc.returncode, stdout, stderr)
+    assert_one_line_error(res, r"ref\.tif: cannot decode the image data at rows \d+-\d+, "
+                               r"columns \d+-\d+ \(.*\): the file is corrupt or truncated")
+    assert not out.exists()
+
+
+def test_tifffile_log_lines_become_part_of_the_one_line(tmp_path, tiled_pair):
+    ref, obs = tiled_pair
+    _set_tiff_tag(ref, 325, None)  # TileByteCounts missing: tifffile logs two ERROR lines
+    res = run("detect", ref, obs, "--out", tmp_path / "res", "-q")
+    assert_one_line_error(res, r"ref\.tif: TIFF header is corrupt: the image's tile or strip "
+                               r"table is missing or invalid \(tifffile: .*ByteCounts")
+
+
+# ---------------------------------------------------------------------------- diagnoses
+def test_symlink_loops_are_named(tmp_path, pair):
+    (tmp_path / "a.png").symlink_to(tmp_path / "b.png")
+    (tmp_path / "b.png").symlink_to(tmp_path / "a.png")
+    (tmp_path / "o1").symlink_to(tmp_path / "o2")
+    (tmp_path / "o2").symlink_to(tmp_path / "o1")
+    with pytest.raises(InputError, match=r"a\.png: symlink loop: the path cannot be resolved"):
+        open_image(tmp_path / "a.png")
+    before = sorted(p.name for p in tmp_path.iterdir())
+    for args in ((tmp_path / "a.png", pair[1], "--out", tmp_path / "res"),
+                 (*pair, "--out", tmp_path / "o1" / "res")):
+        res = run("detect", *args, "-q")
+        assert_one_line_error(res, r"(a\.png|o1/res): symlink loop: the path cannot be resolved")
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_sizes_far_apart_are_named_not_textureless(tmp_path):
+    """A thumbnail-sized observation of a large reference: the sizes are the problem (it
+    was reported as "images are textureless")."""
+    from reblur.io import MAX_SIZE_RATIO, Image, check_sizes
+
+    rng = np.random.default_rng(16)
+    big = textured(rng, 1024, 1024, bands=1)
+    small = cv2.resize(big, (64, 64), interpolation=cv2.INTER_AREA)
+    write_png(tmp_path / "big.png", big)
+    write_png(tmp_path / "small.png", small)
+    res = run("detect", tmp_path / "big.png", tmp_path / "small.png", "--out", tmp_path / "res")
+    line = assert_one_line_error(res, r"the sizes of .*small\.png \(64x64\) and .*big\.png "
+                                      r"\(1024x1024\) disagree by a factor of 16: the "
+                                      r"observation is not a view of the reference at a "
+                                      r"compatible scale")
+    assert "textureless" not in line
+    assert not (tmp_path / "res").exists()
+    # the limit: half the size passes, a quarter does not, either way round
+    for side, ok in ((512, True), (257, True), (256, False)):
+        a = Image.from_array(np.zeros((side, 1024), np.uint8), "a")
+        b = Image.from_array(np.zeros((1024, 1024), np.uint8), "b")
+        for pair_ in ((a, b), (b, a)):
+            if ok:
+                check_sizes(*pair_)
+            else:
+                with pytest.raises(InputError, match=rf"factor of {1024 / side:g}"):
+                    check_sizes(*pair_)
+    assert MAX_SIZE_RATIO == 4
+
+
+def test_wide_integer_data_rescaled_from_the_range_it_uses(tmp_path):
+    """int64 data holding 8-bit values was "textureless" (values / 2**63): it is read as
+    float32 from the range it uses, lazily too; masks keep their values."""
+    a = textured(np.random.default_rng(17), 80, 96, bands=1).astype(np.int64) * 3 - 100
+    lo, hi = int(a.min()), int(a.max())
+    expect = ((a - lo) / (hi - lo)).astype(np.float32)
+    for dtype in (np.int64, np.uint32, np.int32):
+        b = a - lo if dtype == np.uint32 else a
+        tifffile.imwrite(tmp_path / "w.tif", b.astype(dtype), tile=(32, 32))
+        for lazy in (False, True):
+            img = open_image(tmp_path / "w.tif", lazy=lazy)
+            assert img.dtype == np.float32
+            np.testing.assert_allclose(img.read(), expect, atol=1e-6)
+            assert any("rescaled" in n and f"[{lo - (lo if dtype == np.uint32 else 0)}" in n
+                       for n in img.notes), img.notes
+    # 8/16-bit data keep their type; a constant wide image is left as it is
+    tifffile.imwrite(tmp_path / "c.tif", np.full((40, 40), 7, np.int64))
+    assert open_image(tmp_path / "c.tif").dtype == np.int64
+    tifffile.imwrite(tmp_path / "u.tif", a.astype(np.uint16) + 100)
+    assert open_image(tmp_path / "u.tif").dtype == np.uint16
+
+
+def test_wide_integer_pair_detects_the_change_and_names_are_escaped(tmp_path, pair):
+    """The test pair stored as int64 (it was refused as "textureless") finds the painted
+    change, written into a folder whose name holds a newline and a terminal escape: every
+    printed line keeps them escaped."""
+    ref, obs = (open_image(p).read().astype(np.int64) for p in pair)
+    d = tmp_path / "in64"
+    d.mkdir()
+    tifffile.imwrite(d / "ref.tif", ref, photometric="rgb")
+    tifffile.imwrite(d / "obs.tif", obs, photometric="rgb")
+    out = tmp_path / "res\n\x1b[31mred"
+    res = run("detect", d / "ref.tif", d / "obs.tif", "--out", out, *FAST, "-v")
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.endswith("-> " + str(tmp_path) + "/res\\n\\x1b[31mred/overlay.png\n")
+    assert res.stdout.count("\n") == 1
+    for stream in (res.stdout, res.stderr):
+        assert "\x1b" not in stream
+    assert all(line.startswith("reblur: ") for line in res.stderr.splitlines()), res.stderr
+    changes = cv2.imread(str(out / "changes.png"), cv2.IMREAD_UNCHANGED) > 0
+    truth = np.zeros_like(changes)
+    truth[60:80, 60:90] = True  # painted in the observation, whose frame changes.png is in
+    near = np.zeros_like(changes)
+    near[50:90, 50:100] = True  # the change and a 10 px rim (the closing of the regions)
+    assert (changes & truth).sum() >= 0.95 * truth.sum()
+    assert not (changes & ~near).any()
+
+
+@pytest.mark.parametrize("name", ["no\nsuch\x1b]0;owned\x07.png", "bad\udcff\x9b2J.png"],
+                         ids=["newline-osc", "not-utf8-csi"])
+def test_error_lines_escape_control_characters(tmp_path, pair, name):
+    from reblur.io import display_path
+
+    p = os.fsencode(tmp_path / name)
+    res = subprocess.run([sys.executable, "-m", "reblur", "detect", p, os.fsencode(pair[1]),
+                          "--out", os.fsencode(tmp_path / "res")], capture_output=True)
+    assert res.returncode == 1 and res.stdout == b""
+    line = res.stderr.decode("utf-8")  # undecodable bytes would fail here
+    assert line == f"reblur: error: {display_path(tmp_path / name)}: no such file\n"
+    assert line.count("\n") == 1 and "\x1b" not in line and "\x07" not in line
+    assert display_path(name) in (r"no\nsuch\x1b]0;owned\x07.png", r"bad\xff\x9b2J.png")
+
+
+# ---------------------------------------------------------------------------- work store
+def test_large_run_work_store_never_in_the_output_folder(tmp_path, pair):
+    """The masks' work store of a large run (forced here on a small pair) lives in the
+    temporary sibling: a run killed while computing leaves no output folder, only its
+    temporary, which the next run removes even when that run fails."""
+    import signal
+
+    out = tmp_path / "res"
+    marker = tmp_path / "marker"
+    proc = drive("compute", marker, *detect_args(pair, out))
+    seen: list[str] = []
+
+    def work_store_exists() -> bool:
+        seen[:] = [str(p.relative_to(tmp_path)) for p in tmp_path.glob(".res.reblur-tmp-*/*")]
+        return any(".reblur-work-" in s for s in seen)
+
+    import time
+
+    t_end = time.monotonic() + 60
+    while not (marker.exists() and work_store_exists()):
+        assert proc.poll() is None, proc.communicate()
+        assert time.monotonic() < t_end
+        time.sleep(0.02)
+    assert not out.exists()  # not created before the results are complete
+    proc.send_signal(signal.SIGKILL)
+    proc.communicate(timeout=30)
+    left = sorted(p.name for p in tmp_path.iterdir() if p.name not in ("in", "marker"))
+    assert len(left) == 2 and left[0] == ".res.reblur-lock"  # released by the kernel
+    assert left[1].startswith(f".res.reblur-tmp-{proc.pid}-")
+    # the next run fails (its truth mask has the wrong size) and still cleans up after both
+    write_png(tmp_path / "in" / "truth.png", np.zeros((40, 40), bool))
+    res = run(*detect_args(pair, out, "--truth", tmp_path / "in" / "truth.png"))
+    assert_one_line_error(res, r"truth mask is 40x40 pixels")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in", "marker"]
+
+
+# ---------------------------------------------------------------------------- a real full disk
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 160 KB tmpfs (the test pair's results take about 260 KB): skipped where mounting
+    is not permitted."""
+    import shutil
+
+    where = tmp_path / "disk"
+    where.mkdir()
+    if shutil.which("mount") is None or os.geteuid() != 0:
+        pytest.skip("mounting a tmpfs needs root and mount(8)")
+    res = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=160k", "tmpfs", str(where)],
+                         capture_output=True, text=True)
+    if res.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {res.stderr.strip()}")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+def test_real_disk_full_leaves_no_output(small_disk, pair):
+    """The disk fills while the results are written (no writer patched): one line, no
+    output folder, no temporary or lock left on the disk.  (With --overwrite an earlier set
+    stays intact: test_disk_full_mid_write_leaves_no_output.)"""
+    out = small_disk / "res"
+    res = run(*detect_args(pair, out))
+    assert_one_line_error(res, r"res: cannot write the results \(No space left on device\); "
+                               r"nothing was written")
+    assert list(small_disk.iterdir()) == []
+
+
+# ---------------------------------------------------------------------------- property-based
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+_SAMPLE: dict = {}
+
+
+def _samples() -> dict[str, tuple[dict[str, bytes], np.ndarray, tuple[int, int]]]:
+    """Valid inputs of each format, as ``{name: (files, decoded array, payload span)}``:
+    ``files`` maps a relative path to its bytes (a zarr store is a directory), the payload
+    span is where the format's integrity check covers the bytes (flips there must be
+    caught: PNG's chunk CRCs, the TIFF tiles' deflate checksums, a crc32c zarr codec)."""
+    if _SAMPLE:
+        return _SAMPLE
+    import tempfile
+
+    from zarr.codecs import Crc32cCodec, ZstdCodec
+
+    a = textured(np.random.default_rng(18), 48, 40)
+    with tempfile.TemporaryDirectory() as d:
+        d = Path(d)
+        write_png(d / "a.png", a)
+        png = (d / "a.png").read_bytes()
+        _SAMPLE["png"] = ({"a.png": png}, a, (8, len(png)))
+        jpg = cv2.imencode(".jpg", a[..., ::-1])[1].tobytes()
+        _SAMPLE["jpeg"] = ({"a.jpg": jpg}, open_image_bytes(d, "a.jpg", jpg), (0, 0))
+        tifffile.imwrite(d / "a.tif", a, tile=(16, 16), compression="deflate",
+                         photometric="rgb")
+        with tifffile.TiffFile(d / "a.tif") as tif:
+            offs, cnts = tif.pages[0].dataoffsets, tif.pages[0].databytecounts
+        _SAMPLE["tiff"] = ({"a.tif": (d / "a.tif").read_bytes()}, a,
+                           (int(min(offs)), int(max(np.add(offs, cnts)))))
+        z = zarr.create_array(str(d / "a.zarr"), shape=a.shape, chunks=(16, 16, 3),
+                              dtype="u1", fill_value=0,
+                              compressors=[ZstdCodec(), Crc32cCodec()])
+        z[...] = a
+        files = {str(p.relative_to(d)): p.read_bytes() for p in (d / "a.zarr").rglob("*")
+                 if p.is_file()}
+        _SAMPLE["zarr"] = (files, a, (0, 0))
+    return _SAMPLE
+
+
+def open_image_bytes(d: Path, name: str, data: bytes) -> np.ndarray:
+    (d / name).write_bytes(data)
+    return open_image(d / name).read()
+
+
+@st.composite
+def _mutations(draw):
+    """``(format, file to mutate, new bytes, must be caught)``."""
+    fmt = draw(st.sampled_from(["png", "jpeg", "tiff", "zarr"]))
+    files, _, (p0, p1) = _samples()[fmt]
+    if fmt == "zarr":
+        name = draw(st.sampled_from(sorted(files)))  # a chunk, or the metadata
+    else:
+        name = next(iter(files))
+    data = bytearray(files[name])
+    if draw(st.booleans()):
+        cut = draw(st.integers(0, len(data) - 1))
+        return fmt, name, bytes(data[:cut]), True  # truncated: refused, whatever the format
+    in_payload = draw(st.booleans()) and p1 > p0
+    caught = True
+    for _ in range(draw(st.integers(1, 3))):
+        if in_payload:
+            i = draw(st.integers(p0, p1 - 1))
+        elif fmt == "zarr" and name.startswith("a.zarr/c/"):
+            i = draw(st.integers(0, len(data) - 1))  # a chunk: crc32c covers it all
+        else:
+            i = draw(st.integers(0, len(data) - 1))
+            caught = fmt == "png" and i >= 8  # PNG: every chunk has a CRC
+        data[i] ^= draw(st.integers(1, 255))
+    return fmt, name, bytes(data), caught
+
+
+def _write(d: Path, fmt: str, name: str, data: bytes) -> Path:
+    files = _samples()[fmt][0]
+    for rel, b in files.items():
+        (d / rel).parent.mkdir(parents=True, exist_ok=True)
+        (d / rel).write_bytes(data if rel == name else b)
+    return d / ("a.zarr" if fmt == "zarr" else name)
+
+
+@settings(max_examples=60, deadline=None, derandomize=True,
+          suppress_health_check=[HealthCheck.too_slow])
+@given(mutation=_mutations(), lazy=st.booleans())
+def test_readers_never_accept_changed_content(mutation, lazy):
+    """Random truncations and byte flips of valid PNG, JPEG, TIFF and zarr inputs: the reader
+    refuses them with one line naming the file (any other exception fails the test, with its
+    traceback), or gives back exactly the original pixels wherever the format can tell (a
+    truncation anywhere; a flip under a checksum).  Without a checksum (JPEG data, TIFF
+    tags, zarr metadata) a flip may change what the file says: not caught, never a crash."""
+    import tempfile
+
+    fmt, name, data, caught = mutation
+    _, original, _ = _samples()[fmt]
+    with tempfile.TemporaryDirectory() as d:
+        path = _write(Path(d), fmt, name, data)
+        try:
+            with open_image(path, lazy=lazy and fmt in ("tiff", "zarr")) as img:
+                got = img.read()
+        except InputError as exc:
+            msg = str(exc)
+            assert "\n" not in msg and msg.startswith(f"{path}: "), msg
+            return
+    if caught and data != _samples()[fmt][0][name]:
+        assert got.shape == original.shape and got.dtype == original.dtype
+        np.testing.assert_array_equal(got, original)
+
+
+@settings(max_examples=4, deadline=None, derandomize=True)
+@given(fmt=st.sampled_from(["png", "jpeg", "tiff", "zarr"]), frac=st.floats(0.05, 0.95))
+def test_truncated_inputs_refused_by_the_cli(fmt, frac):
+    """The CLI on a truncated reference (a zarr store: its first chunk): exit 1, one line
+    naming it, no output folder."""
+    import tempfile
+
+    files, _, _ = _samples()[fmt]
+    name = "a.zarr/c/0/0/0" if fmt == "zarr" else next(iter(files))
+    data = files[name][: int(frac * len(files[name]))]
+    with tempfile.TemporaryDirectory() as d:
+        d = Path(d)
+        bad = _write(d, fmt, name, data)
+        good = d / "good.png"
+        write_png(good, _samples()["png"][1])
+        line = assert_one_line_error(run("detect", bad, good, "--out", d / "res", "-q"))
+        assert bad.name in line
+        assert not (d / "res").exists()
+
+
+def test_codec_log_lines_stay_off_stderr(tmp_path, pair):
+    """imagecodecs logs libpng's warnings ("PNG warning: IDAT: incorrect data check") before
+    it raises: only the error line reaches stderr."""
+    data = bytearray(pair[0].read_bytes())
+    i = data.find(b"IDAT") + 200
+    data[i] ^= 0x5A
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(bytes(data))
+    proc = drive("codec-warns", tmp_path / "m", "detect", bad, pair[1], "--out",
+                 tmp_path / "res", "-q")
+    stdout, stderr = proc.communicate(timeout=60)
+    assert_one_line_error(subprocess.CompletedProcess(proc.args, proc.returncode, stdout,
+                                                      stderr),
+                          r"bad\.png: cannot decode PNG image")

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import shutil
 import sys
@@ -30,6 +31,8 @@ from .io import (
     DEFAULT_MAX_PIXELS,
     Image,
     InputError,
+    check_sizes,
+    display_path,
     open_image,
     read_mask,
     reconcile_bands,
@@ -62,7 +65,7 @@ def _describe(exc: BaseException) -> str:
     if isinstance(exc, MemoryError):
         return "out of memory (try a smaller --tile-size, or fewer --workers)"
     if isinstance(exc, OSError):
-        where = f"{exc.filename}: " if exc.filename else ""
+        where = f"{_show(exc.filename)}: " if exc.filename else ""
         return _one_line(f"{where}{exc.strerror or exc}")
     name = type(exc).__name__
     if type(exc).__module__.startswith("reblur"):
@@ -71,12 +74,43 @@ def _describe(exc: BaseException) -> str:
 
 
 def _fail(message: str, code: int) -> None:
-    click.echo(f"reblur: error: {_one_line(message)}", err=True)
+    # paths in messages are escaped where they are written (display_path); what is left
+    # non-printable (a library's message quoting a file name) is escaped here
+    click.echo(f"reblur: error: {display_path(_one_line(message))}", err=True)
     sys.exit(code)
 
 
+def _show(path: Any) -> str:
+    """A path as printed in messages: non-printable characters escaped (:func:`display_path`)."""
+    return display_path(path)
+
+
+class _PrintableFormatter(logging.Formatter):
+    """Log lines with non-printable characters of the message escaped (a file name with a
+    newline or a terminal escape sequence stays one inert line); tracebacks unchanged."""
+
+    def formatMessage(self, record: logging.LogRecord) -> str:
+        record.message = display_path(record.message)
+        return super().formatMessage(record)
+
+
+class _Interrupted(Exception):
+    """A KeyboardInterrupt (Ctrl-C) that ended a command, past click's own handler (which
+    would turn it into ``Abort`` and print a blank line)."""
+
+
 class _ReblurGroup(click.Group):
-    """Click group whose errors are one line on stderr, with a traceback only under -v."""
+    """Click group whose errors are one line on stderr, with a traceback only under -v.
+
+    Ctrl-C exits 130 with "interrupted" (the shell's convention for SIGINT), after the
+    command's own clean-up (:func:`reblur.outdir.output_set` removes its temporaries).
+    """
+
+    def invoke(self, ctx: click.Context) -> Any:
+        try:
+            return super().invoke(ctx)
+        except KeyboardInterrupt:
+            raise _Interrupted() from None
 
     def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True, **extra):
         if not standalone_mode:
@@ -85,14 +119,16 @@ class _ReblurGroup(click.Group):
             rv = super().main(
                 args, prog_name or "reblur", complete_var, standalone_mode=False, **extra
             )
-        except click.exceptions.Abort:
+        except click.exceptions.Abort as exc:
+            if isinstance(exc.__cause__, KeyboardInterrupt):  # Ctrl-C while parsing
+                _fail("interrupted", 130)
             _fail("aborted", 1)
         except click.UsageError as exc:
             cmd = exc.ctx.command_path if exc.ctx is not None else "reblur"
             _fail(f"{exc.format_message()} (see '{cmd} --help')", exc.exit_code)
         except click.ClickException as exc:
             _fail(exc.format_message(), exc.exit_code)
-        except KeyboardInterrupt:
+        except (KeyboardInterrupt, _Interrupted):
             _fail("interrupted", 130)
         except Exception as exc:  # noqa: BLE001 - the one place every error is reported
             if _STATE["verbose"]:
@@ -102,6 +138,34 @@ class _ReblurGroup(click.Group):
 
 
 # ---------------------------------------------------------------------------- options
+class _Finite(click.FloatRange):
+    """A float option that must be finite (no nan, inf) and within its range."""
+
+    name = "float"
+
+    def convert(self, value: Any, param: click.Parameter | None,
+                ctx: click.Context | None) -> float:
+        number = click.FLOAT.convert(value, param, ctx)
+        if not math.isfinite(number):
+            self.fail(f"{value!r} is not a finite number.", param, ctx)
+        return super().convert(number, param, ctx)
+
+
+def _check_grid(t_max: int, rz_max: float, rz_step: float | None) -> None:
+    """Refuse a pose grid over the budget before any input is read (its size does not depend
+    on the images when the rotation step is given)."""
+    if rz_step is None:
+        return
+    from .grid import grid_size_for
+
+    try:
+        grid_size_for((1, 1), t_max=t_max, rz_max=rz_max, rz_step=rz_step)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc).replace("rz_step", "--rz-step").replace(
+            "rz_max", "--rz-max").replace("t_max", "--t-max"),
+            param_hint="'--rz-step' / '--rz-max' / '--t-max'") from None
+
+
 def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | None):
     if value is None:
         return None
@@ -114,11 +178,17 @@ def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | No
     return value
 
 
+def _quiet_unraisable(unraisable: Any) -> None:
+    """``sys.unraisablehook`` without -v: what a library could not raise (a coroutine
+    garbage-collected at exit) is logged at debug level, not printed."""
+    log.debug("ignored in %r: %s", unraisable.object, unraisable.exc_value)
+
+
 def _set_verbosity(ctx: click.Context, param: click.Parameter, value: int) -> int:
     _STATE["verbose"] = max(_STATE["verbose"], int(value or 0))
     level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(_STATE["verbose"], 2)]
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter("reblur: %(levelname)s: %(message)s"))
+    handler.setFormatter(_PrintableFormatter("reblur: %(levelname)s: %(message)s"))
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(level)
@@ -126,9 +196,16 @@ def _set_verbosity(ctx: click.Context, param: click.Parameter, value: int) -> in
     # third-party warnings only with -v: without it, stderr carries at most the error line
     logging.getLogger("py.warnings").setLevel(logging.WARNING if _STATE["verbose"]
                                               else logging.ERROR)
-    for noisy in ("rasterio", "matplotlib", "PIL", "tifffile", "numcodecs", "zarr"):
+    for noisy in ("rasterio", "matplotlib", "PIL", "tifffile", "numcodecs", "zarr",
+                  "imagecodecs"):
         logging.getLogger(noisy).setLevel(logging.WARNING if _STATE["verbose"] >= 2
                                           else logging.ERROR)
+    # zarr's event loop, torn down at exit after a failed read, reports its pending tasks
+    # ("Task was destroyed but it is pending!", with their stacks): only with -v
+    logging.getLogger("asyncio").setLevel(logging.ERROR if _STATE["verbose"]
+                                          else logging.CRITICAL + 1)
+    # ... and the coroutines it drops then ("Exception ignored in: <coroutine ...>")
+    sys.unraisablehook = sys.__unraisablehook__ if _STATE["verbose"] else _quiet_unraisable
     return value
 
 
@@ -196,6 +273,15 @@ def _same_or_inside(a: Path, b: Path) -> bool:
     return a == b or b in a.parents
 
 
+def _resolve(path: Path) -> Path:
+    """``path`` made absolute with its symlinks resolved; a loop is one clear error."""
+    try:
+        return path.expanduser().resolve()
+    except (RuntimeError, OSError) as exc:  # 3.11: RuntimeError("Symlink loop from ...")
+        raise click.ClickException(
+            f"{_show(path)}: symlink loop: the path cannot be resolved") from exc
+
+
 def _check_output_dir(
     out: Path, inputs: list[Path], names: tuple[str, ...], overwrite: bool
 ) -> Path:
@@ -203,21 +289,22 @@ def _check_output_dir(
 
     Writes nothing: a missing directory is created (to prove it can be) and removed again.
     """
-    out_r = out.expanduser().resolve()
+    out_r = _resolve(out)
     for p in inputs:
-        p_r = p.expanduser().resolve()
+        p_r = _resolve(p)
         if _same_or_inside(out_r, p_r):
-            raise click.ClickException(f"{out}: output directory is (inside) the input {p}")
+            raise click.ClickException(
+                f"{_show(out)}: output directory is (inside) the input {_show(p)}")
         if p_r.parent == out_r and p_r.name in names:
-            raise click.ClickException(f"{out}: writing results there would overwrite the "
-                                       f"input {p}; choose another --out")
+            raise click.ClickException(f"{_show(out)}: writing results there would overwrite "
+                                       f"the input {_show(p)}; choose another --out")
     if out_r.exists():
         if not out_r.is_dir():
-            raise click.ClickException(f"{out}: exists and is not a directory")
+            raise click.ClickException(f"{_show(out)}: exists and is not a directory")
         found = [n for n in names if (out_r / n).exists()]
         if found and not overwrite:
             raise click.ClickException(
-                f"{out}: already holds results ({', '.join(found[:3])}"
+                f"{_show(out)}: already holds results ({', '.join(found[:3])}"
                 f"{', ...' if len(found) > 3 else ''}); use --overwrite to replace them"
             )
         try:
@@ -226,19 +313,20 @@ def _check_output_dir(
             os.unlink(tmp)
         except OSError as exc:
             raise click.ClickException(
-                f"{out}: output directory is not writable ({exc.strerror or exc})"
+                f"{_show(out)}: output directory is not writable ({exc.strerror or exc})"
             ) from exc
         return out_r
     anc = out_r
     while not anc.exists():
         anc = anc.parent
     if not anc.is_dir():
-        raise click.ClickException(f"{out}: cannot create the output directory ({anc} is a file)")
+        raise click.ClickException(
+            f"{_show(out)}: cannot create the output directory ({_show(anc)} is a file)")
     try:
         out_r.mkdir(parents=True)
     except OSError as exc:
         raise click.ClickException(
-            f"{out}: cannot create the output directory ({exc.strerror or exc})"
+            f"{_show(out)}: cannot create the output directory ({exc.strerror or exc})"
         ) from exc
     # remove what the probe created, deepest first
     d = out_r
@@ -254,6 +342,7 @@ def _open_pair(reference: Path, observed: Path, max_pixels: int) -> tuple[Image,
     for note_img in (ref, obs):
         for note in note_img.notes:
             log.info("%s: %s", note_img.name, note)
+    check_sizes(ref, obs)
     return reconcile_bands(ref, obs)
 
 
@@ -273,7 +362,8 @@ def _writing(out: Path):
             if exc.errno is None:
                 raise
             raise click.ClickException(
-                f"{out}: cannot write the results ({exc.strerror or exc}); nothing was written"
+                f"{_show(out)}: cannot write the results ({exc.strerror or exc}); nothing was "
+                "written"
             ) from exc
 
     return guard()
@@ -297,18 +387,20 @@ def main() -> None:
               help="Output directory (created; must not hold results unless --overwrite).")
 @click.option("--t-max", type=click.IntRange(min=0), default=12, show_default=True,
               help="Pose grid: largest in-plane translation |tx|, |ty| (pixels).")
-@click.option("--rz-max", type=click.FloatRange(min=0), default=3.0, show_default=True,
-              help="Pose grid: largest in-plane rotation |rz| (degrees).")
-@click.option("--rz-step", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--rz-max", type=_Finite(min=0, max=45), default=3.0, show_default=True,
+              help="Pose grid: largest in-plane rotation |rz| (degrees, at most 45).")
+@click.option("--rz-step", type=_Finite(min=0, min_open=True, max=45), default=None,
               help="Pose grid: rotation step (degrees).  Default: the step that moves the "
                    "farthest pixel by one pixel (0.5 deg is the paper's, too coarse for "
                    "large images).")
-@click.option("--lam", type=click.FloatRange(min=0), default=0.1, show_default=True,
-              help="l1 weight lambda of the joint blur/change estimate (intensities in [0, 1]).")
+@click.option("--lam", type=_Finite(min=0, min_open=True, max=1000), default=0.1,
+              show_default=True,
+              help="l1 weight lambda of the joint blur/change estimate (intensities in [0, 1]; "
+                   "at most 1000).")
 @click.option("--tile-size", type=click.IntRange(min=64), default=1024, show_default=True,
               help="Tile side (pixels) for reblurring and deciding; bounds the memory.")
-@click.option("--threshold", type=float, default=None,
-              help="Decision threshold; default: chosen from the data.")
+@click.option("--threshold", type=_Finite(min=0, min_open=True), default=None,
+              help="Decision threshold (> 0); default: chosen from the data.")
 @click.option("--truth", type=_PATH, default=None,
               help="True change mask (non-zero = change): scores go into report.json.")
 @max_pixels_option(DEFAULT_MAX_PIXELS)
@@ -339,14 +431,16 @@ def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float
     from .report import OUTPUT_NAMES, summary_line
 
     t0 = time.perf_counter()
+    _check_grid(t_max, rz_max, rz_step)
     inputs = [reference, observed] + ([truth] if truth is not None else [])
     out_dir = _check_output_dir(out, inputs, OUTPUT_NAMES, overwrite)
-    with output_set(out_dir, OUTPUT_NAMES, overwrite=overwrite, last=REPORT_NAMES) as stage:
+    with output_set(out_dir, OUTPUT_NAMES, overwrite=overwrite, last=REPORT_NAMES,
+                    manifest="report.json") as stage:
         summary = _detect(stage, out_dir, reference, observed, truth, max_pixels, quiet, t0,
                           dict(t_max=t_max, rz_max=rz_max, rz_step=rz_step, lam=lam,
                                tile_size=tile_size, threshold=threshold, workers=workers,
                                scheduler=scheduler))
-    click.echo(summary_line(summary, out))
+    click.echo(display_path(summary_line(summary, out)))
 
 
 def _detect(stage: Path, out_dir: Path, reference: Path, observed: Path, truth: Path | None,
@@ -415,7 +509,8 @@ def demo(out: Path, overwrite: bool, quiet: bool) -> None:
     obs = Image.from_array(observed, "demo observed")
     import reblur
 
-    with output_set(out_dir, OUTPUT_NAMES, overwrite=overwrite, last=REPORT_NAMES) as stage:
+    with output_set(out_dir, OUTPUT_NAMES, overwrite=overwrite, last=REPORT_NAMES,
+                    manifest="report.json") as stage:
         progress = None if quiet else _Progress()
         try:
             result = reblur.detect_changes(ref.array, obs.array, progress=progress)
@@ -425,8 +520,8 @@ def demo(out: Path, overwrite: bool, quiet: bool) -> None:
         with _writing(out_dir):
             _, summary = write_report(result, stage, reference=ref, observed=obs,
                                       truth=truth, options=dict(command="demo"))
-    click.echo(summary_line(summary, out))
-    click.echo(f"open {out / 'report.html'} for the full report")
+    click.echo(display_path(summary_line(summary, out)))
+    click.echo(f"open {_show(out / 'report.html')} for the full report")
 
 
 @main.command(short_help="Make a synthetic blurred pair with known changes.")
@@ -435,19 +530,19 @@ def demo(out: Path, overwrite: bool, quiet: bool) -> None:
 @click.option("--after", type=_PATH, default=None,
               help="A real later image of the same scene (aligned with IMAGE) to blur.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
-@click.option("--t-max", type=click.FloatRange(min=0), default=6.0, show_default=True,
+@click.option("--t-max", type=_Finite(min=0, max=1000), default=6.0, show_default=True,
               help="Camera shake: largest translation (pixels).")
-@click.option("--rz-max", type=click.FloatRange(min=0), default=1.0, show_default=True,
+@click.option("--rz-max", type=_Finite(min=0, max=45), default=1.0, show_default=True,
               help="Camera shake: largest in-plane rotation (degrees).")
-@click.option("--shift-frac", type=click.FloatRange(min=0), default=0.02, show_default=True,
+@click.option("--shift-frac", type=_Finite(min=0, max=0.5), default=0.02, show_default=True,
               help="Viewpoint change: largest shift, as a fraction of the image size.")
-@click.option("--rot-deg", type=click.FloatRange(min=0), default=2.0, show_default=True,
+@click.option("--rot-deg", type=_Finite(min=0, max=180), default=2.0, show_default=True,
               help="Viewpoint change: largest rotation (degrees).")
 @click.option("--changes", "n_changes", type=click.IntRange(min=0), default=4,
               show_default=True, help="Number of pasted objects.")
 @click.option("--moving/--no-moving", default=True, show_default=True,
               help="Add an object moving during the exposure.")
-@click.option("--noise", type=click.FloatRange(min=0), default=1.0 / 255.0,
+@click.option("--noise", type=_Finite(min=0, max=1), default=1.0 / 255.0,
               show_default="1/255", help="Gaussian noise sigma (intensities in [0, 1]).")
 @max_pixels_option(100_000_000)
 @overwrite_option
@@ -472,7 +567,7 @@ def simulate(image: Path, out: Path, after: Path | None, seed: int, t_max: float
                          rot_deg, n_changes, moving, noise, max_pixels)
     frac = float(np.mean(pair.truth))
     click.echo(f"simulated {pair.observed.shape[1]}x{pair.observed.shape[0]} pair, "
-               f"{100 * frac:.2f} % changed -> {out}")
+               f"{100 * frac:.2f} % changed -> {_show(out)}")
 
 
 def _simulate(stage: Path, out_dir: Path, image: Path, after: Path | None, seed: int,
@@ -487,8 +582,8 @@ def _simulate(stage: Path, out_dir: Path, image: Path, after: Path | None, seed:
     before = open_image(image, max_pixels=max_pixels).read()
     later = open_image(after, max_pixels=max_pixels).read() if after is not None else None
     if later is not None and later.shape != before.shape:
-        raise click.ClickException(f"{after}: shape {later.shape} differs from {image}'s "
-                                   f"{before.shape}")
+        raise click.ClickException(f"{_show(after)}: shape {later.shape} differs from "
+                                   f"{_show(image)}'s {before.shape}")
     pair = make_pair(
         before, later, rng=np.random.default_rng(seed),
         shake=dict(t_max=t_max, rz_max=rz_max) if (t_max or rz_max) else None,

@@ -24,6 +24,7 @@ Conventions (used everywhere in reblur)
 from __future__ import annotations
 
 import itertools
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -36,7 +37,15 @@ __all__ = [
     "local_homography",
     "map_points",
     "mean_source_points",
+    "MAX_POSES",
+    "grid_size_for",
 ]
+
+#: Pose budget of :meth:`PoseGrid.from_ranges`: a grid of more poses is refused before any
+#: of it is built (a weight vector of this many poses takes 256 MiB in float64, and the
+#: estimate correlates every window with every pose).  The default grid of a 4-gigapixel
+#: image (``t_max=12``, ``rz_max=3``, one-pixel rotation step) holds 2.9 million poses.
+MAX_POSES = 2**25
 
 _AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
 
@@ -258,15 +267,11 @@ class PoseGrid:
         ``corner_px`` (if given) overrides ``rz_step`` so that one rotation step moves the
         pixel farthest from the principal point by at most ``corner_px`` pixels.
         """
-        t = np.arange(-int(t_max), int(t_max) + 1)
         shape = tuple(int(s) for s in image_shape)
-        if corner_px is not None:
-            rz_step = rotation_step_for(shape, corner_px, center)
-        if rz_max <= 0:
-            rz = np.array([0.0])
-        else:
-            n = int(np.ceil(rz_max / rz_step - 1e-9))
-            rz = rz_step * np.arange(-n, n + 1)
+        n_t, n_rz, rz_step = _range_counts(shape, t_max, rz_max, rz_step, corner_px, center)
+        t = np.arange(-int(t_max), int(t_max) + 1)
+        n = (n_rz - 1) // 2
+        rz = rz_step * np.arange(-n, n + 1) if n else np.array([0.0])
         return cls(shape, tx=t, ty=t, rz=rz, center=center)
 
     def with_translations(self, tx, ty) -> PoseGrid:
@@ -378,6 +383,77 @@ class PoseGrid:
             f"PoseGrid({self.size} poses, image {self.image_shape[0]}x{self.image_shape[1]}, "
             f"center=({self.center[0]:g}, {self.center[1]:g}), " + ", ".join(parts) + ")"
         )
+
+
+def _range_counts(
+    image_shape: tuple[int, int],
+    t_max: int,
+    rz_max: float,
+    rz_step: float | None,
+    corner_px: float | None,
+    center: tuple[float, float] | None,
+) -> tuple[int, int, float]:
+    """``(translations per axis, rotations, rotation step)`` of a :meth:`PoseGrid.from_ranges`
+    grid, checked (finite, in range, within :data:`MAX_POSES`) before anything is built."""
+    for name, v in (("t_max", t_max), ("rz_max", rz_max), ("rz_step", rz_step),
+                    ("corner_px", corner_px)):
+        if v is None:
+            continue
+        try:
+            v = float(v)
+        except (TypeError, ValueError):
+            raise ValueError(f"{name} must be a number, got {v!r}") from None
+        if not math.isfinite(v) or v < 0:
+            raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+    if int(t_max) != t_max:
+        raise ValueError(f"t_max must be a whole number of pixels, got {t_max!r}")
+    if corner_px is not None:
+        if not corner_px > 0:
+            raise ValueError(f"corner_px must be positive, got {corner_px!r}")
+        rz_step = rotation_step_for(image_shape, corner_px, center)
+    n_t = 2 * int(t_max) + 1
+    if rz_max > 0:
+        if rz_step is None or not rz_step > 0:
+            raise ValueError(f"rz_step must be positive when rz_max > 0, got {rz_step!r}")
+        n_half = math.ceil(rz_max / rz_step - 1e-9)  # a Python int: no overflow
+    else:
+        n_half = 0
+    n_rz = 2 * n_half + 1
+    total = n_t * n_t * n_rz
+    if total > MAX_POSES:
+        raise ValueError(
+            f"the pose grid would hold {total:,} poses ({n_t}x{n_t} translations x {n_rz:,} "
+            f"rotations), more than the budget of {MAX_POSES:,} poses; choose a coarser "
+            "rz_step or a smaller rz_max or t_max"
+        )
+    return n_t, n_rz, float(rz_step) if n_half else 0.0
+
+
+def grid_size_for(
+    image_shape: tuple[int, int],
+    *,
+    t_max: int = 12,
+    rz_max: float = 3.0,
+    rz_step: float | None = 0.5,
+    corner_px: float | None = None,
+    center: tuple[float, float] | None = None,
+) -> int:
+    """Number of poses :meth:`PoseGrid.from_ranges` would build with these arguments,
+    computed without building it.
+
+    Raises
+    ------
+    ValueError
+        A range that is not finite or negative, or a grid over :data:`MAX_POSES` poses.
+
+    Examples
+    --------
+    >>> grid_size_for((1000, 1000), t_max=12, rz_max=3, rz_step=0.5)
+    8125
+    """
+    n_t, n_rz, _ = _range_counts(tuple(int(s) for s in image_shape), t_max, rz_max, rz_step,
+                                 corner_px, center)
+    return n_t * n_t * n_rz
 
 
 def rotation_step_for(

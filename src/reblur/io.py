@@ -22,7 +22,12 @@ than :data:`MIN_SIDE` pixels on a side, more than ``max_pixels`` pixels or, for 
 decoded in memory (PNG, JPEG, WebP, JPEG XL, ...), more than :data:`IN_MEMORY_MAX_BYTES`
 decoded bytes (decompression-bomb guards checked from the header -- size, bands and bit
 depth -- before any pixel is decoded; a format whose header cannot be read is refused), NaN or
-Inf pixels (refused: a float image is scanned window by window, never loaded whole).
+Inf pixels (refused: a float image is scanned window by window, never loaded whole).  A TIFF
+compression no installed codec decodes is refused when the file is opened, and the first chunk
+of a lazily read image is decoded then; any later window that fails to decode (a corrupt tile
+met by the estimate, a tile thread or a Dask worker) raises the same one-line
+:class:`InputError`, naming the file and the window.  tifffile's own log lines are kept off
+the terminal while reading and folded into that message.
 
 Writing
 -------
@@ -36,11 +41,14 @@ existing whole in memory in its output type.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
+import logging
 import math
 import os
 import struct
 import tempfile
+import threading
 import warnings
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
@@ -61,6 +69,9 @@ __all__ = [
     "open_image",
     "read_mask",
     "reconcile_bands",
+    "check_sizes",
+    "display_path",
+    "MAX_SIZE_RATIO",
     "check_finite",
     "iter_windows",
     "atomic_path",
@@ -386,6 +397,143 @@ def chunk_cached(image, tile_size: int, halo: int):
     return ChunkCache(image, max_bytes=budget, chunks=(ch, cw))
 
 
+class _Guarded:
+    """Window reader of a lazily read file whose read and decode failures become one
+    :class:`InputError` naming the file and the window.
+
+    The windows of a large image are decoded long after :func:`open_image` returned (in the
+    estimate, the tile threads or Dask workers): a corrupt tile or chunk found there must
+    still say which file is broken, not surface as a codec's bare exception.  Slicing
+    returns numpy arrays; ``source`` is the wrapped reader (:func:`reblur.dask_backend.portable`
+    makes it picklable).
+    """
+
+    def __init__(self, source, path: Path):
+        self.source = source
+        self.path = path
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return tuple(int(s) for s in self.source.shape)
+
+    @property
+    def dtype(self) -> np.dtype:
+        return np.dtype(self.source.dtype)
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape))
+
+    @property
+    def nbytes(self) -> int:
+        return self.size * self.dtype.itemsize
+
+    @property
+    def chunks(self):
+        return getattr(self.source, "chunks", None)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __repr__(self) -> str:
+        return f"_Guarded({self.path}, shape={self.shape}, dtype={self.dtype})"
+
+    def __getitem__(self, key) -> np.ndarray:
+        try:
+            with _tifffile_quiet():
+                return np.asarray(self.source[key])
+        except (InputError, MemoryError):
+            raise
+        except Exception as exc:  # noqa: BLE001 - every read failure means a corrupt file
+            raise _fail(self.path, f"cannot decode the image data{_where(key, self.shape)} "
+                                   f"({_first_line(exc)}): the file is corrupt or "
+                                   "truncated") from exc
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        a = self[...]
+        return a if dtype is None else a.astype(dtype, copy=False)
+
+
+def _where(key, shape: tuple[int, ...]) -> str:
+    """`` at rows a-b, columns c-d`` for a window ``key`` of an array of ``shape`` (empty
+    when it is not a window of slices)."""
+    if not isinstance(key, tuple):
+        key = (key,)
+    key = key + (slice(None),) * max(0, 2 - len(key))
+    parts = []
+    for name, k, n in zip(("rows", "columns"), key[:2], shape[:2], strict=False):
+        if not isinstance(k, slice) or k.step not in (None, 1):
+            return ""
+        a, b, _ = k.indices(n)
+        parts.append(f"{name} {a}-{b - 1}")
+    return f" at {', '.join(parts)}"
+
+
+def _first_line(exc: BaseException) -> str:
+    msg = str(exc).strip()
+    return msg.splitlines()[0] if msg else type(exc).__name__
+
+
+class _TifffileLog(logging.Filter):
+    """Keeps tifffile's own log lines off the terminal while reblur reads a file: what it
+    logs (a missing tag, a corrupt structure) is kept here and reported in reblur's one
+    error line instead.  Other records pass."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.depth = 0
+        self.kept: list[str] = []
+        self.lock = threading.Lock()
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if self.depth <= 0:
+            return True
+        with self.lock:
+            if len(self.kept) < 16:
+                self.kept.append(record.getMessage())
+        return False
+
+
+_TIFF_LOG = _TifffileLog()
+logging.getLogger("tifffile").addFilter(_TIFF_LOG)
+
+
+@contextlib.contextmanager
+def _tifffile_quiet() -> Iterator[Callable[[], list[str]]]:
+    """Silence tifffile's logger within the block; yield a function that returns the
+    messages it logged so far (those of any thread while the block runs)."""
+    with _TIFF_LOG.lock:
+        _TIFF_LOG.depth += 1
+        start = len(_TIFF_LOG.kept)
+
+    def logged() -> list[str]:
+        with _TIFF_LOG.lock:
+            return list(_TIFF_LOG.kept[start:])
+
+    try:
+        yield logged
+    finally:
+        with _TIFF_LOG.lock:
+            _TIFF_LOG.depth -= 1
+            if _TIFF_LOG.depth == 0:
+                _TIFF_LOG.kept.clear()
+
+
+def _check_first_window(path: Path, array) -> None:
+    """Decode the first chunk of a lazily read image now, at open time: an undecodable
+    codec or corrupt data is refused before the work starts (the other chunks are checked
+    as they are read)."""
+    ch = getattr(array, "chunks", None)
+    h, w = (int(v) for v in array.shape[:2])
+    ry = int(ch[0]) if ch else min(h, 256)
+    rx = int(ch[1]) if ch and len(ch) > 1 else min(w, 256)
+    array[0 : min(h, max(1, ry)), 0 : min(w, max(1, rx))]
+
+
 def _luminance(a: np.ndarray) -> np.ndarray:
     """``(..., 3)`` -> ``(...)`` luminance in the input dtype (integers rounded)."""
     g = np.tensordot(a.astype(np.float32, copy=False), np.asarray(LUMINANCE, np.float32),
@@ -506,8 +654,50 @@ class Image:
 
 
 # ---------------------------------------------------------------------------- validation
+_ESCAPES = {"\n": "\\n", "\r": "\\r", "\t": "\\t"}
+
+
+def display_path(path: Any) -> str:
+    """``path`` as text safe to print on a terminal: every non-printable character escaped.
+
+    A file name may hold anything but ``/`` and NUL: a newline (which would split a one-line
+    message, or read as a space once lines are joined), a terminal escape sequence (which
+    the terminal would act on) or bytes that are not UTF-8 (which cannot even be printed).
+    These are written as Python writes them in a ``repr`` -- ``\\n``, ``\\x1b``,
+    ``\\u200b`` -- and undecodable bytes as ``\\xNN``; printable names are unchanged.
+
+    Examples
+    --------
+    >>> display_path("a\\nb\\x1b[31m.png")
+    'a\\\\nb\\\\x1b[31m.png'
+    >>> display_path("café.png")
+    'café.png'
+    """
+    s = os.fspath(path) if isinstance(path, os.PathLike) else str(path)
+    if isinstance(s, bytes):
+        s = os.fsdecode(s)
+    if s.isprintable():
+        return s
+    out = []
+    for ch in s:
+        o = ord(ch)
+        if ch.isprintable():
+            out.append(ch)
+        elif ch in _ESCAPES:
+            out.append(_ESCAPES[ch])
+        elif 0xDC80 <= o <= 0xDCFF:  # a byte that is not UTF-8 (os.fsdecode's surrogate)
+            out.append(f"\\x{o - 0xDC00:02x}")
+        elif o < 0x100:
+            out.append(f"\\x{o:02x}")
+        elif o < 0x10000:
+            out.append(f"\\u{o:04x}")
+        else:
+            out.append(f"\\U{o:08x}")
+    return "".join(out)
+
+
 def _fail(path, problem: str) -> InputError:
-    return InputError(f"{path}: {problem}")
+    return InputError(f"{display_path(path)}: {problem}")
 
 
 def _check_shape(path, shape: tuple[int, ...], max_pixels: int) -> None:
@@ -830,6 +1020,40 @@ def _read_geo(path: Path) -> dict[str, Any] | None:
 
 
 def _read_tiff(path: Path, max_pixels: int, lazy: bool | None) -> Image:
+    """Open a TIFF (:func:`_open_tiff`), tifffile's own log lines kept off the terminal: what
+    it logged goes into the error message when the file is refused."""
+    with _tifffile_quiet() as logged:
+        try:
+            return _open_tiff(path, max_pixels, lazy, logged)
+        except InputError as exc:
+            said = logged()
+            if not said or "tifffile:" in str(exc):
+                raise
+            raise InputError(f"{exc} (tifffile: {_one(said[0])})") from exc.__cause__
+
+
+def _one(text: str) -> str:
+    return " ".join(str(text).split())
+
+
+def _check_tiff_codec(path: Path, page) -> None:
+    """Refuse a TIFF whose compression this installation cannot decode (an unknown code, or
+    a codec imagecodecs lacks), at open time rather than when the first tile is read."""
+    import tifffile
+
+    comp = page.compression
+    if int(comp) == 1:
+        return
+    name = getattr(comp, "name", str(int(comp)))
+    try:
+        tifffile.TIFF.DECOMPRESSORS[comp]
+    except Exception as exc:  # noqa: BLE001 - unknown code or missing codec
+        why = _first_line(exc).strip("'\"")
+        raise _fail(path, f"TIFF compression {name} cannot be decoded ({why})") from exc
+
+
+def _open_tiff(path: Path, max_pixels: int, lazy: bool | None,
+               logged: Callable[[], list[str]]) -> Image:
     import tifffile
 
     try:
@@ -863,6 +1087,11 @@ def _read_tiff(path: Path, max_pixels: int, lazy: bool | None) -> Image:
         _check_dtype(path, dtype)
         if int(page.photometric) == 3:  # palette
             raise _fail(path, "palette (indexed colour) TIFF images are not supported")
+        _check_tiff_codec(path, page)
+        said = [m for m in logged() if "ByteCounts" in m or "data offset" in m]
+        if said:
+            raise _fail(path, "TIFF header is corrupt: the image's tile or strip table is "
+                              f"missing or invalid (tifffile: {_one(said[0])})")
         # truncated file: every segment of the image must lie inside the file
         size = os.path.getsize(path)
         for p in series.pages:
@@ -899,7 +1128,8 @@ def _read_tiff(path: Path, max_pixels: int, lazy: bool | None) -> Image:
             z = zarr.open(store, mode="r")
             if len(z.shape) != len(ax):
                 z = _Squeezed(z, axes, shape)
-            arr = LazyBands(z, channel_first=True) if channel_first else z
+            arr = _Guarded(LazyBands(z, channel_first=True) if channel_first else z, path)
+            _check_first_window(path, arr)
             img = Image(arr, path, "tiff", _closer=tif.close)
     except InputError:
         tif.close()
@@ -961,7 +1191,9 @@ def _read_zarr(path: Path, max_pixels: int, lazy: bool | None) -> Image:
     if lazy is None:
         lazy = nbytes > LAZY_BYTES
     if lazy:
-        return Image(node, path, "zarr")
+        arr = _Guarded(node, path)
+        _check_first_window(path, arr)
+        return Image(arr, path, "zarr")
     try:
         arr = np.asarray(node[...])
     except MemoryError:
@@ -1012,6 +1244,7 @@ def open_image(
     max_pixels: int | None = DEFAULT_MAX_PIXELS,
     lazy: bool | None = None,
     check_values: bool = True,
+    rescale: bool = True,
 ) -> Image:
     """Open an image file or zarr store for change detection.
 
@@ -1028,6 +1261,10 @@ def open_image(
         :data:`LAZY_BYTES`.  PNG and JPEG are always decoded into memory.
     check_values : bool
         Scan float images for NaN/Inf (streamed for lazy images).
+    rescale : bool
+        Give 32- and 64-bit integer images as float32 in [0, 1], mapped from the range of
+        values they hold (not their type's; see :func:`_rescale_wide`).  8- and 16-bit
+        images keep their dtype.
 
     Returns
     -------
@@ -1043,6 +1280,13 @@ def open_image(
         pixels, unsupported layout or pixel type, NaN/Inf pixels.
     """
     p = Path(path)
+    try:
+        os.stat(p)
+    except OSError as exc:
+        if exc.errno == errno.ELOOP:
+            raise _fail(p, "symlink loop: the path cannot be resolved") from None
+        if exc.errno == errno.ENAMETOOLONG:
+            raise _fail(p, "file name too long") from None
     if not p.exists():
         raise _fail(p, "no such file")
     if p.is_dir() and not (
@@ -1077,7 +1321,60 @@ def open_image(
         img.array = img.array.astype(np.uint8) if not img.lazy else img.array
     if check_values:
         check_finite(img)
+    if rescale and img.dtype.kind in "iu" and img.dtype.itemsize >= 4:
+        img = _rescale_wide(img)
     return img
+
+
+class _Rescaled:
+    """Lazy float32 view ``(source - lo) / (hi - lo)`` of an on-disk integer image."""
+
+    def __init__(self, source, lo: float, hi: float):
+        self.source = source
+        self.lo, self.hi = float(lo), float(hi)
+        self.shape = tuple(int(v) for v in source.shape)
+        self.ndim = len(self.shape)
+        self.dtype = np.dtype(np.float32)
+        self.chunks = getattr(source, "chunks", None)
+        self.size = int(np.prod(self.shape))
+        self.nbytes = 4 * self.size
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key) -> np.ndarray:
+        a = np.asarray(self.source[key], dtype=np.float64)
+        return ((a - self.lo) / (self.hi - self.lo)).astype(np.float32)
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        a = self[...]
+        return a if dtype is None else a.astype(dtype, copy=False)
+
+
+def _rescale_wide(img: Image) -> Image:
+    """A 32- or 64-bit integer image as float32 in [0, 1], from the range its data use.
+
+    Intensities are otherwise taken relative to the dtype's full range (255 for uint8,
+    65535 for uint16), which is right for the 8- and 16-bit types cameras write; data stored
+    as int32 / int64 / uint32 / uint64 hardly ever spans its type (a 0-255 image as int64
+    would be 28 nano-units of the range, and every later test -- texture, noise, the l1
+    weight -- would find it flat).  A constant image is left as it is.
+    """
+    arr = img.array
+    lo, hi = np.inf, -np.inf
+    for rows in _row_bands(arr):
+        block = np.asarray(arr[rows])
+        if block.size:
+            lo, hi = min(lo, float(block.min())), max(hi, float(block.max()))
+    if not hi > lo:
+        return img
+    if isinstance(arr, np.ndarray):
+        out = ((arr.astype(np.float64) - lo) / (hi - lo)).astype(np.float32)
+    else:
+        out = _Rescaled(arr, lo, hi)
+    note = (f"{img.dtype} data rescaled from the range they use, [{lo:.15g}, {hi:.15g}], "
+            "to float32 in [0, 1]")
+    return replace(img, array=out, notes=img.notes + [note])
 
 
 def read_mask(
@@ -1098,7 +1395,7 @@ def read_mask(
     what : str
         Word for the mask in error messages (``"truth mask"``, ...).
     """
-    img = open_image(path, max_pixels=max_pixels)
+    img = open_image(path, max_pixels=max_pixels, rescale=False)
     if shape is not None and tuple(img.shape[:2]) != tuple(shape[:2]):
         raise _fail(
             img.path,
@@ -1111,6 +1408,39 @@ def read_mask(
         out[rows] = block.any(axis=-1) if block.ndim == 3 else block
     img.close()
     return out
+
+
+#: :func:`check_sizes` refuses a pair whose sides differ by this factor or more: alignment
+#: finds views within a factor 2 of each other's scale (the benchmark's 4000 px reference
+#: and its 2000 px reduction align and flag nothing) and none at a factor 4 (its features
+#: and gradient blocks no longer match), where it used to report "textureless".
+MAX_SIZE_RATIO = 4.0
+
+
+def check_sizes(reference: Image, observed: Image) -> None:
+    """Refuse a pair whose sizes are too far apart for one to be a view of the other.
+
+    reblur compares two views of one scene at about the same scale and extent: the
+    observation is aligned to the reference (a similarity) and blurred poses are sought
+    around that.  A side ratio of :data:`MAX_SIZE_RATIO` or more (a 100x100 observation of a
+    4000x4000 reference: a thumbnail, or a small crop) cannot be aligned; saying so beats
+    the alignment's "textureless" or "too few features".
+
+    Raises
+    ------
+    InputError
+        Naming both files, their sizes and the factor.
+    """
+    (hr, wr), (ho, wo) = reference.shape[:2], observed.shape[:2]
+    ratio = max(hr / ho, ho / hr, wr / wo, wo / wr)
+    if ratio >= MAX_SIZE_RATIO:
+        raise InputError(
+            f"the sizes of {display_path(observed.name)} ({wo}x{ho}) and "
+            f"{display_path(reference.name)} ({wr}x{hr}) disagree by a factor of "
+            f"{ratio:.3g}: the observation is not a view of the reference at a compatible "
+            f"scale and extent (reblur compares views within a factor {MAX_SIZE_RATIO:g} of "
+            "each other's size); resample or crop one to match the other"
+        )
 
 
 def reconcile_bands(reference: Image, observed: Image) -> tuple[Image, Image]:
@@ -1133,7 +1463,8 @@ def reconcile_bands(reference: Image, observed: Image) -> tuple[Image, Image]:
             return _to_gray(reference), observed
         return reference, _to_gray(observed)
     raise InputError(
-        f"{reference.name} has {a} band{'s' * (a != 1)} and {observed.name} has {b}: "
+        f"{display_path(reference.name)} has {a} band{'s' * (a != 1)} and "
+        f"{display_path(observed.name)} has {b}: "
         "band counts cannot be reconciled (only RGB vs gray is converted; alpha is dropped)"
     )
 

@@ -10,8 +10,12 @@
   (``.NAME.reblur-tmp-PID-XXXXXX``) that is renamed onto the output directory when the block
   ends without error.  An existing output directory holding only earlier results (with
   ``overwrite``) or nothing is first renamed aside (``.NAME.reblur-old-PID-XXXXXX``) and
-  deleted after the rename.  An error (a full disk, an interrupt) removes the temporary
-  directory and leaves the output directory as it was.  When the output directory also holds
+  deleted after the rename.  "Earlier results" are the files the earlier run's manifest
+  (``report.json``) lists: with ``--overwrite`` those this run does not rewrite are removed
+  (say, the ``changes.tif`` of an earlier, larger input), while a file that merely has a
+  result's name but is not listed is left where it is, with a warning.  An error (a full
+  disk, an interrupt) removes the temporary directory and leaves the output directory as it
+  was.  When the output directory also holds
   other files (an input, notes of the user's), it cannot be replaced: the finished files are
   then moved into it one by one, the report last and the earlier report removed first, so
   the window in which a reader could see a mixed set is a few renames long.
@@ -35,6 +39,8 @@ import stat
 import tempfile
 from collections.abc import Iterator, Sequence
 from pathlib import Path
+
+from .io import display_path
 
 __all__ = ["OutputDirError", "output_set", "lock_path", "remove_stale"]
 
@@ -133,8 +139,8 @@ def _locked(out: Path, path: Path) -> Iterator[None]:
                 holder = ""
             who = f" (pid {holder})" if holder.isdigit() else ""
             raise OutputDirError(
-                f"{out}: another reblur run{who} is writing into this output directory; "
-                "wait for it to finish or choose another --out"
+                f"{display_path(out)}: another reblur run{who} is writing into this output "
+                "directory; wait for it to finish or choose another --out"
             ) from None
         # the holder before us may have removed the file after we opened it: lock the new one
         try:
@@ -160,40 +166,74 @@ def _umask() -> int:
     return mask
 
 
-def _move_in(stage: Path, out: Path, names: Sequence[str], last: Sequence[str]) -> None:
-    """Move the files of ``stage`` into the existing ``out`` one by one: earlier results of
-    ``names`` not rewritten are removed, ``last`` (the report) is removed first and moved in
-    last."""
+def _earlier_set(out: Path, names: Sequence[str], manifest: str | None) -> set[str]:
+    """The files of ``names`` in ``out`` that belong to an earlier result set.
+
+    Without a ``manifest`` every one of them does.  With one (``report.json``, whose
+    ``files`` lists the set it completes), only the manifest and the files it lists: a
+    ``changes.tif`` the earlier report does not name is someone else's file, not a result
+    to delete.  No readable manifest: none.
+    """
+    present = {n for n in names if (out / n).exists() or (out / n).is_symlink()}
+    if manifest is None:
+        return present
+    try:
+        import json
+
+        files = json.loads((out / manifest).read_text(encoding="utf-8")).get("files")
+    except (OSError, ValueError, AttributeError):
+        return set()
+    listed = files.values() if isinstance(files, dict) else files
+    if not isinstance(listed, (list, type({}.values()))):
+        return set()
+    return present & ({manifest} | {str(n) for n in listed})
+
+
+def _plan(out: Path, stage: Path, names: Sequence[str],
+          manifest: str | None) -> tuple[set[str], set[str], set[str]]:
+    """``(new, stale, kept)``: the files this run writes; earlier results it does not write
+    (removed); files of ``names`` that are neither (left in place, with a warning)."""
     new = {p.name for p in stage.iterdir()}
-    old = [n for n in names if (out / n).exists() or (out / n).is_symlink()]
-    for n in [n for n in last if n in old] + [n for n in old if n not in last and n not in new]:
-        (out / n).unlink()
-        if n not in new:
-            log.info("removed %s, a result of an earlier run this run does not write", out / n)
+    present = {n for n in names if (out / n).exists() or (out / n).is_symlink()}
+    owned = _earlier_set(out, names, manifest)
+    stale = owned - new
+    kept = present - owned - new
+    for n in sorted(stale):
+        log.warning("removed %s: a file of the earlier result set that this run does not "
+                    "write", display_path(out / n))
+    for n in sorted(kept):
+        log.warning("left %s in place: this run does not write it and the earlier report "
+                    "does not list it (it is not part of the new result set)",
+                    display_path(out / n))
+    return new, stale, kept
+
+
+def _move_in(stage: Path, out: Path, new: set[str], stale: set[str],
+             last: Sequence[str]) -> None:
+    """Move the files of ``stage`` into the existing ``out`` one by one: ``last`` (the
+    report) is removed first and moved in last, the ``stale`` results are removed."""
+    gone = [n for n in last if (out / n).exists() or (out / n).is_symlink()]
+    for n in gone + sorted(stale - set(gone)):
+        with contextlib.suppress(FileNotFoundError):
+            (out / n).unlink()
     for n in sorted(new, key=lambda n: (n in last, list(last).index(n) if n in last else 0)):
         os.replace(stage / n, out / n)
 
 
 def _commit(stage: Path, out: Path, names: Sequence[str], last: Sequence[str],
-            sibling: bool) -> None:
-    if not sibling:
-        _move_in(stage, out, names, last)
-        stage.rmdir()
-        return
+            sibling: bool, manifest: str | None) -> None:
     if not out.exists():
         os.chmod(stage, 0o777 & ~_umask())
         os.rename(stage, out)
         return
+    new, stale, kept = _plan(out, stage, names, manifest)
     entries = [p.name for p in out.iterdir()]
-    if any(n not in names for n in entries):
-        _move_in(stage, out, names, last)
+    if not sibling or kept or any(n not in names for n in entries):
+        _move_in(stage, out, new, stale, last)
         stage.rmdir()
         return
-    # only earlier results (or nothing): swap the whole directory
+    # only this run's results and the earlier set's (or nothing): swap the whole directory
     os.chmod(stage, stat.S_IMODE(os.stat(out).st_mode))
-    for n in entries:
-        if not (stage / n).exists():
-            log.info("removed %s, a result of an earlier run this run does not write", out / n)
     aside = Path(tempfile.mkdtemp(prefix=f".{out.name}.{_OLD}-{os.getpid()}-", dir=out.parent))
     os.rename(out, aside / "old")
     os.rename(stage, out)
@@ -207,6 +247,7 @@ def output_set(
     *,
     overwrite: bool = False,
     last: Sequence[str] = (),
+    manifest: str | None = None,
 ) -> Iterator[Path]:
     """Write a set of result files into ``out`` all at once, one run at a time.
 
@@ -223,6 +264,12 @@ def output_set(
     last : sequence of str
         Files moved in last (and removed first) when ``out`` must be filled file by file:
         the report that tells a reader the set is complete.
+    manifest : str, optional
+        The file of ``names`` that lists the files of its set (``report.json``, key
+        ``files``).  With ``overwrite``, only the earlier manifest and the files it lists are
+        removed when this run does not rewrite them; a file of ``names`` it does not list (a
+        ``changes.tif`` of the user's, or of another tool) is left in place, with a warning.
+        Default: every file of ``names`` belongs to the earlier set.
 
     Yields
     ------
@@ -249,7 +296,7 @@ def output_set(
             found = [n for n in names if (out / n).exists()]
             if found and not overwrite:
                 raise OutputDirError(
-                    f"{out}: already holds results ({', '.join(found[:3])}"
+                    f"{display_path(out)}: already holds results ({', '.join(found[:3])}"
                     f"{', ...' if len(found) > 3 else ''}); use --overwrite to replace them"
                 )
             where, prefix = ((out.parent, f".{out.name}.{_TMP}-{os.getpid()}-") if sibling
@@ -257,7 +304,7 @@ def output_set(
             stage = Path(tempfile.mkdtemp(prefix=prefix, dir=where))
             try:
                 yield stage
-                _commit(stage, out, names, last, sibling)
+                _commit(stage, out, names, last, sibling, manifest)
             except BaseException:
                 shutil.rmtree(stage, ignore_errors=True)
                 raise
