@@ -274,11 +274,23 @@ def main(sizes: list[int] | None = None, contents: list[str] | None = None,
     cache = cache or Path(tempfile.gettempdir()) / "reblur-cost"
     rows = measure(sizes, contents, cache, src)
     if src is not None:
+        old = json.loads(BEFORE.read_text())["rows"] if BEFORE.exists() else []
+        rows = _merged(old, rows)
         BEFORE.write_text(json.dumps({"label": label or str(src), "rows": rows}, indent=1,
                                      default=float))
         return table(rows) + "\n\n" + targets(rows)
+    rows = _merged(json.loads(RUNS.read_text()) if RUNS.exists() else [], rows)
     RUNS.write_text(json.dumps(rows, indent=1, default=float))
     return section(rows)
+
+
+def _merged(old: list[dict], new: list[dict]) -> list[dict]:
+    """``old`` rows with those of the same size and content replaced by ``new``'s, sorted
+    by size then content (a run at some sizes keeps the saved rows of the others)."""
+    keys = {(r["mp"], r["content"]) for r in new}
+    rows = [r for r in old if (r["mp"], r["content"]) not in keys] + new
+    order = {c: i for i, c in enumerate(CONTENTS)}
+    return sorted(rows, key=lambda r: (r["mp"], order.get(r["content"], 99)))
 
 
 if __name__ == "__main__":
