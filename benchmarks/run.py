@@ -29,6 +29,8 @@ BENCHES = {
     "estimate_profile": ("benchmarks.estimate_profile", "main"),
     # 1 and 25 MP; the 100 MP rows: python -m benchmarks.realism --sizes 1,25,100
     "realism": ("benchmarks.realism", "main"),
+    # cost over content at 1 and 25 MP; 100 MP: python -m benchmarks.cost --sizes 1,25,100
+    "cost": ("benchmarks.cost", "main"),
 }
 
 

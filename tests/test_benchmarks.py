@@ -100,3 +100,20 @@ def test_fixed_costs_without_a_fixed_cost_only_state_the_fit():
     text = " ".join(_fixed_costs(local))
     assert "T = -2.0 s + 100 ms per MP" in text
     assert "leaves at most" not in text
+
+
+def test_cost_lattice_covers_the_asked_share_and_blocks_read_the_other_scene():
+    from benchmarks.cost import _Blocks, _lattice
+
+    shape = (1000, 1200)
+    for frac, k in ((0.05, 4), (0.45, 1)):
+        boxes = _lattice(shape, frac, k)
+        area = sum((y1 - y0) * (x1 - x0) for y0, y1, x0, x1 in boxes)
+        assert len(boxes) == k * k
+        assert area / (shape[0] * shape[1]) == pytest.approx(frac, rel=0.02)
+    base, other = np.zeros(shape), np.ones(shape)
+    mixed = _Blocks(base, other, _lattice(shape, 0.45, 1))
+    # read in two overlapping windows, the share of the other scene is the asked one
+    top, bottom = mixed[0:500, 0:1200], mixed[500:1000, 0:1200]
+    assert (top.sum() + bottom.sum()) / (1000 * 1200) == pytest.approx(0.45, rel=0.02)
+    assert mixed[0:10, 0:10].sum() == 0 and mixed[495:505, 595:605].sum() == 100

@@ -841,8 +841,9 @@ def detect_changes(
         if scheduler_kind(scheduler) == "distributed":
             # the motion estimate runs once, on one worker; only its result travels back
             report("estimate", 0.0)
-            est = run_once(_estimate_stage, portable(reference, "reference"),
-                           portable(observed, "observed"), scheduler=scheduler, **options)
+            est = run_once(_estimate_stage, portable(reference, "reference", work_dir),
+                           portable(observed, "observed", work_dir), scheduler=scheduler,
+                           **options)
             report("estimate", 1.0)
         else:
             est = _estimate_stage(reference, observed, progress=progress, **options)

@@ -448,7 +448,8 @@ FIT_SPREAD_DB = 6.0
 
 def model_notes(result) -> list[str]:
     """What an analyst should know about how well the model fits: estimation windows whose
-    fits disagree, and a model error the decision's tolerance could not absorb."""
+    fits disagree, no window that fits (the estimate decided from the best one), and a
+    model error the decision's tolerance could not absorb."""
     notes = []
     info = result.motion.info
     fits = [f for f in (info.get("psnr_inliers") or info.get("psnr") or [])
@@ -458,6 +459,15 @@ def model_notes(result) -> list[str]:
             f"the estimation windows fit at {min(fits):.1f} to {max(fits):.1f} dB: the blur "
             "model fits some parts of the image worse than others; the decision's tolerance "
             "is calibrated on all of them, so the worst sets it")
+    sel = info.get("selection") or {}
+    if sel and not sel.get("fits", True):
+        occ = [float(o) for o in sel.get("occluded") or []] or [float("nan")]
+        notes.append(
+            f"no estimation window fits the blur model: {min(occ):.0%} to {max(occ):.0%} of "
+            f"the windows' pixels came out as change (a window above "
+            f"{sel.get('max_occluded', 2 / 3):.0%} is rejected) in each of the "
+            f"{sel.get('estimates', 1)} estimates tried; the motion comes from the best one, "
+            "so the reblurred reference and the changes are less reliable than usual")
     cal = result.decision.get("calibration", {})
     if cal.get("calibrated") and not cal.get("met", True):
         notes.append(

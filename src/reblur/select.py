@@ -53,6 +53,14 @@ class SelectParams:
     ratio: float = 0.6  #: T_m = ratio * m_1
     invariant_ratio: float = 0.9  #: no window passed T_m: space-invariant only if m >= this * m_1
     max_occluded: float = 2.0 / 3.0  #: reject a window with more occluded pixels than this
+    #: estimates tried at most (the first one and the replacements of rejected windows);
+    #: when none fits, the best one is finished and used (``info["selection"]``)
+    max_tries: int = 3
+    #: outer iterations per level, and the solves' ``rtol``, when finishing an estimate
+    #: whose windows do not fit: its weights model change as much as blur, and more
+    #: iterations only spread them over more poses
+    unfit_outer: int = 10
+    unfit_rtol: float = 1e-3
     windows: int = 1  #: windows estimated jointly (1 = the paper's Algorithm 1)
     spread_size: int = 5  #: largest window side (units) when ``windows >= 2``
     #: pixels of all spread windows together: the side is at most ``sqrt(spread_pixels /
@@ -364,6 +372,8 @@ def select_windows(
     if p.windows >= 2:
         return _select_spread(reference, observed, grid, base, p, cells, cover, (H, W), progress)
 
+    runs = _Runs(reference, observed, grid, base, p)
+
     def measure(b: Box) -> float:
         m, _ = kernel_similarity(
             reference, observed, b.as_tuple(), grid, base=base, gamma=p.gamma, patch=p.patch,
@@ -385,7 +395,7 @@ def select_windows(
         if progress:
             progress(f"m_1 = {m1:.3f}, T_m = {thr:.3f}")
         for S in range(p.s_start, p.s_max + 1):
-            if S > min(ny, nx):
+            if S > min(ny, nx) or len(runs) >= max(1, p.max_tries):
                 break
             boxes = _candidates(cells, cover, S, p.alpha, unit)
             for b in boxes:
@@ -399,12 +409,13 @@ def select_windows(
                     continue
                 chosen = [b] + _spread_partners(cells, cover, S, unit, b, p.windows - 1, (H, W),
                                                p.texture_floor)
-                est = estimate_motion(reference, observed, grid,
-                                      boxes=[c.as_tuple() for c in chosen], base=base, lam=p.lam,
-                                      refit_photometry=p.refit_photometry)
+                est = runs.estimate(chosen)
                 occ = _occluded_fraction(est)
+                rec["occluded"] = occ
                 if occ > p.max_occluded:
                     rec["reason"] = f"{occ:.0%} occluded"
+                    if len(runs) >= max(1, p.max_tries):
+                        break
                     continue
                 rec["accepted"] = True
                 rec["reason"] = "m < T_m"
@@ -412,7 +423,15 @@ def select_windows(
                     boxes=[c.as_tuple() for c in chosen], size=S * unit, m1=m1, threshold=thr,
                     tried=tried,
                 )
-                return crop, est
+                return crop, runs.finish(est, fits=True)
+        if runs:
+            # every window estimated was rejected: decide from the least occluded one
+            chosen, est = runs.runs[runs.best_index()]
+            for r in tried:
+                r["accepted"] = r["box"] == chosen[0].as_tuple() and "occluded" in r
+            crop = CropChoice(boxes=[c.as_tuple() for c in chosen], size=chosen[0].h, m1=m1,
+                              threshold=thr, tried=tried)
+            return crop, runs.finish(est, fits=False)
         # No window passed T_m.  The paper then declares the blur space-invariant and uses
         # one kernel.  Here the full grid is solved on the largest window tried instead: if
         # the blur is space-invariant the weights land on the zero-rotation base anyway, and
@@ -427,13 +446,12 @@ def select_windows(
         b = Box(*rec["box"])
         chosen = [b] + _spread_partners(cells, cover, rec["size"], unit, b, p.windows - 1,
                                        (H, W), p.texture_floor)
-        est = estimate_motion(reference, observed, grid, boxes=[c.as_tuple() for c in chosen],
-                              base=base, lam=p.lam, refit_photometry=p.refit_photometry)
+        est = runs.estimate(chosen, stop=False)
         rec["accepted"] = True
         rec["reason"] = "largest window tried (none reached T_m)"
         crop = CropChoice(boxes=[c.as_tuple() for c in chosen], size=rec["size"] * unit, m1=m1,
                           threshold=thr, tried=tried, space_invariant=invariant)
-        return crop, est
+        return crop, runs.finish(est, fits=_occluded_fraction(est) <= p.max_occluded)
 
 
 def spread_side(p: SelectParams) -> int:
@@ -504,25 +522,107 @@ def _select_spread(reference, observed, grid, base, p: SelectParams, cells, cove
     S, chosen = best
     if not chosen:
         raise ValueError("motion cannot be estimated: no textured, covered window found")
-    excluded = None
-    for _attempt in range(3):
+    runs = _Runs(reference, observed, grid, base, p)
+    excluded = np.zeros(_window_scores(cells, S).shape, bool)
+    run_recs: list[list[dict]] = []
+    while True:
         if progress:
             progress(f"{len(chosen)} spread windows of {S * unit} px")
-        est = estimate_motion(reference, observed, grid, boxes=[c.as_tuple() for c in chosen],
-                              base=base, lam=p.lam, refit_photometry=p.refit_photometry)
-        bad = [i for i, c in enumerate(est.chi) if _occluded_fraction_one(c) > p.max_occluded]
-        for i, c in enumerate(chosen):
-            tried.append(dict(box=c.as_tuple(), size=S, m=float("nan"), accepted=i not in bad,
-                              reason="too occluded" if i in bad else "spread window"))
-        if not bad or len(chosen) - len(bad) < 1:
+        est = runs.estimate(chosen)
+        occ = est.info["occluded"]
+        bad = [i for i, o in enumerate(occ) if o > p.max_occluded]
+        recs = [dict(box=c.as_tuple(), size=S, m=float("nan"), accepted=not bad,
+                     occluded=occ[i],
+                     reason=f"{occ[i]:.0%} occluded" if i in bad else "spread window")
+                for i, c in enumerate(chosen)]
+        tried += recs
+        run_recs.append(recs)
+        if not bad:
             break
-        shape_sc = _window_scores(cells, S).shape
-        excluded = np.zeros(shape_sc, bool) if excluded is None else excluded
+        if len(bad) == len(chosen) or len(runs) >= max(1, p.max_tries):
+            # every window is mostly change (the pair itself does not fit the model:
+            # unrelated, or years apart), or the tries are spent
+            break
         for i in bad:
-            excluded[chosen[i].y0 // unit, chosen[i].x0 // unit] = True
-        chosen = place(S, excluded) or chosen
+            excluded |= _overlapping(excluded.shape, chosen[i], S, unit)
+        nxt = place(S, excluded)
+        if len(nxt) < len(chosen) or {c.as_tuple() for c in nxt} == {
+                c.as_tuple() for c in chosen}:
+            break
+        chosen = nxt
+    if bad:  # no estimate fits: decide from the best one
+        k = runs.best_index()
+        chosen, est = runs.runs[k]
+        for r in run_recs[k]:
+            r["accepted"] = True
     crop = CropChoice(boxes=[c.as_tuple() for c in chosen], size=S * unit, tried=tried)
-    return crop, est
+    return crop, runs.finish(est, fits=not bad)
+
+
+def _overlapping(shape: tuple[int, int], box: Box, S: int, unit: int) -> np.ndarray:
+    """Positions (in units) of the ``S x S``-unit windows that overlap ``box``."""
+    out = np.zeros(shape, bool)
+    y0, x0 = box.y0 // unit, box.x0 // unit
+    y1, x1 = (box.y0 + box.h - 1) // unit, (box.x0 + box.w - 1) // unit
+    out[max(y0 - S + 1, 0) : y1 + 1, max(x0 - S + 1, 0) : x1 + 1] = True
+    return out
+
+
+class _Runs:
+    """The estimates of one selection: bounded in number, each stopped after its first
+    coarse level when a window is more than ``max_occluded`` change (the paper's
+    rejection, at a fraction of a full estimate's cost), the best one finished.
+
+    ``info["selection"]`` of the returned estimate holds ``estimates`` (how many were
+    run), ``n_outer`` (the outer solver iterations of all of them together: the cost
+    bound a pathological pair cannot exceed), ``fits`` and ``occluded`` (per window).
+    """
+
+    def __init__(self, reference, observed, grid, base, p: SelectParams):
+        self.args = (reference, observed, grid)
+        self.base, self.p = base, p
+        self.runs: list[tuple[list[Box], MotionEstimate]] = []
+        self.n_outer = 0
+
+    def __len__(self) -> int:
+        return len(self.runs)
+
+    def estimate(self, chosen: list[Box], stop: bool = True, **kw) -> MotionEstimate:
+        p = self.p
+        est = estimate_motion(*self.args, boxes=[c.as_tuple() for c in chosen],
+                              base=self.base, lam=p.lam, refit_photometry=p.refit_photometry,
+                              stop_occluded=p.max_occluded if stop else None, **kw)
+        self.n_outer += int(est.info["n_outer"])
+        self.runs.append((list(chosen), est))
+        return est
+
+    def best_index(self) -> int:
+        """The run whose windows fit best: fewest rejected windows, then least change."""
+        mo = self.p.max_occluded
+
+        def key(k: int):
+            occ = self.runs[k][1].info["occluded"]
+            return (sum(o > mo for o in occ), float(np.mean(occ)))
+
+        return min(range(len(self.runs)), key=key)
+
+    def finish(self, est: MotionEstimate, fits: bool) -> MotionEstimate:
+        """``est`` completed if it stopped early (from where it stopped, within
+        ``unfit_outer`` iterations per level), with ``info["selection"]``."""
+        p = self.p
+        if est.info.get("stopped_early"):
+            boxes = [Box(*b) for b in est.info["windows"]]
+            est = estimate_motion(*self.args, boxes=[b.as_tuple() for b in boxes],
+                                  base=self.base, lam=p.lam,
+                                  refit_photometry=p.refit_photometry,
+                                  resume=est.info["resume"], max_outer=p.unfit_outer,
+                                  rtol=p.unfit_rtol)
+            self.n_outer += int(est.info["n_outer"])
+        est.info.pop("resume", None)
+        est.info["selection"] = dict(estimates=len(self.runs), n_outer=self.n_outer,
+                                     fits=bool(fits), occluded=list(est.info["occluded"]),
+                                     max_occluded=p.max_occluded)
+        return est
 
 
 def _occluded_fraction_one(chi: np.ndarray) -> float:

@@ -1,0 +1,317 @@
+"""Cost over content (issue #28): time per stage and peak RSS of ``reblur detect`` on pairs
+of 1, 25 and 100 MP whose content ranges from unchanged to unrelated
+(``python -m benchmarks.cost``).
+
+Every pair is rendered by the independent test bed (:mod:`reblur.testbed`: a 64-sub-pose
+6-D shake, bicubic interpolation, a 20 px viewpoint shift, 8-bit sensor with 0.5 DN of
+read noise), tile by tile into tiled TIFFs, from gray scenes upsampled from the 1024 px
+development images (``../shared/data``).  Contents, same camera path per size:
+
+* ``unchanged``: LEVIR test_7 against itself;
+* ``5%``: 16 blocks of unrelated content (WHU 000213) on a lattice, 5 % of the area;
+* ``45%``: one central block of unrelated content, 45 % of the area (an occluder);
+* ``years-whu`` / ``years-levir``: the datasets' own years-apart pairs (WHU 000213
+  prev -> curr, LEVIR test_7 A -> B), shaken;
+* ``unrelated``: LEVIR test_7 against WHU 000213 (to be refused quickly).
+
+Each case runs ``python -m reblur detect REF OBS --out DIR -q`` in a fresh process, as a
+user does; stage times come from its ``report.json`` (``estimate`` includes the window
+selection; ``report`` is the writing of the outputs), peak RSS from the same report
+(``ru_maxrss`` of that process).  The I/O floor (read both inputs whole, write a uint8
+mask: :func:`benchmarks.scale.io_floor`) is measured in the same run.
+
+Targets (reported, not tested): any pair of at most 1 MP within 5 s end to end; 100 MP
+within 5x the floor; fixed cost (the intercept of time against MP) at most 3 s and the
+per-pixel stage's (``reblur_decide``) log-log slope 0.9-1.1.
+
+``--src OLD/src --label COMMIT`` runs another checkout (the "before" figures, saved in
+``docs/cost_before.json``); ``--sizes 1,25`` when time is short.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import tifffile
+
+from benchmarks.common import REPO
+
+SIZES = {1: 1, 25: 5, 100: 10}  # MP -> upsampling factor of the 1024 px scenes
+CONTENTS = ["unchanged", "5%", "45%", "years-whu", "years-levir", "unrelated"]
+RUNS = REPO / "docs" / "cost_runs.json"
+BEFORE = REPO / "docs" / "cost_before.json"
+STAGES = ["open", "align", "photometry", "estimate", "refine", "reblur_decide", "report"]
+
+
+class _Blocks:
+    """``base`` with ``other``'s pixels inside ``boxes`` ((y0, y1, x0, x1)), read lazily."""
+
+    def __init__(self, base, other, boxes):
+        self.base, self.other, self.boxes = base, other, boxes
+        self.shape, self.dtype = base.shape, np.float64
+
+    def __getitem__(self, key):
+        ys, xs = key[0], key[1]
+        out = np.array(self.base[ys, xs], dtype=np.float64)
+        y0, x0 = ys.start or 0, xs.start or 0
+        for by0, by1, bx0, bx1 in self.boxes:
+            a0, a1 = max(by0, y0), min(by1, y0 + out.shape[0])
+            b0, b1 = max(bx0, x0), min(bx1, x0 + out.shape[1])
+            if a0 < a1 and b0 < b1:
+                out[a0 - y0 : a1 - y0, b0 - x0 : b1 - x0] = self.other[a0:a1, b0:b1]
+        return out
+
+
+def _lattice(shape, frac: float, k: int) -> list[tuple[int, int, int, int]]:
+    """``k x k`` blocks on a lattice (``k = 1``: one central block), ``frac`` of the area."""
+    H, W = shape[:2]
+    side_y, side_x = int(H * np.sqrt(frac) / k), int(W * np.sqrt(frac) / k)
+    out = []
+    for i in range(k):
+        for j in range(k):
+            cy, cx = int((i + 0.5) * H / k), int((j + 0.5) * W / k)
+            out.append((cy - side_y // 2, cy - side_y // 2 + side_y,
+                        cx - side_x // 2, cx - side_x // 2 + side_x))
+    return out
+
+
+def _scenes(mp: int, content: str):
+    """(reference scene, observed scene) of a case, gray in [0, 1], lazily upsampled."""
+    from reblur.testbed import levir_image, upsampled, whu_image
+
+    f = SIZES[mp]
+
+    def up(img):
+        return upsampled(img, f) if f > 1 else img
+
+    levir_a = up(levir_image("test_7", gray=True))
+    whu_curr = up(whu_image("000213", "curr", gray=True))
+    if content == "unchanged":
+        return levir_a, levir_a
+    if content == "5%":
+        return levir_a, _Blocks(levir_a, whu_curr, _lattice(levir_a.shape, 0.05, 4))
+    if content == "45%":
+        return levir_a, _Blocks(levir_a, whu_curr, _lattice(levir_a.shape, 0.45, 1))
+    if content == "years-whu":
+        return up(whu_image("000213", "prev", gray=True)), whu_curr
+    if content == "years-levir":
+        return levir_a, up(levir_image("test_7", "B", gray=True))
+    if content == "unrelated":
+        return levir_a, whu_curr
+    raise ValueError(f"unknown content {content!r}")
+
+
+def _tiles(shape, tile: int = 512):
+    for y in range(0, shape[0], tile):
+        for x in range(0, shape[1], tile):
+            yield (y, min(y + tile, shape[0]), x, min(x + tile, shape[1]))
+
+
+def _write(path: Path, shape, tile_fn) -> None:
+    tmp = path.with_suffix(".part.tif")
+    tifffile.imwrite(tmp, (tile_fn(b) for b in _tiles(shape)), shape=shape, dtype=np.uint8,
+                     tile=(512, 512), bigtiff=True, compression="zlib")
+    os.replace(tmp, path)
+
+
+def make_case(mp: int, content: str, cache: Path) -> Path:
+    """Write (or reuse) ``ref.tif`` and ``obs.tif`` of a case."""
+    from reblur.testbed import ChangedScene, plan_pair, shake_for
+
+    d = cache / f"{mp}mp_{content.replace('%', 'pc')}"
+    if (d / "obs.tif").exists():
+        return d
+    d.mkdir(parents=True, exist_ok=True)
+    ref_scene, obs_scene = _scenes(mp, content)
+    plan = plan_pair(ref_scene, bits=8, noise_dn=0.5, n_changes=0, seed=0,
+                     motion=shake_for(ref_scene.shape), viewpoint={"shift_px": 20.0})
+    plan = dataclasses.replace(plan, changed=ChangedScene(obs_scene, ()))
+    _write(d / "ref.tif", plan.shape, plan.reference_tile)
+    _write(d / "obs.tif", plan.shape, plan.observed_tile)
+    return d
+
+
+def run_case(case: Path, src: Path | None = None) -> dict:
+    """``reblur detect`` on a case in a fresh process; stage times and peak RSS."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "out"
+        cmd = [sys.executable, "-m", "reblur", "detect", str(case / "ref.tif"),
+               str(case / "obs.tif"), "--out", str(out), "-q"]
+        env = dict(os.environ)
+        if src is not None:
+            env["PYTHONPATH"] = str(src)
+        t = time.perf_counter()
+        r = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False)
+        seconds = time.perf_counter() - t
+        res: dict = {"seconds": seconds, "load": os.getloadavg()[0]}
+        if r.returncode:
+            res["refused"] = (r.stderr.strip().splitlines() or ["?"])[-1][:300]
+            return res
+        rep = json.loads((out / "report.json").read_text())
+    res["stages"] = {k: float(v) for k, v in rep.get("timings_s", {}).items()}
+    res["peak_rss_mb"] = rep.get("memory", {}).get("peak_rss_mb")
+    mi = rep.get("motion", {}).get("info", {})
+    sel = mi.get("selection")
+    if sel:
+        res["selection"] = {k: sel[k] for k in ("estimates", "n_outer", "fits") if k in sel}
+    res["n_outer"] = mi.get("n_outer")
+    ch = rep.get("changes", {})
+    res["flagged"] = ch.get("changed_fraction")
+    res["n_regions"] = ch.get("n_regions")
+    res["notes"] = len(rep.get("notes", []))
+    return res
+
+
+def measure(sizes: list[int], contents: list[str], cache: Path,
+            src: Path | None = None) -> list[dict]:
+    from benchmarks.scale import io_floor
+
+    rows = []
+    for mp in sizes:
+        for content in contents:
+            t = time.perf_counter()
+            case = make_case(mp, content, cache)
+            made = time.perf_counter() - t
+            row = {"mp": mp, "content": content, "make_s": made, **run_case(case, src)}
+            if content == contents[0]:
+                row["io_floor_s"] = io_floor(case)["time_s"]
+            print(json.dumps(row, default=float), flush=True)
+            rows.append(row)
+    return rows
+
+
+def _slope(xs, ys) -> float:
+    return float(np.polyfit(np.log(xs), np.log(ys), 1)[0]) if len(xs) >= 2 else float("nan")
+
+
+def table(rows: list[dict]) -> str:
+    lines = ["| size | content | total (s) | " + " | ".join(STAGES) + " | peak RSS (MB) "
+             "| estimates / outer iterations | notes |",
+             "|---" * (len(STAGES) + 6) + "|"]
+    for r in rows:
+        if "refused" in r:
+            cells = [f"{r['seconds']:.1f} (refused: {r['refused'][:90]})"] + [""] * len(STAGES) \
+                + ["", "", ""]
+        else:
+            st = r["stages"]
+            sel = r.get("selection") or {}
+            est = (f"{sel['estimates']} / {sel['n_outer']}" + ("" if sel.get("fits", True)
+                                                              else " (no fit)")) if sel else (
+                f"? / {r['n_outer']} (last estimate)" if r.get("n_outer") else "-")
+            cells = ([f"{r['seconds']:.1f}"] + [f"{st[k]:.2f}" if k in st else "-" for k in STAGES]
+                     + [f"{r['peak_rss_mb']:.0f}" if r.get("peak_rss_mb") else "-", est,
+                        str(r.get("notes", ""))])
+        lines.append(f"| {r['mp']} MP | {r['content']} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def targets(rows: list[dict]) -> str:
+    """The issue's targets, met or not, on ``rows`` (and the host's load while they ran)."""
+    loads = [r["load"] for r in rows if "load" in r]
+    out = [f"- host load average while the rows ran: {min(loads):.1f}-{max(loads):.1f} on "
+           f"{os.cpu_count()} cores"] if loads else []
+    small = [r for r in rows if r["mp"] <= 1]
+    if small:
+        worst = max(small, key=lambda r: r["seconds"])
+        out.append(f"- any pair <= 1 MP <= 5 s: worst {worst['seconds']:.1f} s "
+                   f"({worst['content']}): {'met' if worst['seconds'] <= 5 else 'NOT met'}")
+    floors = {r["mp"]: r["io_floor_s"] for r in rows if "io_floor_s" in r}
+    if 100 in floors:
+        big = [r for r in rows if r["mp"] == 100]
+        worst = max(big, key=lambda r: r["seconds"])
+        x = worst["seconds"] / floors[100]
+        out.append(f"- 100 MP <= 5x the I/O floor ({floors[100]:.1f} s): worst "
+                   f"{worst['seconds']:.1f} s = {x:.1f}x ({worst['content']}): "
+                   f"{'met' if x <= 5 else 'NOT met'}")
+    ok = sorted((r["mp"], r) for r in rows if r["content"] == "unchanged" and "stages" in r)
+    if len(ok) >= 2:
+        mp = np.array([m for m, _ in ok], float)
+        tot = np.array([r["seconds"] for _, r in ok])
+        per = np.array([r["stages"].get("reblur_decide", np.nan) for _, r in ok])
+        b, a = np.polyfit(mp, tot, 1)
+        fixed = float(np.mean([r["seconds"] - r["stages"].get("reblur_decide", 0.0)
+                               - r["stages"].get("report", 0.0) for _, r in ok]))
+        s = _slope(mp, per)
+        out.append(f"- fixed cost <= 3 s (unchanged content): intercept of total time against "
+                   f"MP {a:.1f} s ({1000 * b:.0f} ms per MP); mean time outside the tiles and "
+                   f"the writing {fixed:.1f} s: {'met' if max(a, fixed) <= 3 else 'NOT met'}")
+        out.append(f"- per-pixel stage (reblur + decide) log-log slope 0.9-1.1: {s:.2f} "
+                   f"over {', '.join(f'{m:g}' for m in mp)} MP: "
+                   f"{'met' if 0.9 <= s <= 1.1 else 'NOT met'}")
+    return "\n".join(out)
+
+
+def section(rows: list[dict]) -> str:
+    before = ""
+    if BEFORE.exists():
+        old = json.loads(BEFORE.read_text())
+        before = (f"\n\nBefore (reblur at {old['label']}, same pairs; "
+                  "`python -m benchmarks.cost --src OLD_CHECKOUT/src --label COMMIT`):\n\n"
+                  + table(old["rows"]) + "\n\n" + targets(old["rows"]))
+    return ("## Cost over content (`python -m benchmarks.cost`)\n\n"
+            "`reblur detect` in a fresh process per case, as a user runs it, on test-bed pairs "
+            "(LEVIR test_7 / WHU 000213 scenes, gray, upsampled; 64-sub-pose shake, 20 px "
+            "viewpoint, 8-bit). Stage times (s) from `report.json` (`estimate` includes the "
+            "window selection, `report` writes the outputs); peak RSS of the process. The host "
+            "is shared with other jobs: timings are noisy. Rows in `docs/cost_runs.json`.\n\n"
+            + table(rows) + "\n\nTargets:\n\n" + targets(rows) + before)
+
+
+def main(sizes: list[int] | None = None, contents: list[str] | None = None,
+         cache: Path | None = None, src: Path | None = None, label: str | None = None) -> str:
+    """Run the cases; return the markdown section (with ``src``: save the "before" rows)."""
+    sizes = [1, 25] if sizes is None else sizes
+    contents = CONTENTS if contents is None else contents
+    cache = cache or Path(tempfile.gettempdir()) / "reblur-cost"
+    rows = measure(sizes, contents, cache, src)
+    if src is not None:
+        old = json.loads(BEFORE.read_text())["rows"] if BEFORE.exists() else []
+        rows = _merged(old, rows)
+        BEFORE.write_text(json.dumps({"label": label or str(src), "rows": rows}, indent=1,
+                                     default=float))
+        return table(rows) + "\n\n" + targets(rows)
+    rows = _merged(json.loads(RUNS.read_text()) if RUNS.exists() else [], rows)
+    RUNS.write_text(json.dumps(rows, indent=1, default=float))
+    return section(rows)
+
+
+def _merged(old: list[dict], new: list[dict]) -> list[dict]:
+    """``old`` rows with those of the same size and content replaced by ``new``'s, sorted
+    by size then content (a run at some sizes keeps the saved rows of the others)."""
+    keys = {(r["mp"], r["content"]) for r in new}
+    rows = [r for r in old if (r["mp"], r["content"]) not in keys] + new
+    order = {c: i for i, c in enumerate(CONTENTS)}
+    return sorted(rows, key=lambda r: (r["mp"], order.get(r["content"], 99)))
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", default="1,25", help="comma-separated MP sizes among 1, 25, 100")
+    ap.add_argument("--quick", action="store_true", help="1 MP only")
+    ap.add_argument("--contents", default=",".join(CONTENTS))
+    ap.add_argument("--cache", type=Path, default=None, help="folder of the generated pairs")
+    ap.add_argument("--src", type=Path, default=None,
+                    help="run reblur from another checkout's src folder: the 'before' rows")
+    ap.add_argument("--label", default=None, help="name of that checkout (e.g. its commit)")
+    ap.add_argument("--saved", action="store_true",
+                    help="only rewrite the section from docs/cost_runs.json")
+    a = ap.parse_args()
+    from benchmarks.run import write_section
+
+    if a.saved:
+        body = section(json.loads(RUNS.read_text()))
+    else:
+        sizes = [1] if a.quick else [int(s) for s in a.sizes.split(",") if s]
+        body = main(sizes, [c for c in a.contents.split(",") if c], a.cache, a.src, a.label)
+    if a.src is None:
+        write_section("cost", body)
+    print(body)
