@@ -139,13 +139,20 @@ class _ReblurGroup(click.Group):
 
 # ---------------------------------------------------------------------------- options
 class _Finite(click.FloatRange):
-    """A float option that must be finite (no nan, inf) and within its range."""
+    """A float option that must be finite (no nan, inf; nan allowed with ``allow_nan``)
+    and within its range."""
 
     name = "float"
+
+    def __init__(self, *args: Any, allow_nan: bool = False, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.allow_nan = allow_nan
 
     def convert(self, value: Any, param: click.Parameter | None,
                 ctx: click.Context | None) -> float:
         number = click.FLOAT.convert(value, param, ctx)
+        if self.allow_nan and math.isnan(number):
+            return number
         if not math.isfinite(number):
             self.fail(f"{value!r} is not a finite number.", param, ctx)
         return super().convert(number, param, ctx)
@@ -336,9 +343,10 @@ def _check_output_dir(
     return out_r
 
 
-def _open_pair(reference: Path, observed: Path, max_pixels: int) -> tuple[Image, Image]:
-    ref = open_image(reference, max_pixels=max_pixels)
-    obs = open_image(observed, max_pixels=max_pixels)
+def _open_pair(reference: Path, observed: Path, max_pixels: int,
+               nodata: float | None = None) -> tuple[Image, Image]:
+    ref = open_image(reference, max_pixels=max_pixels, nodata=nodata)
+    obs = open_image(observed, max_pixels=max_pixels, nodata=nodata)
     for note_img in (ref, obs):
         for note in note_img.notes:
             log.info("%s: %s", note_img.name, note)
@@ -403,6 +411,15 @@ def main() -> None:
               help="Decision threshold (> 0); default: chosen from the data.")
 @click.option("--truth", type=_PATH, default=None,
               help="True change mask (non-zero = change): scores go into report.json.")
+@click.option("--illumination", type=click.Choice(["auto", "global", "field"]),
+              default="auto", show_default=True,
+              help="Photometric model: one gain and offset per band, a smooth field "
+                   "(ramps, vignetting, shadow gradients), or chosen from the data.")
+@click.option("--nodata", type=_Finite(allow_nan=True), default=None, metavar="VALUE",
+              help="Pixels whose every band equals VALUE ('nan': any band not finite) "
+                   "hold no data in either image: unknown, never change.  Default: what "
+                   "each file declares (GeoTIFF nodata or mask, alpha band, zarr "
+                   "'nodata' attribute).")
 @max_pixels_option(DEFAULT_MAX_PIXELS)
 @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
               help="Threads for the tiled stages (processes with --scheduler processes).")
@@ -416,8 +433,8 @@ def main() -> None:
 @verbose_option
 def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float,
            rz_step: float | None, lam: float, tile_size: int, threshold: float | None,
-           truth: Path | None, max_pixels: int, workers: int, scheduler: str | None,
-           overwrite: bool, quiet: bool) -> None:
+           truth: Path | None, illumination: str, nodata: float | None, max_pixels: int,
+           workers: int, scheduler: str | None, overwrite: bool, quiet: bool) -> None:
     """Find what changed between REFERENCE (sharp) and OBSERVED (later, blurred).
 
     Inputs: PNG, JPEG, TIFF/BigTIFF/GeoTIFF or zarr; uint8, uint16 or float; gray, RGB
@@ -439,17 +456,18 @@ def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float
         summary = _detect(stage, out_dir, reference, observed, truth, max_pixels, quiet, t0,
                           dict(t_max=t_max, rz_max=rz_max, rz_step=rz_step, lam=lam,
                                tile_size=tile_size, threshold=threshold, workers=workers,
-                               scheduler=scheduler))
+                               scheduler=scheduler, illumination=illumination), nodata)
     click.echo(display_path(summary_line(summary, out)))
 
 
 def _detect(stage: Path, out_dir: Path, reference: Path, observed: Path, truth: Path | None,
-            max_pixels: int, quiet: bool, t0: float, options: dict[str, Any]) -> dict[str, Any]:
+            max_pixels: int, quiet: bool, t0: float, options: dict[str, Any],
+            nodata: float | None = None) -> dict[str, Any]:
     """The work of ``reblur detect``: every output is written into ``stage``, the temporary
     directory that becomes ``out_dir``."""
     from .report import write_report
 
-    ref, obs = _open_pair(reference, observed, max_pixels)
+    ref, obs = _open_pair(reference, observed, max_pixels, nodata)
     truth_mask = (read_mask(truth, obs.shape[:2], max_pixels=max_pixels, what="truth mask")
                   if truth is not None else None)
     t_open = time.perf_counter() - t0
@@ -470,15 +488,16 @@ def _detect(stage: Path, out_dir: Path, reference: Path, observed: Path, truth: 
             masks = dict(zip(("change_out", "unknown_out"),
                              zarr_masks(work, obs.shape[:2], options["tile_size"]), strict=True))
         try:
-            result = reblur.detect_changes(ref.array, obs.array, progress=progress,
-                                           work_dir=work, **masks, **options)
+            result = reblur.detect_changes(ref.for_detection(), obs.for_detection(),
+                                           progress=progress, work_dir=work, **masks,
+                                           **options)
         finally:
             if progress is not None:
                 progress.close()
         with _writing(out_dir):
             _, summary = write_report(
                 result, stage, reference=ref, observed=obs, truth=truth_mask,
-                options=dict(options, max_pixels=max_pixels, command="detect",
+                options=dict(options, max_pixels=max_pixels, command="detect", nodata=nodata,
                              truth=str(truth) if truth is not None else None),
                 timings=dict(open=t_open),
             )
@@ -513,7 +532,8 @@ def demo(out: Path, overwrite: bool, quiet: bool) -> None:
                     manifest="report.json") as stage:
         progress = None if quiet else _Progress()
         try:
-            result = reblur.detect_changes(ref.array, obs.array, progress=progress)
+            result = reblur.detect_changes(ref.for_detection(), obs.for_detection(),
+                                           progress=progress)
         finally:
             if progress is not None:
                 progress.close()

@@ -332,9 +332,9 @@ def _solve(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, oc
            solver, max_outer, time_limit, fista_iter, w0, gs=None, scratch=None, threads=None,
            rtol=0.0):
     ops = _build_operators(reference, grid, boxes, base, engine, s_ref, threads)
-    _exclude(ops, boxes, getattr(observed, "exclude", None))
     if gs is None:
         gs = [read_window(observed, b, np.float64) / s_obs for b in boxes]
+    gs = _exclude(ops, boxes, getattr(observed, "exclude", None), gs)
     if not any(op.valid.any() for op in ops):
         raise ValueError(
             "no estimation window is covered by the reference for every pose: "
@@ -354,13 +354,33 @@ def _solve(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, oc
     return w, info, ops, gs
 
 
-def _exclude(ops, boxes, exclude) -> None:
+#: Pixels (all windows together) :func:`_exclude` must leave for the exclusion to apply.
+_MIN_KEPT = 256
+
+
+def _exclude(ops, boxes, exclude, gs) -> list[np.ndarray]:
     """Leave the pixels ``exclude(box)`` out of each window's data term (``op.valid``);
-    ``op.excluded`` keeps them (the estimate reports them as change)."""
-    for op, b in zip(ops, boxes, strict=True):
-        ex = np.zeros_like(op.valid) if exclude is None else np.asarray(exclude(b), bool)
+    ``op.excluded`` keeps them (the estimate reports them as change).  Where the exclusion
+    would leave fewer than :data:`_MIN_KEPT` pixels in all the windows together (a patch
+    inside the known change), it does not apply: they are fitted as they are and the
+    window selection judges them.  No-data (non-finite) pixels of the observation windows
+    ``gs`` are left out too; returns the windows with them set to 0 (copies: the caller's
+    arrays keep their NaN for the next level)."""
+    exs = [np.zeros_like(op.valid) if exclude is None else np.asarray(exclude(b), bool)
+           for op, b in zip(ops, boxes, strict=True)]
+    if sum(int(np.count_nonzero(op.valid & ~ex)) for op, ex in zip(ops, exs, strict=True)) \
+            < _MIN_KEPT:
+        exs = [np.zeros_like(op.valid) for op in ops]
+    out = []
+    for op, ex, g in zip(ops, exs, gs, strict=True):
         op.excluded = ex & op.valid
         op.valid = op.valid & ~ex
+        fin = np.isfinite(g)
+        if not fin.all():
+            g = np.where(fin, g, 0.0)
+            op.valid &= fin.all(axis=2) if fin.ndim == 3 else fin
+        out.append(g)
+    return out
 
 
 def _build_operators(reference, grid, boxes, base, engine, scale, threads):

@@ -234,6 +234,133 @@ class LazyBands:
         return a if dtype is None else a.astype(dtype, copy=False)
 
 
+def _spatial_key(key, ndim: int) -> tuple:
+    """The row and column parts of an index of a 2-D or 3-D image (Ellipsis expanded)."""
+    if not isinstance(key, tuple):
+        key = (key,)
+    if any(k is Ellipsis for k in key):
+        i = key.index(Ellipsis)
+        key = key[:i] + (slice(None),) * (ndim - (len(key) - 1)) + key[i + 1 :]
+    key = key + (slice(None),) * (2 - len(key))
+    return key[:2]
+
+
+def _fmt_value(v: float) -> str:
+    return "nan" if np.isnan(v) else f"{v:g}"
+
+
+class NodataMask:
+    """Lazy ``(H, W)`` validity of an image from a no-data value.
+
+    A pixel holds no data when every band equals ``value`` (GDAL's per-dataset reading of
+    a nodata value shared by the bands: a dark red pixel with one band at 0 is data); with
+    ``value`` NaN, when any band is not finite.
+    """
+
+    def __init__(self, array, value: float):
+        self.array = array
+        self.value = float(value)
+        self.shape = tuple(int(s) for s in array.shape[:2])
+        self.dtype = np.dtype(bool)
+        self.ndim = 2
+
+    def __getitem__(self, key) -> np.ndarray:
+        a = np.asarray(self.array[_spatial_key(key, len(self.array.shape))])
+        if np.isnan(self.value):
+            bad = ~np.isfinite(a)
+            return ~(bad.any(axis=2) if a.ndim == 3 else bad)
+        bad = a == self.value
+        return ~(bad.all(axis=2) if a.ndim == 3 else bad)
+
+
+class AlphaMask:
+    """Lazy ``(H, W)`` validity from an alpha band (``alpha > 0``: data)."""
+
+    def __init__(self, alpha):
+        self.alpha = alpha
+        self.shape = tuple(int(s) for s in alpha.shape[:2])
+        self.dtype = np.dtype(bool)
+        self.ndim = 2
+
+    def __getitem__(self, key) -> np.ndarray:
+        return np.asarray(self.alpha[_spatial_key(key, 2)]) > 0
+
+
+class RasterMask:
+    """Lazy ``(H, W)`` validity from a raster's internal (per-dataset) mask, read window by
+    window with rasterio (GDAL's ``GetMaskBand``: 0 = no data)."""
+
+    def __init__(self, path: Path, shape: tuple[int, int]):
+        self.path = Path(path)
+        self.shape = tuple(int(s) for s in shape)
+        self.dtype = np.dtype(bool)
+        self.ndim = 2
+
+    def __getitem__(self, key) -> np.ndarray:
+        import rasterio
+        from rasterio.windows import Window
+
+        ky, kx = _spatial_key(key, 2)
+        y0, y1, _ = ky.indices(self.shape[0])
+        x0, x1, _ = kx.indices(self.shape[1])
+        with rasterio.Env(CPL_LOG="/dev/null"), rasterio.open(self.path) as src:
+            m = src.read_masks(1, window=Window(x0, y0, max(x1 - x0, 0), max(y1 - y0, 0)))
+        return m > 0
+
+
+class MaskedView:
+    """An image as :func:`reblur.detect_changes` reads it when some pixels hold no data:
+    float32, integers divided by their type's maximum (the scale reblur gives them anyway),
+    NaN where ``valid`` is False.  NaN is unknown everywhere downstream: the reblurred
+    reference is NaN wherever its blur touches a no-data pixel, and unknown pixels are
+    never change.
+
+    Parameters
+    ----------
+    array : array-like
+        ``(H, W)`` or ``(H, W, C)`` image (numpy or lazy).
+    valid : array-like
+        ``(H, W)`` bool reader (or array), True where there is data.
+    """
+
+    def __init__(self, array, valid):
+        self.array = array
+        self.valid = valid
+        self.shape = tuple(int(s) for s in array.shape)
+        if tuple(valid.shape[:2]) != self.shape[:2]:
+            raise ValueError(f"validity mask {tuple(valid.shape)} does not match the image "
+                             f"{self.shape}")
+        self.dtype = np.dtype(np.float32)
+        self.ndim = len(self.shape)
+        dt = np.dtype(array.dtype)
+        self._scale = np.float32(1.0 / np.iinfo(dt).max) if dt.kind in "ui" else None
+
+    @property
+    def chunks(self):
+        return getattr(self.array, "chunks", None)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, key) -> np.ndarray:
+        a = np.array(self.array[key], dtype=np.float32)
+        if self._scale is not None:
+            a *= self._scale
+        bad = ~np.asarray(self.valid[_spatial_key(key, self.ndim)], bool)
+        if bad.any():
+            if a.ndim == bad.ndim + 1:
+                a[bad, :] = np.nan
+            elif a.shape == bad.shape:
+                a[bad] = np.nan
+            else:  # a single band picked by the index
+                a[bad.reshape(a.shape)] = np.nan
+        return a
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        a = self[...]
+        return a if dtype is None else a.astype(dtype, copy=False)
+
+
 class ChunkCache:
     """Window reader of a chunked, on-disk image that keeps recently decoded chunks.
 
@@ -563,6 +690,12 @@ class Image:
         (``affine.Affine``) and ``nodata``; ``None`` otherwise.
     notes : list of str
         What was done on reading (alpha dropped, converted to gray, ...).
+    valid : array-like or None
+        ``(H, W)`` bool reader, False where the file says there is no data (its nodata
+        value, internal mask or alpha band, or ``--nodata``): those pixels are unknown,
+        never change.  None: every pixel holds data.
+    nodata_source : str or None
+        Where ``valid`` comes from ("nodata 0", "alpha band", "internal mask", ...).
     """
 
     array: Any
@@ -571,6 +704,8 @@ class Image:
     geo: dict[str, Any] | None = None
     notes: list[str] = field(default_factory=list)
     _closer: Callable[[], None] | None = field(default=None, repr=False, compare=False)
+    valid: Any = None
+    nodata_source: str | None = None
 
     @classmethod
     def from_array(cls, array, name: str | None = None) -> Image:
@@ -634,7 +769,21 @@ class Image:
             )
         if self.notes:
             d["notes"] = list(self.notes)
+        if self.nodata_source:
+            d["nodata"] = self.nodata_source
         return d
+
+    def with_nodata(self, value: float) -> Image:
+        """This image with the pixels whose every band equals ``value`` (NaN: any band not
+        finite) marked as no data; replaces what the file said."""
+        v = float(value)
+        return replace(self, valid=NodataMask(self.array, v),
+                       nodata_source=f"nodata {_fmt_value(v)} (given)")
+
+    def for_detection(self) -> Any:
+        """What :func:`reblur.detect_changes` reads: the array itself, or with no-data pixels
+        as NaN (:class:`MaskedView`)."""
+        return self.array if self.valid is None else MaskedView(self.array, self.valid)
 
     def read(self) -> np.ndarray:
         """The whole image as a numpy array (loads a lazy image into memory)."""
@@ -746,8 +895,14 @@ def _row_bands(array, target_bytes: int = 64 * 2**20) -> Iterator[slice]:
         yield slice(y, min(y + step, h))
 
 
-def check_finite(image: Image | Any, name: str | None = None) -> None:
-    """Raise :class:`InputError` if a float image holds NaN or Inf pixels.
+def _nan_nodata(img: Image) -> bool:
+    return isinstance(img.valid, NodataMask) and np.isnan(img.valid.value)
+
+
+def check_finite(image: Image | Any, name: str | None = None, *,
+                 nan_is_nodata: bool = False) -> None:
+    """Raise :class:`InputError` if a float image holds NaN or Inf pixels (only Inf with
+    ``nan_is_nodata``: the file declares NaN as its no-data value).
 
     Lazy images are scanned in bands of rows (about 64 MB each), never loaded whole.
     """
@@ -757,6 +912,8 @@ def check_finite(image: Image | Any, name: str | None = None) -> None:
         return
     for rows in _row_bands(arr):
         block = np.asarray(arr[rows])
+        if nan_is_nodata:
+            block = np.where(np.isnan(block), 0, block)
         if not np.isfinite(block).all():
             bad = ~np.isfinite(block)
             while bad.ndim > 2:
@@ -992,31 +1149,60 @@ def _read_codec(path: Path, fmt: str, max_pixels: int) -> Image:
 
 
 def _drop_alpha(img: Image, alpha: bool) -> Image:
+    """The colour bands of an image with an alpha band; the alpha band becomes its
+    validity (transparent pixels hold no data) when it is not all opaque."""
     if not alpha:
         return img
     keep = img.bands - 1
     if isinstance(img.array, np.ndarray):
+        a = np.ascontiguousarray(img.array[:, :, keep])
         arr = img.array[:, :, :keep]
         arr = arr[:, :, 0] if keep == 1 else arr
         arr = np.ascontiguousarray(arr)
+        valid = None if bool((a > 0).all()) else a > 0
     else:
         arr = LazyBands(img.array, bands=range(keep))
-    return replace(img, array=arr, notes=img.notes + ["alpha band dropped"])
+        valid = AlphaMask(LazyBands(img.array, bands=(keep,)))
+    if valid is None:
+        return replace(img, array=arr, notes=img.notes + ["alpha band dropped (all opaque)"])
+    return replace(img, array=arr, valid=valid, nodata_source="alpha band",
+                   notes=img.notes + ["alpha band: transparent pixels hold no data"])
 
 
-def _read_geo(path: Path) -> dict[str, Any] | None:
+def _read_geo(path: Path) -> tuple[dict[str, Any] | None, float | None, bool]:
+    """Georeferencing (None when there is none), the nodata value and whether the raster
+    has an internal (per-dataset) mask, from GDAL through rasterio."""
     import rasterio
+    from rasterio.enums import MaskFlags
     from rasterio.errors import NotGeoreferencedWarning
 
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", NotGeoreferencedWarning)
             with rasterio.Env(CPL_LOG="/dev/null"), rasterio.open(path) as src:
-                if src.crs is None and src.transform.is_identity:
-                    return None
-                return dict(crs=src.crs, transform=src.transform, nodata=src.nodata)
+                flags = src.mask_flag_enums[0] if src.count else ()
+                internal = (MaskFlags.per_dataset in flags and MaskFlags.alpha not in flags
+                            and MaskFlags.nodata not in flags)
+                geo = None
+                if not (src.crs is None and src.transform.is_identity):
+                    geo = dict(crs=src.crs, transform=src.transform, nodata=src.nodata)
+                return geo, src.nodata, bool(internal)
     except Exception:  # noqa: BLE001 - no usable georeferencing is not an error
-        return None
+        return None, None, False
+
+
+def _with_file_mask(img: Image, nodata: float | None, internal: bool) -> Image:
+    """``img`` with the validity its file declares (alpha first, then nodata, then an
+    internal mask)."""
+    if img.valid is not None:
+        return img
+    if nodata is not None:
+        return replace(img, valid=NodataMask(img.array, nodata),
+                       nodata_source=f"nodata {_fmt_value(float(nodata))} (file)")
+    if internal and img.path is not None:
+        return replace(img, valid=RasterMask(img.path, img.shape[:2]),
+                       nodata_source="internal mask (file)")
+    return img
 
 
 def _read_tiff(path: Path, max_pixels: int, lazy: bool | None) -> Image:
@@ -1138,8 +1324,8 @@ def _open_tiff(path: Path, max_pixels: int, lazy: bool | None,
         tif.close()
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise _fail(path, f"cannot read TIFF file ({msg})") from exc
-    img.geo = _read_geo(path)
-    return _drop_alpha(img, alpha)
+    img.geo, nodata, internal = _read_geo(path)
+    return _with_file_mask(_drop_alpha(img, alpha), nodata, internal)
 
 
 class _Squeezed:
@@ -1190,10 +1376,11 @@ def _read_zarr(path: Path, max_pixels: int, lazy: bool | None) -> Image:
     nbytes = int(np.prod(shape)) * np.dtype(node.dtype).itemsize
     if lazy is None:
         lazy = nbytes > LAZY_BYTES
+    nodata = _zarr_nodata(node)
     if lazy:
         arr = _Guarded(node, path)
         _check_first_window(path, arr)
-        return Image(arr, path, "zarr")
+        return _with_file_mask(Image(arr, path, "zarr"), nodata, False)
     try:
         arr = np.asarray(node[...])
     except MemoryError:
@@ -1201,7 +1388,21 @@ def _read_zarr(path: Path, max_pixels: int, lazy: bool | None) -> Image:
     except Exception as exc:  # noqa: BLE001 - any codec or store failure means corrupt data
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise _fail(path, f"cannot decode zarr chunk data ({msg})") from exc
-    return Image(arr, path, "zarr")
+    return _with_file_mask(Image(arr, path, "zarr"), nodata, False)
+
+
+def _zarr_nodata(node) -> float | None:
+    """The no-data value a zarr array declares in its attributes (``nodata``, or the CF /
+    xarray ``_FillValue``), or None.  zarr's own ``fill_value`` is not one: it is what an
+    unwritten chunk reads as (refused by :func:`_check_zarr_chunks`), and 0 by default."""
+    attrs = getattr(node, "attrs", {}) or {}
+    for key in ("nodata", "_FillValue"):
+        if key in attrs and attrs[key] is not None:
+            try:
+                return float(attrs[key])
+            except (TypeError, ValueError):
+                return None
+    return None
 
 
 def _check_zarr_chunks(path: Path, node) -> None:
@@ -1245,6 +1446,7 @@ def open_image(
     lazy: bool | None = None,
     check_values: bool = True,
     rescale: bool = True,
+    nodata: float | None = None,
 ) -> Image:
     """Open an image file or zarr store for change detection.
 
@@ -1265,6 +1467,11 @@ def open_image(
         Give 32- and 64-bit integer images as float32 in [0, 1], mapped from the range of
         values they hold (not their type's; see :func:`_rescale_wide`).  8- and 16-bit
         images keep their dtype.
+    nodata : float, optional
+        Pixels whose every band equals this value (NaN: any band not finite) hold no data
+        (:meth:`Image.with_nodata`), replacing what the file declares.  Otherwise the file
+        says: a GeoTIFF's nodata value or internal mask, an alpha band, a zarr array's
+        ``nodata`` / ``_FillValue`` attribute.  :attr:`Image.valid` holds the result.
 
     Returns
     -------
@@ -1319,8 +1526,10 @@ def open_image(
     _check_dtype(p, img.dtype)
     if img.dtype == np.bool_:
         img.array = img.array.astype(np.uint8) if not img.lazy else img.array
+    if nodata is not None:
+        img = img.with_nodata(nodata)
     if check_values:
-        check_finite(img)
+        check_finite(img, nan_is_nodata=_nan_nodata(img))
     if rescale and img.dtype.kind in "iu" and img.dtype.itemsize >= 4:
         img = _rescale_wide(img)
     return img
@@ -1364,6 +1573,8 @@ def _rescale_wide(img: Image) -> Image:
     lo, hi = np.inf, -np.inf
     for rows in _row_bands(arr):
         block = np.asarray(arr[rows])
+        if img.valid is not None:  # the range of the data, not of the no-data value
+            block = block[np.asarray(img.valid[rows, :], bool)]
         if block.size:
             lo, hi = min(lo, float(block.min())), max(hi, float(block.max()))
     if not hi > lo:

@@ -205,6 +205,10 @@ class BlurOperator:
                 _, ok = warp_window(self.reference, H, plane, dtype=np.float32,
                                     source=(src, sbox), out=self.stack[b])
                 bad |= ~ok[:eh, :ew]
+                fin = np.isfinite(self.stack[b])
+                if not fin.all():  # no data (NaN) in the reference: not covered either
+                    self.stack[b][~fin] = 0.0
+                    bad |= ~fin[:eh, :ew].all(axis=-1)
             del src
         self.valid = self._all_pose_valid(bad)
         # flat-index helpers: lag offsets of every pose

@@ -100,6 +100,11 @@ def _check_inputs(reference, observed) -> None:
         )
 
 
+#: Smallest low-resolution difference (a fraction of the reference's 2-98 % range) that
+#: counts as a disagreement of the pre-fit (:func:`photometric_prefit`).
+_MIN_DISAGREEMENT = 0.05
+
+
 @dataclass
 class Prefit:
     """Output of :func:`photometric_prefit`.
@@ -209,7 +214,11 @@ def photometric_prefit(
         if scale is not None and scale > 0:
             res = o.astype(np.float64) - (gain[c] * r + offset[c])
             centre, scale, _ = inlier_scale(res[cover], scale)
-            agree &= np.abs(res - centre) < 3.5 * scale
+            # a disagreement is also a visible one: at least 5 % of the scene's range (on
+            # noise-free data the inliers' scale is the blur's residual, near zero)
+            lo, hi = np.percentile(r[cover], [2, 98])
+            band = max(3.5 * scale, _MIN_DISAGREEMENT * float(hi - lo) * abs(gain[c]))
+            agree &= np.abs(res - centre) < band
     agreement = np.where(cover, agree.astype(np.float32), np.float32(np.nan))
     return Prefit(gain, offset, agreement, int(ko), infos)
 
@@ -712,6 +721,7 @@ def detect_changes(
     tile_size: int = 1024,
     threshold: float | None = None,
     decision: DecisionParams | None = None,
+    illumination: str | None = None,
     workers: int = 1,
     keep_reblurred: bool | None = None,
     change_out=None,
@@ -774,6 +784,10 @@ def detect_changes(
         Override the data-driven decision threshold (units of the decision statistic).
     decision : DecisionParams, optional
         Decision and clean-up settings.
+    illumination : {"auto", "global", "field"}, optional
+        The photometric model (:attr:`DecisionParams.illumination`; default ``"auto"``:
+        a smooth field where it explains the data markedly better than one gain and
+        offset).  Overrides ``decision.illumination``.
     workers : int
         Threads pulling tiles (with a local Dask scheduler: its threads or processes).
     keep_reblurred : bool, optional
@@ -858,7 +872,9 @@ def detect_changes(
     keep = (Ho * Wo <= 64_000_000) if keep_reblurred is None else keep_reblurred
     dec = reblur_and_decide(
         reference, observed, poses, s_ref=s_ref, s_obs=s_obs, gain=gain, offset=offset,
-        tile_size=tile_size, threshold=threshold, params=decision, workers=workers,
+        tile_size=tile_size, threshold=threshold, workers=workers,
+        params=decision if illumination is None else dataclasses.replace(
+            decision or DecisionParams(), illumination=illumination),
         keep_reblurred=keep, change_out=change_out, unknown_out=unknown_out,
         scheduler=scheduler, work_dir=work_dir,
         progress=(lambda f: report("reblur + decide", f)) if progress else None,

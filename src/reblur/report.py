@@ -86,7 +86,7 @@ PNG_MAX_PIXELS = 2**30
 #: Long side of ``overlay.png``.
 OVERLAY_MAX_SIDE = 2048
 
-#: At most this many regions are listed in ``report.json`` (largest first).
+#: At most this many regions are listed in ``report.json`` (strongest first, :func:`triage`).
 MAX_LISTED_REGIONS = 1000
 
 
@@ -364,6 +364,47 @@ def motion_figure(motion: MotionEstimate, path: str | os.PathLike, *,
 
 
 # ---------------------------------------------------------------------------- regions
+def _full_scale(observed: Image | None) -> float | None:
+    """Full-scale value of the observation's own units (255 for uint8, 65535 for uint16,
+    1 for floats), None without it."""
+    if observed is None:
+        return None
+    dt = np.dtype(observed.dtype)
+    return float(np.iinfo(dt).max) if dt.kind in "ui" else 1.0
+
+
+def triage(regions: list[dict[str, Any]], observed: Image | None = None
+           ) -> list[dict[str, Any]]:
+    """The regions as an analyst triages them: most evidence first.
+
+    Each record gains ``rank`` (1 = strongest), ``mean_contrast`` (the mean magnitude of
+    the difference from the matched reblurred reference, in the observation's own units:
+    DN for integer images) and, with a georeferenced observation, ``area_m2`` (in the
+    units of its CRS, squared: m^2 for projected CRSs in metres).  Sorted by ``score`` (the
+    region's mean statistic over the decision threshold), then by area; records without a
+    score (regions found on a mask alone) by area.
+    """
+    scale = _full_scale(observed)
+    geo = observed.geo if observed is not None else None
+    px_area = None
+    if geo and geo.get("transform") is not None:
+        t = geo["transform"]
+        px_area = abs(t.a * t.e - t.b * t.d)
+    out = []
+    for r in regions:
+        r = dict(r)
+        if "contrast" in r and scale is not None:
+            r["mean_contrast"] = r["contrast"] * scale
+        if px_area:
+            r["area_m2"] = float(r.get("area", 0)) * px_area
+        out.append(r)
+    out.sort(key=lambda r: (-float(r.get("score", 0.0)), -int(r.get("area", 0)),
+                            list(r.get("bbox", []))))
+    for k, r in enumerate(out, 1):
+        r["rank"] = k
+    return out
+
+
 def find_regions(change: np.ndarray) -> list[dict[str, Any]]:
     """Connected (8-neighbour) change regions: label, area, bbox (y0, x0, y1, x1), centroid."""
     import cv2
@@ -379,14 +420,24 @@ def find_regions(change: np.ndarray) -> list[dict[str, Any]]:
     return out
 
 
-def change_polygons(change: np.ndarray, geo: dict[str, Any] | None = None) -> dict[str, Any]:
+#: Region properties copied into the GeoJSON features.
+_FEATURE_KEYS = ("rank", "score", "polarity", "mean_contrast", "contrast", "area_m2",
+                 "mean_stat", "max_stat")
+
+
+def change_polygons(change: np.ndarray, geo: dict[str, Any] | None = None,
+                    regions: list[dict[str, Any]] | None = None) -> dict[str, Any]:
     """Change regions as a GeoJSON FeatureCollection.
 
     Polygons (with holes) of 8-connected change pixels, traced by
     :func:`rasterio.features.shapes`, in the observation's CRS when ``geo`` (``crs``,
     ``transform``) is given, else in pixel coordinates.  The CRS is named in a ``crs``
-    member (GeoJSON 2008 style; RFC 7946 readers assume WGS 84 without it).
+    member (GeoJSON 2008 style; RFC 7946 readers assume WGS 84 without it).  With
+    ``regions`` (:func:`triage` records), each feature carries its region's triage
+    properties (rank, score, polarity, mean contrast, area in m^2), matched by the region's
+    bounding box and pixel count; features are listed by rank.
     """
+    import cv2
     from affine import Affine
     from rasterio import features
     from shapely.geometry import mapping, shape
@@ -394,16 +445,27 @@ def change_polygons(change: np.ndarray, geo: dict[str, Any] | None = None) -> di
     transform = (geo or {}).get("transform") or Affine.identity()
     px_area = abs(transform.a * transform.e - transform.b * transform.d) or 1.0
     m = np.asarray(change, dtype=np.uint8)
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8, ltype=cv2.CV_32S)
+    by_key = {}
+    for r in regions or []:
+        if "bbox" in r and "area" in r:
+            by_key[(tuple(int(v) for v in r["bbox"]), int(r["area"]))] = r
+    props_of = {}
+    for i in range(1, n):
+        x, y, w, h, area = (int(v) for v in stats[i])
+        rec = by_key.get(((y, x, y + h, x + w), area))
+        if rec is not None:
+            props_of[i] = {k: rec[k] for k in _FEATURE_KEYS if k in rec}
     feats = []
-    for i, (geom, _) in enumerate(
-        features.shapes(m, mask=m.astype(bool), connectivity=8, transform=transform)
-    ):
+    for geom, value in features.shapes(lab, mask=m.astype(bool), connectivity=8,
+                                       transform=transform):
         poly = shape(geom)
-        feats.append(dict(
-            type="Feature",
-            properties=dict(id=i, area=float(poly.area), area_px=int(round(poly.area / px_area))),
-            geometry=mapping(poly),
-        ))
+        props = dict(area=float(poly.area), area_px=int(round(poly.area / px_area)))
+        props.update(props_of.get(int(value), {}))
+        feats.append(dict(type="Feature", properties=props, geometry=mapping(poly)))
+    feats.sort(key=lambda f: (f["properties"].get("rank", np.inf), -f["properties"]["area"]))
+    for i, f in enumerate(feats):
+        f["properties"] = {"id": i, **f["properties"]}
     fc: dict[str, Any] = dict(type="FeatureCollection", features=feats)
     crs = (geo or {}).get("crs")
     if crs is not None:
@@ -496,7 +558,7 @@ def summarize(
     regions = list(result.regions) if result.regions else (
         find_regions(known_change[...]) if changed and n <= 2**26 else []
     )
-    regions = sorted(regions, key=lambda r: (-int(r.get("area", 0)), list(r.get("bbox", []))))
+    regions = triage(regions, observed)
     known = n - unknown
     d: dict[str, Any] = dict(
         reblur_version=_version(),
@@ -569,6 +631,37 @@ def _rows(pairs: Iterable[tuple[str, Any]]) -> str:
     )
 
 
+#: Regions listed in the HTML report's table (the strongest; report.json lists more).
+HTML_REGIONS = 100
+
+
+def _region_table(regions: list[dict[str, Any]], n_regions: int) -> str:
+    """The HTML table of the strongest regions, as :func:`triage` ranks them."""
+    if not regions:
+        return ""
+    geo = any("area_m2" in r for r in regions)
+    head = ["rank", "score", "polarity", "mean contrast", "area (px)"]
+    head += ["area (m\u00b2)"] if geo else []
+    head += ["centroid (row, col)", "bbox (y0, x0, y1, x1)"]
+    rows = []
+    for r in regions[:HTML_REGIONS]:
+        cells = [r.get("rank"), _fmt(r.get("score")), r.get("polarity", "-"),
+                 _fmt(r.get("mean_contrast")), r.get("area")]
+        cells += [_fmt(r.get("area_m2"))] if geo else []
+        cells += [", ".join(f"{v:.0f}" for v in r.get("centroid", [])),
+                  ", ".join(str(v) for v in r.get("bbox", []))]
+        rows.append("<tr>" + "".join(f"<td>{html.escape(str(v))}</td>" for v in cells)
+                    + "</tr>")
+    shown = min(len(regions), HTML_REGIONS)
+    more = (f"<p>The {shown} strongest of {n_regions} regions; report.json lists up to "
+            f"{MAX_LISTED_REGIONS}.</p>" if n_regions > shown else "")
+    return ("<h2>Change regions</h2><p>Score: the region's mean change statistic over the "
+            "decision threshold (1 = at the threshold). Mean contrast: observed minus "
+            "the matched reblurred reference, in the observation's units.</p>"
+            '<table class="regions"><tr>' + "".join(f"<th>{h}</th>" for h in head)
+            + "</tr>\n" + "\n".join(rows) + "</table>" + more)
+
+
 def write_html(path: str | os.PathLike, summary: dict[str, Any], files: dict[str, str]) -> Path:
     """A single self-contained HTML page: key numbers, embedded pictures, links to files.
 
@@ -614,6 +707,7 @@ def write_html(path: str | os.PathLike, summary: dict[str, Any], files: dict[str
         for name, rel in files.items() if name != "report.html" and (out_dir / rel).exists()
     )
     notes = "".join(f"<li>{html.escape(n)}</li>" for n in summary.get("notes", []))
+    table = _region_table(c.get("regions") or [], c["n_regions"])
     page = f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8">
 <title>reblur change report</title>
@@ -628,6 +722,7 @@ table {{ border-collapse: collapse; }} th, td {{ padding: 2px 10px; text-align: 
 </table>
 {"<h2>Notes</h2><ul>" + notes + "</ul>" if notes else ""}
 {"".join(figs)}
+{table}
 <h2>Files</h2><ul>
 {links}
 </ul>
@@ -756,7 +851,8 @@ def write_report(
         files["changes.tif"] = "changes.tif"
     if geo is not None:
         write_json(out / "changes.geojson", change_polygons(
-            np.asarray(change) & ~np.asarray(unknown), geo))
+            np.asarray(change) & ~np.asarray(unknown), geo,
+            regions=triage(list(result.regions), observed)))
         files["changes.geojson"] = "changes.geojson"
 
     # reblurred reference

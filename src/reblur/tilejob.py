@@ -147,7 +147,8 @@ def load_tile(poses: SparsePoses, reference, observed, box, *, s_ref: float, s_o
     obs, reb : (h, w, C) float32 ndarray
         ``observed / s_obs`` and ``reblurred / s_ref * gain + offset`` on ``box``.
     unknown : (h, w) bool ndarray
-        Pixels some non-zero pose reads outside the reference.
+        Pixels some non-zero pose reads outside the reference or on a no-data (NaN) pixel
+        of it, and no-data pixels of the observation.
     """
     box = as_box(box)
     reb, valid = reblur_tile(poses, reference, box)
@@ -157,7 +158,14 @@ def load_tile(poses: SparsePoses, reference, observed, box, *, s_ref: float, s_o
     reb += np.asarray(offset, np.float32)
     obs = read_window(observed, box, np.float32)
     obs /= np.float32(s_obs)
-    return obs, reb, ~valid
+    unknown = ~valid
+    # no data (NaN: :class:`reblur.io.MaskedView`) in the observation, or in the reference
+    # under the blur of a pixel, is unknown too
+    for a in (reb, obs):
+        fin = np.isfinite(a)
+        if not fin.all():
+            unknown |= ~(fin.all(axis=2) if fin.ndim == 3 else fin)
+    return obs, reb, unknown
 
 
 def grow_tile(poses: SparsePoses, reference, observed, box, loaded, larger, *, s_ref: float,

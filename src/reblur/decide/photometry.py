@@ -323,6 +323,8 @@ _POLY_NODES = 32
 #: ~0.97-1.0.
 FIELD_GAIN = 0.85
 ILLUMINATIONS = ("auto", "global", "field")
+#: Added to both residual scales of the illumination criterion (a 16-bit quantum).
+_SCALE_FLOOR = 1.0 / 65535.0
 
 
 def _poly_terms(ys: np.ndarray, xs: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -381,7 +383,10 @@ def _illumination(ys, xs, obs, reb, shape, gain, offset, sigma, fits, mode):
     fg = np.empty((C, -(-shape[0] // block), -(-shape[1] // block)))
     fo = np.empty_like(fg)
     s_field = np.empty(C)
+    s_global = np.empty(C)
     for c in range(C):
+        r0 = obs[:, c] - gain[c] * reb[:, c] - offset[c]
+        s_global[c] = inlier_scale(r0, sigma[c], float(np.median(r0)))[1]
         a, b = _fit_poly_field(ys, xs, reb[:, c], obs[:, c], shape, (gain[c], offset[c]),
                                float(fits[c].get("scale", sigma[c])))
         fg[c] = _poly_grid(a, shape, block)
@@ -389,14 +394,16 @@ def _illumination(ys, xs, obs, reb, shape, gain, offset, sigma, fits, mode):
         r = obs[:, c] - _grid_sample(fg[c], ys, xs, block) * reb[:, c] \
             - _grid_sample(fo[c], ys, xs, block)
         s_field[c] = inlier_scale(r, sigma[c], float(np.median(r)))[1]
-    ratio = s_field / np.maximum(sigma, 1e-12)
+    # the same estimator of the inliers' scale for both models; a floor of a 16-bit
+    # quantum keeps noise-free data (both scales near 0) from a meaningless ratio
+    ratio = (s_field + _SCALE_FLOOR) / (s_global + _SCALE_FLOOR)
     use = mode == "field" or bool(np.min(ratio) <= FIELD_GAIN)
     record = {
         "model": "field" if use else "global",
         "mode": mode,
         "criterion": f"field if its inlier residual scale is <= {FIELD_GAIN} of the global "
                      "model's in some band" if mode == "auto" else "requested",
-        "sigma_global": [float(v) for v in sigma],
+        "sigma_global": [float(v) for v in s_global],
         "sigma_field": [float(v) for v in s_field],
         "ratio": [round(float(v), 4) for v in ratio],
         "field": "gain and offset quadratic in the image coordinates",

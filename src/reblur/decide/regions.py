@@ -379,14 +379,29 @@ def _close_regions(mask: np.ndarray, win: tuple[slice, slice], radius: int) -> N
         sub[sl] |= closed.view(bool)
 
 
+#: A region is "brighter" (or "darker") when at least this share of its pixels is.
+POLARITY_SHARE = 0.8
+
+
 def _region_records(
-    mask: np.ndarray, S: np.ndarray, y0: int, x0: int, core=None
+    mask: np.ndarray, S: np.ndarray, y0: int, x0: int, core=None, *,
+    observed: np.ndarray | None = None, matched: np.ndarray | None = None,
+    threshold: float | None = None,
 ) -> list[dict[str, Any]]:
     """Connected regions of ``mask`` (8-conn), full-image coordinates.
 
     Regions are listed in the raster order of their first pixel (as ``ndimage.label``
     numbers them).  With ``core=(cy0, cx0, ch, cw)`` (array coordinates) only regions whose
     first pixel in raster order lies in the core are listed, so tiles list each region once.
+
+    With ``observed`` and ``matched`` (the photometrically matched reblurred reference,
+    ``(h, w, C)``, intensities in [0, 1] of full scale) each record has what an analyst
+    triages by: ``difference`` (per band, the mean of observed - matched), ``contrast``
+    (the mean of its band-averaged magnitude, a fraction of full scale), ``polarity``
+    ("brighter" or "darker" when at least :data:`POLARITY_SHARE` of the pixels are, else
+    "mixed"); with ``threshold``, ``score`` = mean statistic / threshold: the region's
+    evidence in units of the decision threshold (1 at the threshold; the statistic is the
+    RMS of noise z-scores beyond the model's tolerance).
     """
     cc = _components(mask)
     lab = cc.lab
@@ -408,18 +423,28 @@ def _region_records(
         sy = int(np.arange(sub.shape[0]) @ np.count_nonzero(sub, axis=1))
         sx = int(np.arange(sub.shape[1]) @ np.count_nonzero(sub, axis=0))
         vals = S[sl][sub]
-        out.append(
-            {
-                "area": area,
-                "bbox": [sl[0].start + y0, sl[1].start + x0, sl[0].stop + y0, sl[1].stop + x0],
-                "centroid": [
-                    float(np.float64(sy) / area + sl[0].start + y0),
-                    float(np.float64(sx) / area + sl[1].start + x0),
-                ],
-                "mean_stat": float(vals.mean()),
-                "max_stat": float(vals.max()),
-            }
-        )
+        rec = {
+            "area": area,
+            "bbox": [sl[0].start + y0, sl[1].start + x0, sl[0].stop + y0, sl[1].stop + x0],
+            "centroid": [
+                float(np.float64(sy) / area + sl[0].start + y0),
+                float(np.float64(sx) / area + sl[1].start + x0),
+            ],
+            "mean_stat": float(vals.mean()),
+            "max_stat": float(vals.max()),
+        }
+        if observed is not None and matched is not None:
+            d = np.asarray(observed[sl], np.float64) - np.asarray(matched[sl], np.float64)
+            d = (d[:, :, None] if d.ndim == 2 else d)[sub]  # (area, C)
+            band_mean = d.mean(axis=1)
+            pos = float(np.mean(band_mean > 0))
+            rec["difference"] = [float(v) for v in d.mean(axis=0)]
+            rec["contrast"] = float(np.abs(band_mean).mean())
+            rec["polarity"] = ("brighter" if pos >= POLARITY_SHARE else
+                               "darker" if pos <= 1 - POLARITY_SHARE else "mixed")
+        if threshold is not None and threshold > 0:
+            rec["score"] = float(vals.mean()) / float(threshold)
+        out.append(rec)
     for k, r in enumerate(out, 1):
         r["label"] = k
     return out

@@ -249,7 +249,8 @@ def decide_tile(
         "threshold": float(threshold),
         "strong_threshold": float(p.strong_factor * threshold),
         "counts": counts,
-        "regions": _region_records(mask, S, by0, bx0, core=(ly, lx, ch, cw)),
+        "regions": _region_records(mask, S, by0, bx0, core=(ly, lx, ch, cw), observed=o,
+                                   matched=matched, threshold=float(threshold)),
         "n_unknown": n_unknown,
         **kept,
     }
@@ -350,7 +351,8 @@ def decide(
         "photometry": photometry.to_dict(),
         "params": p.to_dict(),
         "counts": counts,
-        "regions": _region_records(mask, S, 0, 0),
+        "regions": _region_records(mask, S, 0, 0, observed=o, matched=matched,
+                                   threshold=threshold),
         "n_unknown": int(np.count_nonzero(~known)),
     }
     return mask, info
