@@ -31,6 +31,8 @@ BENCHES = {
     "realism": ("benchmarks.realism", "main"),
     # cost over content at 1 and 25 MP; 100 MP: python -m benchmarks.cost --sizes 1,25,100
     "cost": ("benchmarks.cost", "main"),
+    # the decision's failure modes (issue #27); before: --src OLD/src --label COMMIT
+    "failure_modes": ("benchmarks.failure_modes", "main"),
 }
 
 

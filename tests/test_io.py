@@ -49,9 +49,30 @@ def test_png_uint8_gray_rgb_rgba(tmp_path, rng):
     c = open_image(tmp_path / "c.png")
     np.testing.assert_array_equal(c.array, rgba[..., :3])  # RGB order, not OpenCV's BGR
     a = open_image(tmp_path / "a.png")
-    assert a.shape == (64, 80, 3) and "alpha band dropped" in a.notes
+    assert a.shape == (64, 80, 3) and a.nodata_source == "alpha band"
     np.testing.assert_array_equal(a.array, rgba[..., :3])
+    # the alpha band is the validity: transparent (0) pixels hold no data
+    np.testing.assert_array_equal(np.asarray(a.valid), rgba[..., 3] > 0)
     assert not a.lazy and a.format == "png"
+    opaque = rgba.copy()
+    opaque[..., 3] = 255
+    (tmp_path / "o.png").write_bytes(imagecodecs.png_encode(opaque))
+    o = open_image(tmp_path / "o.png")
+    assert o.valid is None and any("all opaque" in n for n in o.notes)
+
+
+def test_masked_view_is_nan_where_there_is_no_data(tmp_path):
+    from reblur.io import MaskedView, NodataMask
+
+    a = np.arange(60, dtype=np.uint16).reshape(3, 4, 5) * 1000
+    a[1, 2] = 7  # every band at the nodata value: no data
+    a[2, 3, 0] = 7  # one band only: data
+    v = MaskedView(a, NodataMask(a, 7))
+    out = v[...]
+    assert out.dtype == np.float32 and np.isnan(out[1, 2]).all()
+    assert np.isfinite(np.delete(out.reshape(12, 5), 6, axis=0)).all()
+    np.testing.assert_allclose(out[0, 1], a[0, 1] / 65535, rtol=1e-6)
+    np.testing.assert_allclose(v[1:3, 2:4][0, 0], np.nan)  # windows keep the mask aligned
 
 
 def test_png16_is_not_clipped(tmp_path, rng):

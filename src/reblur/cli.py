@@ -438,7 +438,7 @@ def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float
     """Find what changed between REFERENCE (sharp) and OBSERVED (later, blurred).
 
     Inputs: PNG, JPEG, TIFF/BigTIFF/GeoTIFF or zarr; uint8, uint16 or float; gray, RGB
-    (an RGB/gray pair is compared in gray; alpha is ignored) or multi-band.  Large TIFF
+    (an RGB/gray pair is compared in gray; transparent alpha is no data) or multi-band.  Large TIFF
     and zarr inputs are read window by window.
 
     Writes into --out: changes.png (255 = change, in OBSERVED's frame), unknown.png,
