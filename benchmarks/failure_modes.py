@@ -164,7 +164,7 @@ def _num(v) -> str:
 
 def _cell(r: dict) -> str:
     if "error" in r:
-        return f"refused: {r['error'][:70]}"
+        return f"refused: {r['error'].removeprefix('reblur: error: ')[:70]}"
     if "wedge_unknown" in r:
         return (f"wedge {100 * r['wedge_unknown']:.1f} % unknown, "
                 f"{100 * r['wedge_change']:.1f} % change")

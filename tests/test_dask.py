@@ -331,3 +331,23 @@ def test_process_task_graphs_carry_paths_not_images(pair, local, monkeypatch, tm
     np.testing.assert_array_equal(np.asarray(z[...]), ref)
     assert len(pickle.dumps(z)) < 10_000
     assert portable(ref, "reference", tmp_path) is z  # written once per array
+
+
+def test_masked_views_travel_by_path(tmp_path):
+    """An image with no-data pixels (``io.MaskedView`` over a numpy array, its validity a
+    ``NodataMask`` of the same array) goes to worker processes as paths, not pixels, and reads
+    the same NaN there."""
+    import pickle
+
+    from reblur.dask_backend import portable
+    from reblur.io import MaskedView, NodataMask
+
+    a = (np.random.default_rng(0).random((600, 600)) * 255).astype(np.uint8)
+    a[100:200, 100:300] = 0
+    v = MaskedView(a, NodataMask(a, 0))
+    p = portable(v, "ref", tmp_path)
+    assert len(pickle.dumps(p)) < a.nbytes // 20
+    got, want = pickle.loads(pickle.dumps(p))[50:250, 50:350], v[50:250, 50:350]
+    np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
+    assert np.isnan(want).sum() >= 100 * 200
+    np.testing.assert_array_equal(np.nan_to_num(got), np.nan_to_num(want))

@@ -272,6 +272,15 @@ def portable(a, name: str = "image", store=None) -> Any:
         return open_source(a)
     if isinstance(a, np.ndarray):
         return _spill(a, name, store)
+    from .io import AlphaMask, MaskedView, NodataMask
+
+    if isinstance(a, MaskedView):  # no-data pixels as NaN: the image and its validity
+        return MaskedView(portable(a.array, name, store),
+                          portable(a.valid, f"{name} validity", store))
+    if isinstance(a, NodataMask):
+        return NodataMask(portable(a.array, name, store), a.value)
+    if isinstance(a, AlphaMask):
+        return AlphaMask(portable(a.alpha, f"{name} alpha", store))
     src = _tiff_source_of(a)
     if src is not None:
         return src
