@@ -280,3 +280,29 @@ def test_observation_nodata_and_zarr_attribute(tmp_path):
     assert unknown[hole].all() and not change[hole].any()
     truth = pair.truth & ~ndi.binary_dilation(hole, iterations=30)
     assert np.count_nonzero(change & truth) >= 0.8 * np.count_nonzero(truth)
+
+
+def test_blur_alone_with_the_true_motion_flags_nothing():
+    """A pair that differs only by reblur's own blur (the slow per-pose reference,
+    ``simulate.blur_weights``) and noise, decided with the true motion: nothing is change."""
+    from reblur.grid import PoseGrid
+    from reblur.pipeline import reblur_and_decide
+    from reblur.simulate import blur_weights
+    from reblur.tiled import SparsePoses
+
+    scene = tb.levir_image("test_102")[256:768, 256:768].astype(np.float32)
+    grid = PoseGrid.from_ranges(scene.shape, t_max=4, rz_max=0.5, corner_px=1.0)
+    w = np.zeros(grid.shape)
+    nb, ny, nx = grid.shape
+    for k, (b, iy, ix) in enumerate([(nb // 2, ny // 2, nx // 2), (nb // 2, ny // 2 + 1,
+                                      nx // 2 + 2), (nb // 2 + 1, ny // 2 + 2, nx // 2 + 3)]):
+        w[b, iy, ix] = (0.5, 0.3, 0.2)[k]
+    obs, valid = blur_weights(scene, grid, w)
+    rng = np.random.default_rng(8)
+    obs = (obs + rng.normal(0, 1 / 255, obs.shape)).astype(np.float32)
+    dec = reblur_and_decide(scene, obs, SparsePoses(w, grid), s_ref=1.0, s_obs=1.0,
+                            gain=np.ones(1), offset=np.zeros(1))
+    known = ~np.asarray(dec.unknown)
+    assert known.mean() > 0.9 and np.asarray(valid).mean() > 0.9
+    assert np.count_nonzero(np.asarray(dec.change) & known) == 0
+
