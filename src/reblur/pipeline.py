@@ -367,6 +367,13 @@ def reblur_and_decide(
                              "contrast": p.contrast_tolerance}
     if calibration and p.tolerance_ladder:
         p, cinfo = _calibrate_tolerance(p, calibration, load, photometry, (H, W))
+        if "marked" in cinfo and photometry.info.get("method", "").startswith("high-"):
+            # the estimate fits none of its windows (a pair years apart): the tightest band
+            # of the scatter is no unchanged class, Huber's fit of it all is the model
+            photometry = fit_photometry(*sample, boxes=picked, image_shape=(H, W), rng=0,
+                                        edge_error=False, illumination=p.illumination,
+                                        high_breakdown=False)
+            cinfo["photometry"] = "Huber: the estimate fits none of its windows"
     if p.edge_test_fraction > 0 and not cinfo.get("calibrated"):
         # the edge-artefact test trusts the model's measured error: where the windows did
         # not calibrate it (a pair years apart, changed everywhere), a strip is as likely

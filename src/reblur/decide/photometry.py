@@ -24,7 +24,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from ..robust import inlier_scale, mad, robust_line
+from ..robust import huber_line, inlier_scale, mad, robust_line
 from ._common import _box, _channels, _float, _robust_scale
 from .params import DecisionParams
 from .statistic import fit_model_error
@@ -429,6 +429,7 @@ def fit_photometry(
     rng=None,
     tolerance: ModelTolerance | None = None,
     illumination: str = "global",
+    high_breakdown: bool = True,
 ) -> Photometry:
     """Fit the per-band photometric model robustly, from a whole image or from a sample.
 
@@ -527,7 +528,11 @@ def fit_photometry(
     sigma = np.empty(C)
     fits = []
     for c in range(C):
-        gain[c], offset[c], fit = robust_line(reb[:, c], obs[:, c])
+        if high_breakdown:
+            gain[c], offset[c], fit = robust_line(reb[:, c], obs[:, c])
+        else:
+            gain[c], offset[c] = huber_line(reb[:, c], obs[:, c])
+            fit = {"method": "Huber", "huber": [gain[c], offset[c]]}
         fits.append(fit)
         r = obs[:, c] - gain[c] * reb[:, c] - offset[c]
         if fit["method"] == "high-breakdown":
