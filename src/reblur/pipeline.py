@@ -367,13 +367,19 @@ def reblur_and_decide(
                              "contrast": p.contrast_tolerance}
     if calibration and p.tolerance_ladder:
         p, cinfo = _calibrate_tolerance(p, calibration, load, photometry, (H, W))
-        if "marked" in cinfo and photometry.info.get("method", "").startswith("high-"):
+        field_auto = (p.illumination == "auto"
+                      and photometry.info.get("illumination", {}).get("model") == "field")
+        if "marked" in cinfo and (field_auto
+                                  or photometry.info.get("method", "").startswith("high-")):
             # the estimate fits none of its windows (a pair years apart): the tightest band
-            # of the scatter is no unchanged class, Huber's fit of it all is the model
-            photometry = fit_photometry(*sample, boxes=picked, image_shape=(H, W), rng=0,
-                                        edge_error=False, illumination=p.illumination,
-                                        high_breakdown=False)
-            cinfo["photometry"] = "Huber: the estimate fits none of its windows"
+            # of the scatter is no unchanged class, and a smooth field would absorb
+            # area-wide appearance changes; Huber's global fit of it all is the model
+            # (WHU 000213 with align=False: JC 0.47 -> 0.14 with the field)
+            photometry = fit_photometry(
+                *sample, boxes=picked, image_shape=(H, W), rng=0, edge_error=False,
+                illumination="global" if p.illumination == "auto" else p.illumination,
+                high_breakdown=False)
+            cinfo["photometry"] = ("Huber, global: the estimate fits none of its windows")
     if p.edge_test_fraction > 0 and not cinfo.get("calibrated"):
         # the edge-artefact test trusts the model's measured error: where the windows did
         # not calibrate it (a pair years apart, changed everywhere), a strip is as likely
