@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from .render import Box
-from .scenes import ChangeObject, _gray
+from .scenes import ChangeObject, _gray, disc_box, object_frame
 
 __all__ = ["Occluder", "Ramp", "Vignette", "thin_changes"]
 
@@ -75,15 +75,11 @@ class Occluder:
     @property
     def bbox(self) -> Box:
         """Integer box ``(y0, y1, x0, x1)`` holding the object."""
-        r = self.radius
-        return (int(np.floor(self.cy - r)), int(np.ceil(self.cy + r)) + 1,
-                int(np.floor(self.cx - r)), int(np.ceil(self.cx + r)) + 1)
+        return disc_box(self.cx, self.cy, self.radius)
 
     def contains(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Whether points ``(x, y)`` lie inside the rectangle."""
-        c, s = np.cos(self.angle), np.sin(self.angle)
-        u = (x - self.cx) * c + (y - self.cy) * s
-        v = -(x - self.cx) * s + (y - self.cy) * c
+        u, v = object_frame(x, y, self.cx, self.cy, self.angle)
         return (np.abs(u) <= self.a) & (np.abs(v) <= self.b)
 
     def paint(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:

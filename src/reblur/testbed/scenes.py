@@ -190,6 +190,19 @@ class CroppedScene:
         return np.asarray(self.base[y0 + r0:y0 + r1, x0 + c0:x0 + c1])
 
 
+def disc_box(cx: float, cy: float, r: float) -> Box:
+    """Integer box ``(y0, y1, x0, x1)`` holding the disc of radius ``r`` about ``(cx, cy)``."""
+    return (int(np.floor(cy - r)), int(np.ceil(cy + r)) + 1,
+            int(np.floor(cx - r)), int(np.ceil(cx + r)) + 1)
+
+
+def object_frame(x: np.ndarray, y: np.ndarray, cx: float, cy: float, angle: float
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Points ``(x, y)`` in an object's frame: centred on ``(cx, cy)``, rotated by ``-angle``."""
+    c, s = np.cos(angle), np.sin(angle)
+    return (x - cx) * c + (y - cy) * s, -(x - cx) * s + (y - cy) * c
+
+
 @dataclass(frozen=True)
 class ChangeObject:
     """One pasted change, defined analytically in scene pixel coordinates.
@@ -231,15 +244,11 @@ class ChangeObject:
     @property
     def bbox(self) -> Box:
         """Integer box ``(y0, y1, x0, x1)`` holding the object."""
-        r = self.radius
-        return (int(np.floor(self.cy - r)), int(np.ceil(self.cy + r)) + 1,
-                int(np.floor(self.cx - r)), int(np.ceil(self.cx + r)) + 1)
+        return disc_box(self.cx, self.cy, self.radius)
 
     def contains(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Whether points ``(x, y)`` (any float coordinates) lie inside the object."""
-        c, s = np.cos(self.angle), np.sin(self.angle)
-        u = (x - self.cx) * c + (y - self.cy) * s
-        v = -(x - self.cx) * s + (y - self.cy) * c
+        u, v = object_frame(x, y, self.cx, self.cy, self.angle)
         if self.kind in ("rect", "thin"):
             return (np.abs(u) <= self.a) & (np.abs(v) <= self.b)
         if self.kind == "L":
