@@ -345,8 +345,7 @@ def _fit_poly_field(ys, xs, x, y, shape, start, scale, n_iter: int = 15
     p = np.zeros(12)
     p[0], p[6] = start
     r = y - A @ p
-    use = np.abs(r - np.median(r)) < 8.0 * max(scale, 1e-9) if scale > 0 else np.ones(r.size,
-                                                                                     bool)
+    use = np.abs(r - np.median(r)) < 8.0 * scale if scale > 0 else np.ones(r.size, bool)
     if np.count_nonzero(use) < 100:
         use = np.ones(r.size, bool)
     A, yy = A[use], y[use]

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from .render import Box
-from .scenes import ChangeObject, _gray, disc_box, object_frame
+from .scenes import ChangeObject, _gray, disc_box, object_frame, signed_delta
 
 __all__ = ["Occluder", "Ramp", "Vignette", "thin_changes"]
 
@@ -155,20 +155,16 @@ def thin_changes(
             probe = ChangeObject(kind=kind, cx=0.0, cy=0.0, angle=float(rng.uniform(0, np.pi)),
                                  a=float(a), b=float(b), a2=float(a2), harmonics=(),
                                  delta=0.0, local_range=0.0)
-            ext = (a + a2 + b) if kind == "L" else (a + b)
-            if w - 2 * (margin + ext) <= 0 or h - 2 * (margin + ext) <= 0:
-                ext = min(ext, (min(h, w) - 2 * margin) / 2 - 1)
-            cx = rng.uniform(margin + ext, w - margin - ext) if w > 2 * (margin + ext) else w / 2
-            cy = rng.uniform(margin + ext, h - margin - ext) if h > 2 * (margin + ext) else h / 2
+            lo = margin + ((a + a2 + b) if kind == "L" else (a + b))
+            if w <= 2 * lo or h <= 2 * lo:
+                continue
+            cx, cy = rng.uniform(lo, w - lo), rng.uniform(lo, h - lo)
             o = ChangeObject(**{**probe.__dict__, "cx": float(cx), "cy": float(cy)})
             y0, y1, x0, x1 = o.bbox
             if y0 < margin or x0 < margin or y1 > h - margin or x1 > w - margin:
                 continue
             ys, xs = np.mgrid[y0:y1, x0:x1].astype(np.float64)
-            mine = o.contains(xs, ys)
-            if any(np.any(mine & p.contains(xs, ys)) for p in objs):
-                continue
-            # keep a gap of 3 widths between objects
+            # apart from the others by 3 widths (the grown object holds the object itself)
             grown = ChangeObject(**{**o.__dict__, "b": o.b + 3 * width_px[1]})
             if any(np.any(grown.contains(xs, ys) & p.contains(xs, ys)) for p in objs):
                 continue
@@ -176,12 +172,8 @@ def thin_changes(
             p2, p98 = np.percentile(region, [2, 98])
             if p98 - p2 < 0.05:
                 continue
-            inside = region[mine]
-            mag = rng.uniform(*contrast) * (p98 - p2)
-            sign = 1.0 if rng.random() < 0.5 else -1.0
-            if (sign > 0 and inside.max() + mag > 1) or (sign < 0 and inside.min() - mag < 0):
-                sign = -sign
-            objs.append(ChangeObject(**{**o.__dict__, "delta": float(sign * mag),
+            delta = signed_delta(rng, region[o.contains(xs, ys)], p98 - p2, contrast)
+            objs.append(ChangeObject(**{**o.__dict__, "delta": delta,
                                         "local_range": float(p98 - p2)}))
             break
         else:

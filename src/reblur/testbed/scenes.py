@@ -328,6 +328,18 @@ def _random_shape(rng: np.random.Generator, size_px: tuple[float, float]) -> dic
                 a2=float(a * rng.uniform(0.5, 1.0)), harmonics=harm)
 
 
+def signed_delta(rng: np.random.Generator, inside: np.ndarray, local_range: float,
+                 contrast: tuple[float, float]) -> float:
+    """An object's added intensity: ``+-c * local_range`` with ``c`` uniform in ``contrast``
+    and a random sign, flipped when the first choice would push the ``inside`` values out of
+    [0, 1]."""
+    mag = rng.uniform(*contrast) * local_range
+    sign = 1.0 if rng.random() < 0.5 else -1.0
+    if (sign > 0 and inside.max() + mag > 1) or (sign < 0 and inside.min() - mag < 0):
+        sign = -sign
+    return float(sign * mag)
+
+
 def _place(rng, scene, shape: dict, margin: float, taken: list[Box], min_range: float,
            contrast: tuple[float, float]) -> ChangeObject | None:
     h, w = scene.shape[:2]
@@ -349,11 +361,8 @@ def _place(rng, scene, shape: dict, margin: float, taken: list[Box], min_range: 
         return None
     inside = _gray(np.asarray(scene[b[0]:b[1], b[2]:b[3]], np.float64))[
         _mask_in((obj,), b)[2][0][1]]
-    mag = rng.uniform(*contrast) * (p98 - p2)
-    sign = 1.0 if rng.random() < 0.5 else -1.0
-    if (sign > 0 and inside.max() + mag > 1) or (sign < 0 and inside.min() - mag < 0):
-        sign = -sign
-    return ChangeObject(cx=float(cx), cy=float(cy), delta=float(sign * mag),
+    return ChangeObject(cx=float(cx), cy=float(cy),
+                        delta=signed_delta(rng, inside, p98 - p2, contrast),
                         local_range=float(p98 - p2), **shape)
 
 
