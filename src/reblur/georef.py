@@ -114,8 +114,9 @@ def geo_homography(
     ValueError
         If a side lacks a CRS or a transform, a transform is singular or not finite, the
         footprints do not overlap (the message gives both bounds in the observation's CRS),
-        or the reprojection over the overlap is not a usable homography (points that PROJ
-        cannot transform, or a fit that folds the overlap over the horizon).
+        or the reprojection over the overlap is not a usable homography (more than a tenth of
+        the fit points outside the projection's domain, or a fit that folds the overlap over
+        the horizon).  Fewer unmappable points are skipped.
 
     Notes
     -----
@@ -127,26 +128,28 @@ def geo_homography(
     ref_crs, ref_a = _parse_geo(ref_geo, "reference")
     obs_crs, obs_a = _parse_geo(obs_geo, "observation")
     ref_hw, obs_hw = _shape_hw(ref_shape, "ref_shape"), _shape_hw(obs_shape, "obs_shape")
-    ref_outline = _rect_outline(ref_hw)
-    obs_rect = _rect_polygon(obs_hw)
     names = (ref_crs.to_string(), obs_crs.to_string())
     if ref_crs == obs_crs:
         S = np.array([[1.0, 0.0, 0.5], [0.0, 1.0, 0.5], [0.0, 0.0, 1.0]])
         H = np.linalg.inv(S) @ np.linalg.inv(obs_a) @ ref_a @ S
-        overlap = _overlap(_apply(H, ref_outline), obs_rect)
+        overlap = _overlap(_apply(H, _rect_outline(ref_hw)), _rect_polygon(obs_hw))
         if overlap <= 0.0:
             raise _disjoint(ref_crs, ref_a, ref_hw, obs_crs, obs_a, obs_hw)
         return _prior(H / H[2, 2], 0.0, 0.0, overlap, "affine", names, 0)
-
-    def to_obs(pts: np.ndarray) -> np.ndarray:
-        return _pixels_to_pixels(pts, ref_a, ref_crs, obs_a, obs_crs)
-
-    overlap = _overlap(to_obs(ref_outline), obs_rect)
+    overlap = _overlap(_pixels_to_pixels(_rect_outline(ref_hw), ref_a, ref_crs, obs_a, obs_crs),
+                       _rect_polygon(obs_hw))
     if overlap <= 0.0:
         raise _disjoint(ref_crs, ref_a, ref_hw, obs_crs, obs_a, obs_hw)
     back = _pixels_to_pixels(_rect_outline(obs_hw), obs_a, obs_crs, ref_a, ref_crs)
     src = _fit_grid(back, ref_hw, int(n))
-    dst = to_obs(src)
+    dst = _pixels_to_pixels(src, ref_a, ref_crs, obs_a, obs_crs)
+    H, rmax, rrms, n_used = _fit(src, dst, names)
+    return _prior(H, rmax, rrms, overlap, "fit", names, n_used)
+
+
+def _fit(src: np.ndarray, dst: np.ndarray, names: tuple[str, str]):
+    """``(H, max, RMS residual, points used)`` of the least-squares fit ``src -> dst``,
+    skipping points PROJ could not map (refused when they are more than a tenth)."""
     ok = np.isfinite(dst).all(axis=1)
     if ok.sum() < 0.9 * len(src):
         raise ValueError(
@@ -158,8 +161,7 @@ def geo_homography(
     H = _fit_homography(src, dst)
     _check_not_folded(H, src, names)
     err = np.hypot(*(_apply(H, src) - dst).T)
-    return _prior(H, float(err.max()), float(np.sqrt(np.mean(err**2))), overlap, "fit",
-                  names, len(src))
+    return H, float(err.max()), float(np.sqrt(np.mean(err**2))), len(src)
 
 
 def _prior(H, rmax, rrms, overlap, method, names, n_points) -> GeoPrior:
