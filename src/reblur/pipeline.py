@@ -31,6 +31,7 @@ from .decide import (
 from .decide.calibrate import calibrate_tolerance, marked_pixels, unchanged_pixels
 from .decide.photometry import with_model_error
 from .estimate import estimate_motion, intensity_scale
+from .field import estimate_field
 from .grid import PoseGrid
 from .io import chunk_cached
 from .refine import refine_alignment
@@ -596,6 +597,8 @@ class Estimated:
     align_info: dict[str, Any]
     refine_info: dict[str, Any]
     timings: dict[str, float]
+    field: Any = None
+    field_info: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
 def _estimate_stage(
@@ -609,6 +612,7 @@ def _estimate_stage(
     lam: float,
     align: bool,
     refine: bool,
+    local_field: bool,
     windows: int | None,
     large_side: int,
     select: SelectParams | None,
@@ -702,8 +706,18 @@ def _estimate_stage(
         H0 = ref_res.base
         timings["refine"] = time.perf_counter() - t
 
+    # 3c. local residual displacement (parallax, lens distortion) on a lattice of tie points
+    fld, field_info = None, {"applied": False, "reason": "off"}
+    if local_field:
+        t = time.perf_counter()
+        fe = estimate_field(reference, observed, SparsePoses(motion.weights, grid, H0),
+                            ref_scale=s_ref, obs_scale=s_obs)
+        fld, field_info = fe.field, fe.info
+        timings["field"] = time.perf_counter() - t
+
     return Estimated(base=H0, gain=gain, offset=offset, grid=grid, motion=motion, crop=crop,
-                     align_info=align_info, refine_info=refine_info, timings=timings)
+                     align_info=align_info, refine_info=refine_info, timings=timings,
+                     field=fld, field_info=field_info)
 
 
 def _windows_of(motion) -> list[tuple[tuple[int, ...], np.ndarray | None, np.ndarray | None]]:
@@ -727,6 +741,7 @@ def detect_changes(
     lam: float = 0.1,
     align: bool = True,
     refine: bool = True,
+    local_field: bool = True,
     windows: int | None = None,
     large_side: int = 2500,
     select: SelectParams | None = None,
@@ -771,6 +786,12 @@ def detect_changes(
         homography (:func:`reblur.refine.refine_alignment`): the grid cannot represent a
         residual scale / shear / perspective error of the coarse alignment, and the
         estimation windows do not see the rest of the image.
+    local_field : bool
+        After the refinement, measure tie points between the reblurred reference and the
+        observation on a lattice over the whole image and fit a smooth displacement field
+        to what the homography leaves (parallax, lens distortion;
+        :func:`reblur.field.estimate_field`), applied in the reblur when it predicts
+        held-out tie points clearly better than the homography alone.
     windows : int, optional
         Windows estimated jointly (1 = the paper's Algorithm 1, single growing crop).
         Default: 2 up to ``large_side``, 4 above, 5 above ``CENTRE_WINDOW_SIDE`` (16384
@@ -860,7 +881,8 @@ def detect_changes(
     s_ref = intensity_scale(reference.dtype)
     s_obs = intensity_scale(observed.dtype)
     options = dict(grid=grid, t_max=t_max, rz_max=rz_max, rz_step=rz_step, lam=lam,
-                   align=align, refine=refine, windows=windows, large_side=large_side,
+                   align=align, refine=refine, local_field=local_field, windows=windows,
+                   large_side=large_side,
                    select=select, boxes=boxes)
     if scheduler is not None:
         from .dask_backend import portable, run_once, scheduler_kind
@@ -881,7 +903,7 @@ def detect_changes(
 
     # 4. tiled reblur and decision
     t = time.perf_counter()
-    poses = SparsePoses(motion.weights, grid, H0)
+    poses = SparsePoses(motion.weights, grid, H0, field=est.field)
     keep = (Ho * Wo <= 64_000_000) if keep_reblurred is None else keep_reblurred
     dec = reblur_and_decide(
         reference, observed, poses, s_ref=s_ref, s_obs=s_obs, gain=gain, offset=offset,
@@ -905,7 +927,9 @@ def detect_changes(
         alignment=H0,
         crop=est.crop,
         threshold=dec.threshold,
-        decision=dict(dec.info, alignment=dict(est.align_info, refinement=est.refine_info)),
+        decision=dict(dec.info, alignment=dict(est.align_info, refinement=est.refine_info,
+                                                field=est.field_info)),
         timings=timings,
         regions=dec.regions,
+        field=est.field,
     )

@@ -21,6 +21,9 @@
 ``motion.png``
     The pose weights (a tx-ty image per rotation carrying weight) and the blur kernels they
     make at a 3x3 grid of image positions.
+``field.png``
+    When a local displacement field was applied (:mod:`reblur.field`): its magnitude over
+    the observation, with arrows, in pixels.
 ``report.json``, ``report.html``
     Inputs, alignment, chosen windows, non-zero poses, threshold, changed area, regions,
     timings, peak memory, options, version and (given a truth mask) scores; the HTML page
@@ -58,6 +61,7 @@ __all__ = [
     "overlay_image",
     "blur_kernels",
     "motion_figure",
+    "field_figure",
     "change_polygons",
     "summarize",
     "summary_line",
@@ -72,6 +76,7 @@ OUTPUT_NAMES = (
     "reblurred.tif",
     "overlay.png",
     "motion.png",
+    "field.png",
     "report.json",
     "report.html",
     "changes.geojson",
@@ -357,6 +362,51 @@ def motion_figure(motion: MotionEstimate, path: str | os.PathLike, *,
         ax.set_title(f"x={x:.0f}, y={y:.0f}", fontsize=7)
         ax.tick_params(labelsize=6)
     right.suptitle("blur kernels at image positions (px displacement)", fontsize=10)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", metadata={"Software": None})
+    return path
+
+
+def field_figure(fld: Any, shape: tuple[int, int], path: str | os.PathLike) -> Path:
+    """Plot a displacement field's magnitude over the observation, with arrows, into a PNG
+    (atomically).
+
+    Parameters
+    ----------
+    fld : reblur.field.DisplacementField
+    shape : (int, int)
+        Observation size (the plot's extent).
+    path : path-like
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from .io import atomic_path
+
+    H, W = int(shape[0]), int(shape[1])
+    mag = fld.magnitude
+    ny, nx = mag.shape
+    xs = fld.x0 + fld.step * np.arange(nx)
+    ys = fld.y0 + fld.step * np.arange(ny)
+    fig = Figure(figsize=(7.5, 6.0 * min(2.0, max(0.5, H / max(W, 1)))), dpi=100,
+                 layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    h = fld.step / 2
+    im = ax.imshow(mag, extent=(xs[0] - h, xs[-1] + h, ys[-1] + h, ys[0] - h), cmap="viridis",
+                   vmin=0, interpolation="bilinear")
+    k = max(1, int(np.ceil(max(ny, nx) / 16)))  # at most ~16 arrows per side
+    gx, gy = np.meshgrid(xs[::k], ys[::k])
+    d = fld.d[::k, ::k]
+    ax.quiver(gx, gy, d[..., 0], -d[..., 1], color="white", angles="xy")
+    ax.set_xlim(-0.5, W - 0.5)
+    ax.set_ylim(H - 0.5, -0.5)
+    ax.set_xlabel("x (px)")
+    ax.set_ylabel("y (px)")
+    fig.colorbar(im, ax=ax, shrink=0.85, label="|displacement| (px)")
+    ax.set_title(f"local displacement after the homography: max {float(mag.max()):.2f} px",
+                 fontsize=10)
     path = Path(path)
     with atomic_path(path) as tmp:
         fig.savefig(tmp, format="png", metadata={"Software": None})
@@ -685,6 +735,8 @@ def write_html(path: str | os.PathLike, summary: dict[str, Any], files: dict[str
         ("poses with weight", f"{len(summary['motion']['nonzero_poses'])} of "
                               f"{summary['motion']['n_poses']}"),
         ("estimation windows", summary["crop"]["boxes"]),
+        ("local displacement field", _field_text(
+            ((summary.get("alignment") or {}).get("details") or {}).get("field"))),
         ("total time", f"{summary['timings_s'].get('total', float('nan')):.1f} s"
          if summary["timings_s"].get("total") is not None else "n/a"),
         ("peak memory", f"{summary['memory'].get('peak_rss_mb')} MB"),
@@ -696,7 +748,9 @@ def write_html(path: str | os.PathLike, summary: dict[str, Any], files: dict[str
                  ("pcc", "jaccard", "yule", "precision", "recall", "f1") if k in m]
     figs = []
     for name, caption in (("overlay.png", "Changes (red, outlined) and unknown (dark)"),
-                          ("motion.png", "Estimated camera motion")):
+                          ("motion.png", "Estimated camera motion"),
+                          ("field.png", "Local displacement after the homography "
+                                        "(parallax, lens distortion)")):
         if name in files and (out_dir / files[name]).exists():
             figs.append(
                 f'<figure><img alt="{name}" src="{_data_uri(out_dir / files[name])}">'
@@ -731,6 +785,18 @@ table {{ border-collapse: collapse; }} th, td {{ padding: 2px 10px; text-align: 
     with atomic_path(path) as tmp:
         tmp.write_text(page, encoding="utf-8")
     return path
+
+
+def _field_text(info: dict[str, Any] | None) -> str:
+    """One line on the local displacement field for the HTML page."""
+    if not info:
+        return "n/a"
+    if not info.get("applied"):
+        return f"not applied: {info.get('reason') or 'off'}"
+    f = info.get("field") or {}
+    return (f"max {f.get('max_px')} px, RMS {f.get('rms_px')} px over the image; "
+            f"{info.get('inliers')} tie points, residual {info.get('rms_before_px')} -> "
+            f"{info.get('rms_after_px')} px RMS")
 
 
 def _shape_str(info: dict) -> str:
@@ -874,6 +940,9 @@ def write_report(
     files["overlay.png"] = "overlay.png"
     motion_figure(result.motion, out / "motion.png")
     files["motion.png"] = "motion.png"
+    if getattr(result, "field", None) is not None:
+        field_figure(result.field, result.change.shape[:2], out / "field.png")
+        files["field.png"] = "field.png"
 
     timings = dict(timings or {})
     timings["report"] = time.perf_counter() - t0

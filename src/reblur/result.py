@@ -133,6 +133,10 @@ class ChangeResult:
         Seconds per stage.
     regions : list of dict
         Connected change regions: ``label``, ``area``, ``bbox`` (y0, x0, y1, x1), ``centroid``.
+    field : reblur.field.DisplacementField or None
+        Local residual displacement applied after ``alignment`` and the poses (parallax,
+        lens distortion): the model of observation pixel ``p`` is the reblurred reference
+        at ``p + field(p)``; None when the homography alone fits.
     """
 
     change: np.ndarray
@@ -145,3 +149,4 @@ class ChangeResult:
     decision: dict[str, Any] = field(default_factory=dict)
     timings: dict[str, float] = field(default_factory=dict)
     regions: list[dict[str, Any]] = field(default_factory=list)
+    field: Any = None

@@ -35,10 +35,14 @@ class SparsePoses:
         Coarse alignment composed before every pose.
     rtol : float
         Weights below ``rtol * max(w)`` are dropped (0 keeps every non-zero pose).
+    field : reblur.field.DisplacementField, optional
+        Local residual displacement applied after the poses: the reblurred image is
+        resampled at ``p + field(p)`` (parallax, lens distortion).
     """
 
-    def __init__(self, weights, grid: PoseGrid, base=None, rtol: float = 0.0):
+    def __init__(self, weights, grid: PoseGrid, base=None, rtol: float = 0.0, field=None):
         self.grid = grid
+        self.field = field
         self.base = np.eye(3) if base is None else np.asarray(base, float)
         w = grid.check_weights(weights)
         groups: dict[int, list[tuple[float, float, float]]] = defaultdict(list)
@@ -63,6 +67,18 @@ def reblur_tile(poses: SparsePoses, reference, box, *, dtype=np.float32):
         True where every non-zero pose reads real reference pixels.
     """
     box = as_box(box)
+    fld = getattr(poses, "field", None)
+    if fld is None:
+        return _reblur_poses(poses, reference, box, dtype)
+    # the local displacement: reblur a window grown by its reach, resample at p + d(p)
+    pad = int(np.ceil(fld.bound(box))) + 2
+    img, ok = _reblur_poses(poses, reference, box.grow(pad, pad, pad, pad), dtype)
+    return fld.resample(img, box, ok, pad)
+
+
+def _reblur_poses(poses: SparsePoses, reference, box: Box, dtype) -> tuple[np.ndarray,
+                                                                          np.ndarray]:
+    """:func:`reblur_tile` without the displacement field."""
     C = reference.shape[2] if len(reference.shape) == 3 else 1
     out = np.zeros((box.h, box.w, C), dtype)
     valid = np.ones((box.h, box.w), bool)
