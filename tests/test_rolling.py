@@ -112,8 +112,8 @@ def test_columns_gather_and_combine_agree():
     ks = rng.choice(op.grid.size, 7, replace=False)
     vals = rng.random(7)
     cols = [np.asarray(op.column(int(k))) for k in ks]
-    np.testing.assert_allclose(op.combine(ks, vals), sum(v * c for v, c in zip(vals, cols)),
-                               rtol=1e-6, atol=1e-7)
+    want = sum(v * c for v, c in zip(vals, cols, strict=True))
+    np.testing.assert_allclose(op.combine(ks, vals), want, rtol=1e-6, atol=1e-7)
     rows, cc, ch = rng.integers(0, 50, 30), rng.integers(0, 40, 30), rng.integers(0, 2, 30)
     np.testing.assert_allclose(op.gather_many(ks, rows, cc, ch),
                                np.stack([c[rows, cc, ch] for c in cols], axis=1), rtol=1e-6)
