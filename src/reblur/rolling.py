@@ -40,8 +40,8 @@ from typing import Any
 
 import numpy as np
 
-from .estimate import estimate_motion, intensity_scale, soft_threshold
-from .grid import PoseGrid
+from .estimate import RTOL, intensity_scale, soft_threshold
+from .grid import PoseGrid, map_points
 from .operator import BlurOperator
 from .solve import active_set
 from .tiled import SparsePoses, iter_tiles, reblur_tile, run_tiles
@@ -160,19 +160,29 @@ class RollingOperator:
     """
 
     def __init__(self, reference, grid: PoseGrid, box, bands: RowBands, **options: Any):
-        if bands.height != grid.image_shape[0]:
+        self._attach(BlurOperator(reference, grid, box, **options), bands)
+
+    @classmethod
+    def on(cls, op: BlurOperator, bands: RowBands) -> RollingOperator:
+        """The band model on an existing window operator (shares its stack and spectra)."""
+        new = cls.__new__(cls)
+        new._attach(op, bands)
+        return new
+
+    def _attach(self, op: BlurOperator, bands: RowBands) -> None:
+        if bands.height != op.grid.image_shape[0]:
             raise ValueError(f"the bands cover {bands.height} rows, the grid's image has "
-                             f"{grid.image_shape[0]}")
-        self.op = BlurOperator(reference, grid, box, **options)
+                             f"{op.grid.image_shape[0]}")
+        self.op = op
         self.bands = bands
-        self.box = self.op.box
+        self.box = op.box
         self.phi = bands.weights(np.arange(self.box.y0, self.box.y1))
         self.touch = [int(b) for b in np.flatnonzero(self.phi.any(axis=1))]
-        self.grid = BandGrid(grid, bands.n_bands)
-        self.dimsd = self.op.dimsd
-        self.shape = (self.op.shape[0], self.grid.size)
-        self.valid = self.op.valid
-        self.engine = self.op.engine
+        self.grid = BandGrid(op.grid, bands.n_bands)
+        self.dimsd = op.dimsd
+        self.shape = (op.shape[0], self.grid.size)
+        self.valid = op.valid
+        self.engine = op.engine
 
     @property
     def threads(self) -> int:
@@ -255,7 +265,7 @@ class RollingParams:
     """
 
     n_bands: int = 4
-    side: int = 192
+    side: int = 160
     t_margin: int = 3
     b_margin: int = 2
     bic_margin: float = 10.0
@@ -344,11 +354,12 @@ def _axis_index(grid: PoseGrid) -> list[np.ndarray]:
 
 
 def support_grid(grid: PoseGrid, weights: np.ndarray, t_margin: int = 3,
-                 b_margin: int = 2) -> PoseGrid:
+                 b_margin: int = 2, mass: float = 0.9) -> PoseGrid:
     """The part of ``grid`` around the poses that carry weight.
 
-    Per axis, the values between the smallest and largest index in use, grown by
-    ``t_margin`` (translations) or ``b_margin`` (``tz``, ``rx``, ``ry``, ``rz``) steps.
+    Per axis, the values between the smallest and largest index of the heaviest poses
+    that hold ``mass`` of the weight, grown by ``t_margin`` (translations) or
+    ``b_margin`` (``tz``, ``rx``, ``ry``, ``rz``) steps.
 
     Raises
     ------
@@ -356,9 +367,13 @@ def support_grid(grid: PoseGrid, weights: np.ndarray, t_margin: int = 3,
         When no pose carries weight.
     """
     w = grid.check_weights(weights)
-    nz = np.argwhere(w > 0)
-    if nz.size == 0:
+    if not np.any(w > 0):
         raise ValueError("the global estimate has no pose with weight: nothing to refine")
+    # the heaviest poses holding ``mass`` of the weight (a global fit of a rolling shutter
+    # spreads small weights far: rolls that mimic the rows' shear)
+    order = np.sort(w.ravel())[::-1]
+    cut = order[min(int(np.searchsorted(np.cumsum(order), mass * order.sum())), order.size - 1)]
+    nz = np.argwhere(w >= cut)
     def span(values, idx, m):
         lo, hi = max(int(idx.min()) - m, 0), min(int(idx.max()) + m, len(values) - 1)
         return values[lo:hi + 1]
@@ -387,6 +402,46 @@ def embed_weights(w: np.ndarray, sub: PoseGrid, full: PoseGrid) -> np.ndarray:
                 if iy >= 0 and ix >= 0:
                     out[b, i, j] = w[fb[base], iy, ix]
     return out
+
+
+def _window_operators(reference, observed, grid: PoseGrid, boxes, base, scale):
+    """Window operators (global, on ``grid``) and the observation windows in [0, 1]."""
+    s_ref = intensity_scale(reference.dtype) if scale is None else scale
+    s_obs = intensity_scale(observed.dtype) if scale is None else scale
+    ops = [BlurOperator(reference, grid, b, base=base, scale=s_ref) for b in boxes]
+    gs = [read_window(observed, b, np.float64) / s_obs for b in boxes]
+    for op, g in zip(ops, gs, strict=True):  # no data (NaN) in the observation: left out
+        fin = np.isfinite(g)
+        if not fin.all():
+            g[~fin] = 0.0
+            op.valid = op.valid & fin.all(axis=2)
+    return ops, gs
+
+
+def _fit(ops, gs, bands: RowBands, w0: np.ndarray, lam: float, occlusion: bool,
+         max_outer: int) -> tuple[np.ndarray, dict, list]:
+    """Eq. 5 (or eq. 3) of the band model ``bands`` on the windows, from ``w0``."""
+    rops = [RollingOperator.on(op, bands) for op in ops]
+    w, info = active_set(rops, gs, lam=lam, occlusion=occlusion, max_outer=max_outer, w0=w0,
+                         rtol=RTOL)
+    return w, info, rops
+
+
+def _motion(w, info, rops, gs, grid, bands, boxes, lam, occlusion) -> RollingMotion:
+    chis, psnr = [], []
+    for op, g in zip(rops, gs, strict=True):
+        r = g - op.matvec(w)
+        chi = soft_threshold(r, lam / 2.0) if occlusion else np.zeros_like(r)
+        chi[~op.valid] = 0.0
+        chis.append(chi)
+        mse = float(np.mean(r[op.valid] ** 2)) if op.valid.any() else np.nan
+        psnr.append(10 * np.log10(1.0 / mse) if mse > 0 else float("inf"))
+    motion = RollingMotion(weights=w, grid=grid, bands=bands,
+                           boxes=[b.as_tuple() for b in boxes], chi=chis,
+                           info=dict(info, psnr=psnr, lam=lam, occlusion=occlusion))
+    r, rinfo = readout_fraction(motion)
+    motion.info.update(readout=r, readout_fit=rinfo)
+    return motion
 
 
 def estimate_rolling(
@@ -430,7 +485,7 @@ def estimate_rolling(
     Returns
     -------
     RollingMotion
-        With ``info["readout"]`` from :func:`readout_fraction`.
+        On the sub-grid, with ``info["readout"]`` from :func:`readout_fraction`.
     """
     t0 = time.perf_counter()
     p = params or RollingParams()
@@ -439,74 +494,72 @@ def estimate_rolling(
         boxes = rolling_windows(observed.shape[:2], p.n_bands, p.side)
     boxes = [as_box(b) for b in boxes]
     sub = support_grid(grid, w_global, p.t_margin, p.b_margin)
-    s_ref = intensity_scale(reference.dtype) if scale is None else scale
-    s_obs = intensity_scale(observed.dtype) if scale is None else scale
-    ops = [RollingOperator(reference, sub, b, bands, base=base, scale=s_ref) for b in boxes]
-    gs = [read_window(observed, b, np.float64) / s_obs for b in boxes]
+    ops, gs = _window_operators(reference, observed, sub, boxes, base, scale)
     w0 = np.broadcast_to(embed_weights(w_global, sub, grid), (p.n_bands, *sub.shape)).copy()
-    w, info = active_set(ops, gs, lam=lam, occlusion=occlusion, max_outer=p.max_outer, w0=w0)
-    chis, psnr = [], []
-    for op, g in zip(ops, gs, strict=True):
-        r = g - op.matvec(w)
-        chi = soft_threshold(r, lam / 2.0) if occlusion else np.zeros_like(r)
-        chi[~op.valid] = 0.0
-        chis.append(chi)
-        mse = float(np.mean(r[op.valid] ** 2)) if op.valid.any() else np.nan
-        psnr.append(10 * np.log10(1.0 / mse) if mse > 0 else float("inf"))
-    motion = RollingMotion(weights=w, grid=sub, bands=bands,
-                           boxes=[b.as_tuple() for b in boxes], chi=chis,
-                           info=dict(info, psnr=psnr, lam=lam, occlusion=occlusion))
-    r, rinfo = readout_fraction(motion)
-    motion.info.update(readout=r, readout_fit=rinfo, time_total_s=time.perf_counter() - t0)
+    w, info, rops = _fit(ops, gs, bands, w0, lam, occlusion, p.max_outer)
+    motion = _motion(w, info, rops, gs, sub, bands, boxes, lam, occlusion)
+    motion.info["time_total_s"] = time.perf_counter() - t0
     return motion
 
 
 # ---------------------------------------------------------------------------- readout
-def _smooth_kernel(w: np.ndarray) -> np.ndarray:
-    """A band's weights normalised to sum 1 and spread over the 3 x 3 translation
-    neighbourhood of every pose (a one-step tolerance for the grid's discretisation)."""
-    from scipy.ndimage import uniform_filter
+def _moments(grid: PoseGrid, w: np.ndarray, pt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and covariance of the displacement ``H_p^-1 pt - pt`` under weights ``w``."""
+    poses = grid.nonzero(w)
+    d = np.array([map_points(np.linalg.inv(grid.homography((b, i, j))), pt[None])[0] - pt
+                  for b, i, j, _ in poses])
+    v = np.array([p[3] for p in poses])
+    v = v / v.sum()
+    mu = v @ d
+    return mu, (d - mu).T @ ((d - mu) * v[:, None])
 
-    s = float(w.sum())
-    if s <= 0:
-        return np.zeros_like(w)
-    return uniform_filter(w / s, size=(1, 3, 3), mode="constant")
 
-
-def readout_fraction(motion: RollingMotion, max_shift: float = 0.8) -> tuple[float, dict]:
+def readout_fraction(motion: RollingMotion) -> tuple[float, dict]:
     """The readout fraction the band weights' drift implies.
 
-    Two bands whose centres lie ``d`` rows apart see windows ``r d / H`` exposures
-    apart: they share ``1 - r d / H`` of their time, and their normalised kernels differ
-    by the mass of the time they do not share, ``TV = 1/2 ||k_b - k_b'||_1 = r d / H``
-    when the path visits no pose both at the start and at the end of that time (a
-    camera that moves; one that stands still has no rolling-shutter blur to model
-    either).  The kernels are compared after spreading each pose over its 3 x 3
-    translation neighbourhood (the grid's discretisation), and ``r`` is the
-    least-squares slope of ``TV`` against ``d / H`` over the band pairs with ``TV <
-    max_shift`` (farther pairs share no time), clipped to [0, 1].
+    Two bands whose centres lie ``d`` rows apart (``d / H`` of the frame) see windows
+    ``r d / H`` exposures apart.  At a point, for a camera moving at a constant velocity
+    ``v`` (pixels per exposure) the kernel is a uniform segment of length ``|v|``, whose
+    variance along ``v`` is ``|v|^2 / 12``, and its centroid moves by ``r (d / H) v``
+    between the bands.  So ``r = |dm| / ((d / H) sqrt(12 s^2))`` with ``dm`` the centroid
+    drift and ``s^2`` the kernels' variance along it (the mean of the two bands').  It is
+    computed at the centre of every estimation window for every pair of neighbouring
+    bands, and the median is returned (clipped to [0, 1]).  A path that curves within an
+    exposure, or a fit that spreads a kernel over neighbouring poses, widens the kernel
+    and biases ``r`` low; a camera that stands still has no drift (``r`` is then
+    unobservable, and so is the rolling shutter).
 
     Returns
     -------
     r : float
     info : dict
-        ``pairs``: ``(d / H, TV)`` of every band pair used.
+        ``per_pair``: the median estimate of every neighbouring band pair.
     """
     bands = motion.bands
-    ks = [_smooth_kernel(motion.weights[b]) for b in range(bands.n_bands)]
     c = bands.centres / bands.height
-    pairs = []
-    for i in range(bands.n_bands):
-        for j in range(i + 1, bands.n_bands):
-            if ks[i].any() and ks[j].any():
-                tv = 0.5 * float(np.abs(ks[i] - ks[j]).sum())
-                pairs.append((float(c[j] - c[i]), tv))
-    use = [(d, tv) for d, tv in pairs if tv < max_shift]
-    if not use:
-        return (1.0 if pairs else 0.0), dict(pairs=pairs, used=0)
-    d, tv = np.array(use).T
-    r = float(np.clip(np.dot(d, tv) / np.dot(d, d), 0.0, 1.0))
-    return r, dict(pairs=pairs, used=len(use))
+    pts = np.array([[x0 + (w - 1) / 2.0, y0 + (h - 1) / 2.0]
+                    for y0, x0, h, w in motion.boxes], dtype=float)
+    per_pair, all_r = [], []
+    for b in range(bands.n_bands - 1):
+        if not (motion.weights[b].any() and motion.weights[b + 1].any()):
+            continue
+        rs = []
+        for pt in pts:
+            m0, s0 = _moments(motion.grid, motion.weights[b], pt)
+            m1, s1 = _moments(motion.grid, motion.weights[b + 1], pt)
+            dm = m1 - m0
+            norm = float(np.linalg.norm(dm))
+            if norm == 0.0:
+                rs.append(0.0)
+                continue
+            u = dm / norm
+            var = 0.5 * float(u @ s0 @ u + u @ s1 @ u)
+            rs.append(norm / ((c[b + 1] - c[b]) * np.sqrt(12.0 * var)) if var > 0 else 1.0)
+        per_pair.append(float(np.median(rs)))
+        all_r += rs
+    if not all_r:
+        return 0.0, dict(per_pair=[])
+    return float(np.clip(np.median(all_r), 0.0, 1.0)), dict(per_pair=per_pair)
 
 
 # ---------------------------------------------------------------------------- reblur
@@ -588,8 +641,8 @@ class ShutterChoice:
     Attributes
     ----------
     model : {"global", "rolling"}
-    global_weights : ndarray
-        The global estimate's weights on ``grid`` (the grid passed in).
+    global_ : RollingMotion
+        The global fit on the same windows and sub-grid (one band).
     rolling : RollingMotion
     criterion : dict
         ``n`` (pixels compared), ``rss_global``, ``rss_rolling`` (inlier residual sums of
@@ -598,19 +651,25 @@ class ShutterChoice:
     """
 
     model: str
-    global_weights: np.ndarray
+    global_: RollingMotion
     rolling: RollingMotion
+
+    @property
+    def motion(self) -> RollingMotion:
+        """The chosen model's fit."""
+        return self.rolling if self.model == "rolling" else self.global_
     criterion: dict[str, Any]
 
 
-def _inlier_rss(ops, gs, ws, delta: float | None) -> tuple[float, int]:
-    """Sum of squared residuals and count over the pixels every fit in ``ws`` leaves
-    as inliers (``|r| <= delta``; all valid pixels when ``delta`` is None)."""
+def _inlier_rss(ops, gs, ws, delta: float | None) -> tuple[list[float], int]:
+    """Sums of squared residuals of every fit in ``ws`` (with its operators) over the
+    pixels all of them leave as inliers (``|r| <= delta``; every valid pixel when
+    ``delta`` is None), and their count."""
     rss = [0.0] * len(ws)
     n = 0
-    for op, g in zip(ops, gs, strict=True):
-        rs = [g - op.matvec(w) for w in ws]
-        m = np.broadcast_to(op.valid[:, :, None], op.dimsd)
+    for i_win, g in enumerate(gs):
+        rs = [g - fit_ops[i_win].matvec(w) for fit_ops, w in zip(ops, ws, strict=True)]
+        m = np.broadcast_to(ops[0][i_win].valid[:, :, None], g.shape)
         if delta is not None:
             for r in rs:
                 m = m & (np.abs(r) <= delta)
@@ -625,46 +684,47 @@ def choose_shutter(
     observed,
     grid: PoseGrid,
     *,
+    w_start: np.ndarray,
     base: np.ndarray | None = None,
     lam: float = 0.1,
     occlusion: bool = True,
     params: RollingParams | None = None,
     boxes: Sequence | None = None,
-    w_global: np.ndarray | None = None,
+    scale: float | None = None,
 ) -> ShutterChoice:
     """Fit the global and the rolling model on the same windows and pick one.
 
-    The global weights (``w_global``, or :func:`reblur.estimate.estimate_motion` on the
-    windows) and the band weights (:func:`estimate_rolling`, started from them) are
-    compared on the windows' pixels that both fits leave as inliers (``|r| <= lam / 2``),
-    with the Bayesian information criterion of a Gaussian residual,
+    Both live on :func:`support_grid` of ``w_start`` (a global estimate, e.g. the
+    pipeline's on its own windows) and are solved on the same windows
+    (:func:`rolling_windows` by default): the global model (one band) from ``w_start``,
+    then the band model from the global fit (every band equal to it).  They are compared
+    on the windows' pixels that both fits leave as inliers (``|r| <= lam / 2``) with the
+    Bayesian information criterion of a Gaussian residual,
     ``BIC = n log(RSS / n) + k log n`` (``k`` the weights in use).  The rolling model is
     kept when ``BIC_rolling < BIC_global - params.bic_margin`` AND its RSS is lower by at
     least ``params.min_drop`` (a fraction): the BIC alone treats the pixels as
-    independent, while the model error (interpolation, the grid's discretisation) is
-    spatially correlated, so more weights always win a little; the drop asks for a clearly
-    better fit.  The global model is evaluated on the band operators with every band equal
-    to it (exactly the global model), so both use the same pixels.
+    independent, while the model's error (bilinear warps, the grid's discretisation, the
+    bands' interpolation) is spatially correlated, so more weights always win a little;
+    the drop asks for a clearly better fit.
     """
+    t0 = time.perf_counter()
     p = params or RollingParams()
     if boxes is None:
         boxes = rolling_windows(observed.shape[:2], p.n_bands, p.side)
-    if w_global is None:
-        w_global = estimate_motion(reference, observed, grid, boxes=boxes, base=base, lam=lam,
-                                   occlusion=occlusion).weights
-    motion = estimate_rolling(reference, observed, grid, w_global=w_global, boxes=boxes,
-                              base=base, lam=lam, occlusion=occlusion, params=p)
-    s_ref, s_obs = intensity_scale(reference.dtype), intensity_scale(observed.dtype)
-    bands = motion.bands
-    ops = [RollingOperator(reference, motion.grid, b, bands, base=base, scale=s_ref)
-           for b in motion.boxes]
-    gs = [read_window(observed, as_box(b), np.float64) / s_obs for b in motion.boxes]
-    wg = np.broadcast_to(embed_weights(w_global, motion.grid, grid),
-                         motion.weights.shape).copy()
-    (rss_g, rss_r), n = _inlier_rss(ops, gs, [wg, motion.weights],
+    boxes = [as_box(b) for b in boxes]
+    sub = support_grid(grid, w_start, p.t_margin, p.b_margin)
+    ops, gs = _window_operators(reference, observed, sub, boxes, base, scale)
+    H = grid.image_shape[0]
+    one, many = RowBands(H, 1), RowBands(H, p.n_bands)
+    wg, ginfo, gops = _fit(ops, gs, one, embed_weights(w_start, sub, grid)[None], lam,
+                           occlusion, p.max_outer)
+    w0 = np.broadcast_to(wg, (p.n_bands, *sub.shape)).copy()
+    wr, rinfo, rops = _fit(ops, gs, many, w0, lam, occlusion, p.max_outer)
+    glob = _motion(wg, ginfo, gops, gs, sub, one, boxes, lam, occlusion)
+    roll = _motion(wr, rinfo, rops, gs, sub, many, boxes, lam, occlusion)
+    (rss_g, rss_r), n = _inlier_rss([gops, rops], gs, [wg, wr],
                                     lam / 2.0 if occlusion else None)
-    k_g = int(np.count_nonzero(w_global))
-    k_r = int(np.count_nonzero(motion.weights))
+    k_g, k_r = int(np.count_nonzero(wg)), int(np.count_nonzero(wr))
     n = max(n, 1)
     bic_g = n * np.log(max(rss_g, 1e-300) / n) + k_g * np.log(n)
     bic_r = n * np.log(max(rss_r, 1e-300) / n) + k_r * np.log(n)
@@ -672,7 +732,7 @@ def choose_shutter(
     rolling = bool(bic_r < bic_g - p.bic_margin and drop >= p.min_drop)
     crit = dict(n=n, rss_global=rss_g, rss_rolling=rss_r, k_global=k_g, k_rolling=k_r,
                 bic_global=float(bic_g), bic_rolling=float(bic_r), drop=float(drop),
-                readout=motion.info["readout"],
+                readout=roll.info["readout"], time_s=time.perf_counter() - t0,
                 rule=f"rolling when BIC_rolling < BIC_global - {p.bic_margin:g} and the "
                      f"inlier RSS drops by >= {p.min_drop:g}")
-    return ShutterChoice("rolling" if rolling else "global", np.asarray(w_global), motion, crit)
+    return ShutterChoice("rolling" if rolling else "global", glob, roll, crit)
