@@ -121,3 +121,87 @@ def test_columns_gather_and_combine_agree():
     W = np.zeros(op.grid.size)
     W[ks] = vals
     np.testing.assert_allclose(op.matvec(W), op.combine(ks, vals), rtol=1e-5, atol=1e-6)
+
+
+# ---------------------------------------------------------------------------- estimate
+from reblur.estimate import estimate_motion  # noqa: E402
+from reblur.rolling import (  # noqa: E402
+    RollingMotion,
+    RollingParams,
+    RollingPoses,
+    choose_shutter,
+    readout_fraction,
+    reblur_rolling,
+    reblur_rolling_tile,
+    rolling_windows,
+)
+from reblur.testbed.rolling import render_rolling_tiled  # noqa: E402
+from reblur.tiled import SparsePoses, reblur_tile  # noqa: E402
+
+
+def test_readout_of_a_constant_velocity_path():
+    """Band b's kernel: 8 one-pixel steps starting at tx = b (a path of 8 px per exposure,
+    band centres a quarter frame apart, drift 1 px): r = 1 / (1/4 * sqrt(63)) = 0.504."""
+    grid = PoseGrid((400, 400), tx=np.arange(0, 12), ty=[0])
+    W = np.zeros((4, *grid.shape))
+    for b in range(4):
+        W[b, 0, 0, b:b + 8] = 1 / 8
+    motion = RollingMotion(W, grid, RowBands(400, 4), boxes=[(0, 0, 400, 400)])
+    r, info = readout_fraction(motion)
+    assert r == pytest.approx(1 / (0.25 * np.sqrt(63)), rel=1e-9)
+    still = RollingMotion(np.broadcast_to(W[:1], W.shape), grid, RowBands(400, 4),
+                          boxes=[(0, 0, 400, 400)])
+    assert readout_fraction(still)[0] == 0.0
+
+
+def _translation_path(shape, n_exposure, readout, v=(7.0, 2.0)):
+    """Homographies of a camera moving at a constant velocity ``v`` px per exposure."""
+    n_total = n_exposure + int(np.ceil(readout * n_exposure))
+    t = (np.arange(n_total) + 0.5) / n_exposure - (1 + readout) / 2
+    return np.stack([np.array([[1, 0, v[0] * s], [0, 1, v[1] * s], [0, 0, 1.0]]) for s in t])
+
+
+@pytest.fixture(scope="module")
+def scene():
+    rng = np.random.default_rng(11)
+    img = cv2.GaussianBlur(rng.random((256, 256)), (0, 0), 1.5)
+    return (img - img.min()) / np.ptp(img)
+
+
+@pytest.mark.parametrize("readout", [0.0, 0.5])
+def test_choice_keeps_the_shutter_that_made_the_pair(scene, readout):
+    """The test bed's rolling renderer (bicubic, 64 sub-poses per exposure), a constant
+    velocity of (7, 2) px per exposure: auto keeps rolling for r = 0.5 and estimates
+    r within 0.15; it keeps global for r = 0."""
+    hs = _translation_path(scene.shape, 64, readout)
+    obs, _ = render_rolling_tiled(scene, hs, readout=readout, n_exposure=64)
+    grid = PoseGrid(scene.shape, tx=np.arange(-8, 9), ty=np.arange(-4, 5))
+    p = RollingParams(n_bands=4, side=64)
+    boxes = rolling_windows(scene.shape, p.n_bands, p.side)
+    w = estimate_motion(scene, obs, grid, boxes=boxes, lam=1e-3, occlusion=False).weights
+    choice = choose_shutter(scene, obs, grid, w_start=w, lam=1e-3, occlusion=False, params=p)
+    assert choice.model == ("rolling" if readout else "global"), choice.criterion
+    if readout:
+        assert abs(choice.rolling.info["readout"] - readout) <= 0.15, choice.rolling.info
+
+
+def test_tiled_reblur_equals_the_operator(scene):
+    rng = np.random.default_rng(12)
+    grid = PoseGrid(scene.shape, tx=np.arange(-3, 4), ty=np.arange(-2, 3), rz=[-0.5, 0.0, 0.5])
+    W = np.zeros((5, *grid.shape))
+    for b in range(5):
+        W[b].flat[rng.choice(grid.size, 5, replace=False)] = rng.random(5)
+    motion = RollingMotion(W, grid, RowBands(256, 5))
+    box = (40, 30, 150, 120)
+    op = RollingOperator(scene, grid, box, motion.bands)
+    got, ok = reblur_rolling_tile(RollingPoses(motion), scene, box)
+    m = ok & op.valid
+    assert m.mean() > 0.8
+    # both warp in float32 onto different windows (OpenCV's coordinates differ by ~1e-6 px)
+    np.testing.assert_allclose(got[m], op.matvec(W)[m], atol=1e-5)
+    whole, valid = reblur_rolling(scene, motion, tile_size=64)
+    np.testing.assert_allclose(whole[40:190, 30:150][m], got[m][:, 0], atol=1e-5)
+    same = RollingMotion(np.broadcast_to(W[2], W.shape), grid, RowBands(256, 5))
+    a, _ = reblur_rolling_tile(RollingPoses(same), scene, box)
+    b, _ = reblur_tile(SparsePoses(W[2], grid), scene, box)
+    np.testing.assert_allclose(a, b, atol=1e-6)
