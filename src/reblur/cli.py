@@ -420,6 +420,11 @@ def main() -> None:
                    "hold no data in either image: unknown, never change.  Default: what "
                    "each file declares (GeoTIFF nodata or mask, alpha band, zarr "
                    "'nodata' attribute).")
+@click.option("--shutter", type=click.Choice(["global", "rolling", "auto"]), default="global",
+              show_default=True,
+              help="Shutter model: global, rolling (row bands with their own motion, for "
+                   "CMOS cameras) or chosen from the data (rolling only when it explains "
+                   "the estimation windows clearly better).")
 @max_pixels_option(DEFAULT_MAX_PIXELS)
 @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
               help="Threads for the tiled stages (processes with --scheduler processes).")
@@ -433,8 +438,9 @@ def main() -> None:
 @verbose_option
 def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float,
            rz_step: float | None, lam: float, tile_size: int, threshold: float | None,
-           truth: Path | None, illumination: str, nodata: float | None, max_pixels: int,
-           workers: int, scheduler: str | None, overwrite: bool, quiet: bool) -> None:
+           truth: Path | None, illumination: str, nodata: float | None, shutter: str,
+           max_pixels: int, workers: int, scheduler: str | None, overwrite: bool,
+           quiet: bool) -> None:
     """Find what changed between REFERENCE (sharp) and OBSERVED (later, blurred).
 
     Inputs: PNG, JPEG, TIFF/BigTIFF/GeoTIFF or zarr; uint8, uint16 or float; gray, RGB
@@ -456,7 +462,8 @@ def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float
         summary = _detect(stage, out_dir, reference, observed, truth, max_pixels, quiet, t0,
                           dict(t_max=t_max, rz_max=rz_max, rz_step=rz_step, lam=lam,
                                tile_size=tile_size, threshold=threshold, workers=workers,
-                               scheduler=scheduler, illumination=illumination), nodata)
+                               scheduler=scheduler, illumination=illumination,
+                               shutter=shutter), nodata)
     click.echo(display_path(summary_line(summary, out)))
 
 

@@ -37,6 +37,7 @@ from .io import chunk_cached
 from .refine import refine_alignment
 from .result import ChangeResult, CropChoice
 from .robust import inlier_scale, robust_line
+from .rolling import RollingParams, RollingPoses, choose_shutter
 from .select import SelectParams, select_windows
 from .tiled import SparsePoses, run_tiles
 from .tilejob import TileJob, load_tile, pad_box, run_tile
@@ -730,6 +731,22 @@ def _windows_of(motion) -> list[tuple[tuple[int, ...], np.ndarray | None, np.nda
             for box, chi, ex in zip(motion.boxes, chis, excl[:n], strict=True)]
 
 
+def _shutter_stage(reference, view, grid, H0, weights, shutter, params, lam, poses,
+                   calibration):
+    """The rolling-shutter model (``shutter="rolling"``) or the choice (``"auto"``):
+    the poses and calibration windows to decide with, and the record of the choice."""
+    choice = choose_shutter(reference, view, grid, w_start=weights, base=H0, lam=lam,
+                            params=params)
+    model = "rolling" if shutter == "rolling" else choice.model
+    info = dict(asked=shutter, model=model, criterion=choice.criterion,
+                readout=choice.rolling.info["readout"], rolling=choice.rolling.to_dict())
+    if model == "rolling":
+        m = choice.rolling
+        poses = RollingPoses(m, H0)
+        calibration = [(tuple(b), c, None) for b, c in zip(m.boxes, m.chi, strict=True)]
+    return poses, calibration, info
+
+
 def detect_changes(
     reference,
     observed,
@@ -751,6 +768,8 @@ def detect_changes(
     decision: DecisionParams | None = None,
     illumination: str | None = None,
     workers: int = 1,
+    shutter: str = "global",
+    rolling: RollingParams | None = None,
     keep_reblurred: bool | None = None,
     change_out=None,
     unknown_out=None,
@@ -824,6 +843,15 @@ def detect_changes(
         offset).  Overrides ``decision.illumination``.
     workers : int
         Threads pulling tiles (with a local Dask scheduler: its threads or processes).
+    shutter : {"global", "rolling", "auto"}
+        The shutter model.  ``"rolling"``: row bands with their own pose weights
+        (:mod:`reblur.rolling`), estimated from the global estimate on windows spread over
+        the rows; ``"auto"``: fits both on those windows and keeps the rolling model only
+        when it explains them clearly better (:func:`reblur.rolling.choose_shutter`).
+        ``result.decision["shutter"]`` records the choice, the criterion, the estimated
+        readout fraction and the per-band motion.
+    rolling : RollingParams, optional
+        Settings of the rolling model and of the choice.
     keep_reblurred : bool, optional
         Return the full reblurred reference (default: when the observation has <= 64 MP).
     change_out, unknown_out : array-like, optional
@@ -877,6 +905,8 @@ def detect_changes(
             progress(stage, frac)
 
     _check_inputs(reference, observed)
+    if shutter not in ("global", "rolling", "auto"):
+        raise ValueError(f"shutter must be 'global', 'rolling' or 'auto', got {shutter!r}")
     Ho, Wo = observed.shape[:2]
     s_ref = intensity_scale(reference.dtype)
     s_obs = intensity_scale(observed.dtype)
@@ -904,6 +934,18 @@ def detect_changes(
     # 4. tiled reblur and decision
     t = time.perf_counter()
     poses = SparsePoses(motion.weights, grid, H0, field=est.field)
+    calibration = _windows_of(motion)
+    shutter_info: dict[str, Any] = {"asked": shutter, "model": "global"}
+    if shutter != "global":
+        t_sh = time.perf_counter()
+        poses, calibration, shutter_info = _shutter_stage(
+            reference, ScaledView(observed, s_obs, gain, offset), grid, H0, motion.weights,
+            shutter, rolling, lam, poses, calibration)
+        timings["shutter"] = time.perf_counter() - t_sh
+        if shutter_info["model"] == "rolling" and est.field is not None:
+            shutter_info["note"] = ("the rolling model's reblur does not apply the local "
+                                    "displacement field")
+        t = time.perf_counter()
     keep = (Ho * Wo <= 64_000_000) if keep_reblurred is None else keep_reblurred
     dec = reblur_and_decide(
         reference, observed, poses, s_ref=s_ref, s_obs=s_obs, gain=gain, offset=offset,
@@ -913,12 +955,13 @@ def detect_changes(
         keep_reblurred=keep, change_out=change_out, unknown_out=unknown_out,
         scheduler=scheduler, work_dir=work_dir,
         progress=(lambda f: report("reblur + decide", f)) if progress else None,
-        calibration=_windows_of(motion),
+        calibration=calibration,
     )
     timings["reblur_decide"] = time.perf_counter() - t
     timings["total"] = time.perf_counter() - t_all
     dec.info["prefit_gain"] = gain.tolist()
     dec.info["prefit_offset"] = offset.tolist()
+    dec.info["shutter"] = shutter_info
     return ChangeResult(
         change=dec.change,
         unknown=dec.unknown,

@@ -151,7 +151,9 @@ def load_tile(poses: SparsePoses, reference, observed, box, *, s_ref: float, s_o
         of it, and no-data pixels of the observation.
     """
     box = as_box(box)
-    reb, valid = reblur_tile(poses, reference, box)
+    # a model with its own tile reblur (row-dependent weights: reblur.rolling.RollingPoses)
+    own = getattr(poses, "reblur_tile", None)
+    reb, valid = own(reference, box) if own is not None else reblur_tile(poses, reference, box)
     # in place: the same float32 operations as ``reb / s_ref * gain + offset``
     reb /= np.float32(s_ref)
     reb *= np.asarray(gain, np.float32)

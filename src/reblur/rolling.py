@@ -1,0 +1,749 @@
+"""Rolling-shutter motion blur: row bands with their own pose weights.
+
+A rolling shutter exposes row ``y`` over its own time window, so each row has its own
+blur kernel.  The model here keeps the unknowns few and the operator linear:
+
+* ``B`` row bands with centres ``c_b = (b + 1/2) H / B - 1/2`` (``H`` the observation's
+  rows); band ``b`` carries a non-negative weight vector ``W_b`` over the existing
+  :class:`~reblur.grid.PoseGrid`.
+* Row ``y``'s kernel is ``w(y) = sum_b phi_b(y) W_b`` with ``phi_b`` the hat functions of
+  the band centres (linear interpolation between neighbouring centres, constant beyond
+  the first and last): a convex combination of at most two neighbouring bands' weights.
+  ``sum_b phi_b = 1``, so equal band weights give exactly the global model, and ``B = 1``
+  is the global model.
+* ``g(x, y) = sum_b phi_b(y) (F W_b)(x, y)``: the operator is linear in the stacked
+  weights ``(B, *grid.shape)`` and is a sum of row-weighted global operators
+  (:class:`~reblur.operator.BlurOperator`), so it reuses their FFT products and explicit
+  columns; :func:`reblur.solve.active_set` solves it unchanged (column ``(b, p)`` is
+  pose ``p``'s column with its rows scaled by ``phi_b``).
+
+Why bands rather than one weight per (time sample, pose) with a row-to-time map: the time
+model needs the readout fraction before the fit (a search over it multiplies the cost) and
+its slots are only identifiable through the unit mass each must carry; the bands need no
+readout, their number is the user's resolution knob, and the estimate starts from the
+global solution (every band equal), restricted to the poses near its support.  The
+interpolation is exact for a kernel that varies linearly with the row; for a path moving
+``v`` px per exposure, the kernel of a row between two centres differs from the truth at
+its two ends over ``v r / (2 B)`` px (a trapezoid instead of a box).  The readout is then
+read from the bands' drift (:func:`readout_fraction`), and the coupling between bands is
+the interpolation itself: every band is fitted on the rows of both of its neighbours'
+halves, and :func:`rolling_windows` puts estimation windows on every band centre, so no
+band is left without data.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .estimate import RTOL, intensity_scale, soft_threshold
+from .grid import PoseGrid, map_points
+from .operator import BlurOperator
+from .solve import active_set
+from .tiled import SparsePoses, iter_tiles, reblur_tile, run_tiles
+from .warp import Box, as_box, read_window
+
+__all__ = [
+    "BandGrid",
+    "RollingMotion",
+    "RollingOperator",
+    "RollingParams",
+    "RollingPoses",
+    "RowBands",
+    "ShutterChoice",
+    "choose_shutter",
+    "estimate_rolling",
+    "readout_fraction",
+    "reblur_rolling",
+    "reblur_rolling_tile",
+    "rolling_windows",
+    "support_grid",
+]
+
+
+@dataclass(frozen=True)
+class RowBands:
+    """``n_bands`` row bands of an ``height``-row observation and their hat functions."""
+
+    height: int
+    n_bands: int
+
+    def __post_init__(self) -> None:
+        if int(self.height) < 1:
+            raise ValueError(f"height must be a positive number of rows, got {self.height}")
+        if int(self.n_bands) < 1 or int(self.n_bands) > int(self.height):
+            raise ValueError(f"n_bands must be between 1 and the {self.height} rows, "
+                             f"got {self.n_bands}")
+        object.__setattr__(self, "height", int(self.height))
+        object.__setattr__(self, "n_bands", int(self.n_bands))
+
+    @property
+    def centres(self) -> np.ndarray:
+        """Centre row of every band, ``(b + 1/2) H / B - 1/2``."""
+        return (np.arange(self.n_bands) + 0.5) * self.height / self.n_bands - 0.5
+
+    def weights(self, rows: np.ndarray) -> np.ndarray:
+        """``phi_b(y)``: ``(n_bands, len(rows))``, non-negative, summing to 1 per row."""
+        y = np.asarray(rows, dtype=float)
+        c = self.centres
+        if self.n_bands == 1:
+            return np.ones((1, y.size))
+        yc = np.clip(y, c[0], c[-1])
+        step = self.height / self.n_bands
+        return np.maximum(0.0, 1.0 - np.abs(yc[None, :] - c[:, None]) / step)
+
+    def row_span(self, b: int) -> tuple[int, int]:
+        """Rows ``[y0, y1)`` where band ``b``'s hat is positive (whole image rows)."""
+        c = self.centres
+        step = self.height / self.n_bands
+        y0 = 0 if b == 0 else int(np.floor(c[b] - step)) + 1
+        y1 = self.height if b == self.n_bands - 1 else int(np.ceil(c[b] + step))
+        return max(y0, 0), min(y1, self.height)
+
+
+@dataclass(frozen=True)
+class BandGrid:
+    """The stacked unknowns of the band model: ``n_bands`` copies of ``grid``."""
+
+    grid: PoseGrid
+    n_bands: int
+
+    @property
+    def shape(self) -> tuple[int, ...]:
+        return (self.n_bands, *self.grid.shape)
+
+    @property
+    def size(self) -> int:
+        return self.n_bands * self.grid.size
+
+
+class _RowScaled:
+    """A column whose rows are scaled by ``phi``: slicing rows returns the product."""
+
+    __slots__ = ("a", "phi")
+
+    def __init__(self, a: np.ndarray, phi: np.ndarray):
+        self.a, self.phi = a, phi
+
+    def __getitem__(self, key):
+        if isinstance(key, tuple):
+            return np.asarray(self)[key]
+        return self.a[key] * self.phi[key][:, None, None]
+
+    def __array__(self, dtype=None, copy=None):
+        out = self.a * self.phi[:, None, None]
+        return out if dtype is None else out.astype(dtype)
+
+
+class RollingOperator:
+    """Matrix-free band-model operator on one observation window.
+
+    ``(A W)(x, y) = sum_b phi_b(y) (F W_b)(x, y)`` with ``F`` the
+    :class:`~reblur.operator.BlurOperator` of the window and ``W`` of shape
+    ``(n_bands, *grid.shape)``.  It offers what :func:`reblur.solve.active_set` uses
+    (``matvec``, ``rmatvec``, ``column``, ``combine``, ``gather_many``, ``valid``,
+    ``dimsd``, ``box``, ``threads``), so the solver runs on it unchanged.
+
+    Parameters
+    ----------
+    reference, grid, box
+        As :class:`~reblur.operator.BlurOperator`.
+    bands : RowBands
+        The row bands (their ``height`` is the full observation's).
+    **options
+        Further :class:`~reblur.operator.BlurOperator` keywords (``base``, ``engine``,
+        ``scale``, ``spectra_precision``, ``threads``, ...).
+    """
+
+    def __init__(self, reference, grid: PoseGrid, box, bands: RowBands, **options: Any):
+        self._attach(BlurOperator(reference, grid, box, **options), bands)
+
+    @classmethod
+    def on(cls, op: BlurOperator, bands: RowBands) -> RollingOperator:
+        """The band model on an existing window operator (shares its stack and spectra)."""
+        new = cls.__new__(cls)
+        new._attach(op, bands)
+        return new
+
+    def _attach(self, op: BlurOperator, bands: RowBands) -> None:
+        if bands.height != op.grid.image_shape[0]:
+            raise ValueError(f"the bands cover {bands.height} rows, the grid's image has "
+                             f"{op.grid.image_shape[0]}")
+        self.op = op
+        self.bands = bands
+        self.box = op.box
+        self.phi = bands.weights(np.arange(self.box.y0, self.box.y1))
+        self.touch = [int(b) for b in np.flatnonzero(self.phi.any(axis=1))]
+        self.grid = BandGrid(op.grid, bands.n_bands)
+        self.dimsd = op.dimsd
+        self.shape = (op.shape[0], self.grid.size)
+        self.valid = op.valid
+        self.engine = op.engine
+
+    @property
+    def threads(self) -> int:
+        return self.op.threads
+
+    @threads.setter
+    def threads(self, n: int) -> None:
+        self.op.threads = n
+
+    def _rows(self, b: int) -> np.ndarray:
+        return self.phi[b][:, None, None]
+
+    def matvec(self, weights: np.ndarray) -> np.ndarray:
+        """``A W``: the window blurred with each row's interpolated weights."""
+        W = np.asarray(weights, dtype=float).reshape(self.grid.shape)
+        out = np.zeros(self.dimsd, self.op.dtype)
+        for b in self.touch:
+            if W[b].any():
+                out += self._rows(b) * self.op.matvec(W[b])
+        return out
+
+    def rmatvec(self, residual: np.ndarray) -> np.ndarray:
+        """``A^T r``: per band, the global adjoint of the row-weighted residual."""
+        r = np.asarray(residual, dtype=float).reshape(self.dimsd)
+        out = np.zeros(self.grid.shape)
+        for b in self.touch:
+            out[b] = self.op.rmatvec(self._rows(b) * r)
+        return out
+
+    def column(self, k: int) -> _RowScaled:
+        """Column ``k = b * P + p``: pose ``p``'s column, rows scaled by ``phi_b``."""
+        b, p = divmod(int(k), self.grid.grid.size)
+        return _RowScaled(self.op.column(p), self.phi[b])
+
+    def combine(self, ks, values) -> np.ndarray:
+        """``sum_i values[i] * column(ks[i])``, by band."""
+        ks = np.asarray(ks, dtype=np.int64)
+        values = np.asarray(values, dtype=float)
+        band, pose = np.divmod(ks, self.grid.grid.size)
+        out = np.zeros(self.dimsd, self.op.dtype)
+        for b in np.unique(band):
+            sel = band == b
+            out += self._rows(int(b)) * self.op.combine(pose[sel], values[sel])
+        return out
+
+    def gather_many(self, ks, rows: np.ndarray, cols: np.ndarray,
+                    chans: np.ndarray) -> np.ndarray:
+        """Values of the columns ``ks`` at pixels ``(rows, cols, chans)``: ``(n, len(ks))``."""
+        ks = np.asarray(ks, dtype=np.int64)
+        if ks.size == 0:
+            return np.zeros((rows.size, 0))
+        band, pose = np.divmod(ks, self.grid.grid.size)
+        vals = self.op.gather_many(pose, rows, cols, chans)
+        return vals * self.phi[band][:, rows].T
+
+
+# ---------------------------------------------------------------------------- estimate
+@dataclass(frozen=True)
+class RollingParams:
+    """Settings of the rolling-shutter estimate and of the model choice.
+
+    Attributes
+    ----------
+    n_bands : int
+        Row bands ``B`` (4: a readout of a full exposure moves a band centre's window by a
+        quarter exposure from its neighbour's).
+    side : int
+        Side (px) of the estimation windows, two per band (:func:`rolling_windows`).
+    t_margin, b_margin : int
+        The band weights live on the poses within ``t_margin`` translation steps and
+        ``b_margin`` base steps of the global estimate's support (:func:`support_grid`).
+    bic_margin : float
+        The rolling model is kept when its Bayesian information criterion on the windows
+        is lower than the global one's by more than this (see :func:`choose_shutter`).
+    min_drop : float
+        ... and when it lowers the windows' inlier residual sum of squares by at least
+        this fraction (a clearly better fit, not one of model error's small gains).
+    min_readout : float
+        ... and when the estimated readout fraction (:func:`readout_fraction`) is at least
+        this: the bands of a global shutter differ only where the grid approximates the
+        blur differently on different rows (a tilt), not by a drift along the path (0.02
+        on the test bed's global pair), and below a tenth of an exposure across the frame
+        the rows' windows differ by less than a tenth of the exposure's motion.
+    max_outer : int
+        Outer iterations of the active-set solve.
+    """
+
+    n_bands: int = 4
+    side: int = 160
+    t_margin: int = 3
+    b_margin: int = 2
+    bic_margin: float = 10.0
+    min_drop: float = 0.05
+    min_readout: float = 0.1
+    max_outer: int = 40
+
+    def __post_init__(self) -> None:
+        for name in ("n_bands", "side", "max_outer"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"RollingParams.{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("t_margin", "b_margin", "bic_margin", "min_drop", "min_readout"):
+            if not float(getattr(self, name)) >= 0:
+                raise ValueError(f"RollingParams.{name} must be >= 0, got {getattr(self, name)}")
+
+
+@dataclass
+class RollingMotion:
+    """Band weights of a rolling-shutter estimate.
+
+    Attributes
+    ----------
+    weights : ndarray, ``(n_bands, *grid.shape)``
+    grid : PoseGrid
+        The (sub-)grid the weights live on (full-image geometry).
+    bands : RowBands
+    boxes : list of tuple
+        Estimation windows ``(y0, x0, h, w)``.
+    chi : list of ndarray
+        The change term of each window (``(h, w, C)``, [0, 1] units).
+    info : dict
+        Solver information, ``psnr`` per window, ``readout`` (:func:`readout_fraction`).
+    """
+
+    weights: np.ndarray
+    grid: PoseGrid
+    bands: RowBands
+    boxes: list[tuple[int, int, int, int]] = field(default_factory=list)
+    chi: list[np.ndarray] = field(default_factory=list)
+    info: dict[str, Any] = field(default_factory=dict)
+
+    def row_weights(self, y: float) -> np.ndarray:
+        """The kernel of row ``y`` on :attr:`grid` (``grid.shape``)."""
+        phi = self.bands.weights(np.array([y]))[:, 0]
+        return np.tensordot(phi, self.weights, axes=1)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready summary: bands, readout, per-band weight sums and kernel centroids."""
+        per_band = []
+        poses = self.grid.poses()
+        for b in range(self.bands.n_bands):
+            w = self.weights[b].ravel()
+            s = float(w.sum())
+            mean = (poses * w[:, None]).sum(0) / s if s > 0 else np.full(6, np.nan)
+            per_band.append(dict(centre_row=float(self.bands.centres[b]), weight_sum=s,
+                                 n_poses=int(np.count_nonzero(w)),
+                                 mean_pose=dict(zip(("tx", "ty", "tz", "rx", "ry", "rz"),
+                                                    map(float, mean), strict=True))))
+        return dict(n_bands=self.bands.n_bands, readout=self.info.get("readout"),
+                    boxes=[list(b) for b in self.boxes], bands=per_band,
+                    grid=self.grid.to_dict())
+
+
+def rolling_windows(shape: tuple[int, int], n_bands: int, side: int
+                    ) -> list[tuple[int, int, int, int]]:
+    """Two windows per band, centred on its centre row, near the left and right edges.
+
+    Every band then has data on its own rows, and the left/right pair (far apart) makes
+    its roll observable.  Windows are clipped to the image (``side`` at most the image's
+    sides).
+    """
+    H, W = (int(s) for s in shape[:2])
+    s_y, s_x = min(int(side), H), min(int(side), W // 2 if W >= 2 * side else W)
+    bands = RowBands(H, n_bands)
+    out = []
+    for c in bands.centres:
+        y0 = int(np.clip(round(c - s_y / 2), 0, H - s_y))
+        for x0 in sorted({0 + W // 32, W - s_x - W // 32}):
+            out.append((y0, int(np.clip(x0, 0, W - s_x)), s_y, s_x))
+    return list(dict.fromkeys(out))
+
+
+def _axis_index(grid: PoseGrid) -> list[np.ndarray]:
+    """Per base, the indices of its ``(tz, rx, ry, rz)`` values."""
+    dims = (len(grid.tz), len(grid.rx), len(grid.ry), len(grid.rz))
+    return list(np.unravel_index(np.arange(grid.n_bases), dims))
+
+
+def support_grid(grid: PoseGrid, weights: np.ndarray, t_margin: int = 3,
+                 b_margin: int = 2, mass: float = 0.9) -> PoseGrid:
+    """The part of ``grid`` around the poses that carry weight.
+
+    Per axis, the values between the smallest and largest index of the heaviest poses
+    that hold ``mass`` of the weight, grown by ``t_margin`` (translations) or
+    ``b_margin`` (``tz``, ``rx``, ``ry``, ``rz``) steps.
+
+    Raises
+    ------
+    ValueError
+        When no pose carries weight.
+    """
+    w = grid.check_weights(weights)
+    if not np.any(w > 0):
+        raise ValueError("the global estimate has no pose with weight: nothing to refine")
+    # the heaviest poses holding ``mass`` of the weight (a global fit of a rolling shutter
+    # spreads small weights far: rolls that mimic the rows' shear)
+    order = np.sort(w.ravel())[::-1]
+    cut = order[min(int(np.searchsorted(np.cumsum(order), mass * order.sum())), order.size - 1)]
+    nz = np.argwhere(w >= cut)
+    def span(values, idx, m):
+        lo, hi = max(int(idx.min()) - m, 0), min(int(idx.max()) + m, len(values) - 1)
+        return values[lo:hi + 1]
+
+    axes = _axis_index(grid)
+    used = np.unique(nz[:, 0])
+    kw = {name: span(getattr(grid, name), axes[i][used], int(b_margin))
+          for i, name in enumerate(("tz", "rx", "ry", "rz"))}
+    return grid._replace(tx=span(grid.tx, nz[:, 2], int(t_margin)),
+                         ty=span(grid.ty, nz[:, 1], int(t_margin)), **kw)
+
+
+def embed_weights(w: np.ndarray, sub: PoseGrid, full: PoseGrid) -> np.ndarray:
+    """Weights of ``full`` carried over to ``sub`` (poses of ``sub`` missing from ``full``
+    get 0; weight on poses of ``full`` outside ``sub`` is dropped)."""
+    w = full.check_weights(w)
+    out = np.zeros(sub.shape)
+    fb = {base: i for i, base in enumerate(full.bases)}
+    ty = [full.ty.index(v) if v in full.ty else -1 for v in sub.ty]
+    tx = [full.tx.index(v) if v in full.tx else -1 for v in sub.tx]
+    for b, base in enumerate(sub.bases):
+        if base not in fb:
+            continue
+        for i, iy in enumerate(ty):
+            for j, ix in enumerate(tx):
+                if iy >= 0 and ix >= 0:
+                    out[b, i, j] = w[fb[base], iy, ix]
+    return out
+
+
+def _window_operators(reference, observed, grid: PoseGrid, boxes, base, scale):
+    """Window operators (global, on ``grid``) and the observation windows in [0, 1]."""
+    s_ref = intensity_scale(reference.dtype) if scale is None else scale
+    s_obs = intensity_scale(observed.dtype) if scale is None else scale
+    ops = [BlurOperator(reference, grid, b, base=base, scale=s_ref) for b in boxes]
+    gs = [read_window(observed, b, np.float64) / s_obs for b in boxes]
+    for op, g in zip(ops, gs, strict=True):  # no data (NaN) in the observation: left out
+        fin = np.isfinite(g)
+        if not fin.all():
+            g[~fin] = 0.0
+            op.valid = op.valid & fin.all(axis=2)
+    return ops, gs
+
+
+def _fit(ops, gs, bands: RowBands, w0: np.ndarray, lam: float, occlusion: bool,
+         max_outer: int) -> tuple[np.ndarray, dict, list]:
+    """Eq. 5 (or eq. 3) of the band model ``bands`` on the windows, from ``w0``."""
+    rops = [RollingOperator.on(op, bands) for op in ops]
+    w, info = active_set(rops, gs, lam=lam, occlusion=occlusion, max_outer=max_outer, w0=w0,
+                         rtol=RTOL)
+    return w, info, rops
+
+
+def _motion(w, info, rops, gs, grid, bands, boxes, lam, occlusion) -> RollingMotion:
+    chis, psnr = [], []
+    for op, g in zip(rops, gs, strict=True):
+        r = g - op.matvec(w)
+        chi = soft_threshold(r, lam / 2.0) if occlusion else np.zeros_like(r)
+        chi[~op.valid] = 0.0
+        chis.append(chi)
+        mse = float(np.mean(r[op.valid] ** 2)) if op.valid.any() else np.nan
+        psnr.append(10 * np.log10(1.0 / mse) if mse > 0 else float("inf"))
+    motion = RollingMotion(weights=w, grid=grid, bands=bands,
+                           boxes=[b.as_tuple() for b in boxes], chi=chis,
+                           info=dict(info, psnr=psnr, lam=lam, occlusion=occlusion))
+    r, rinfo = readout_fraction(motion)
+    motion.info.update(readout=r, readout_fit=rinfo)
+    return motion
+
+
+def estimate_rolling(
+    reference,
+    observed,
+    grid: PoseGrid,
+    *,
+    w_global: np.ndarray,
+    boxes: Sequence | None = None,
+    base: np.ndarray | None = None,
+    lam: float = 0.1,
+    occlusion: bool = True,
+    params: RollingParams | None = None,
+    scale: float | None = None,
+) -> RollingMotion:
+    """Estimate band weights on windows spread over the rows, from a global estimate.
+
+    The unknowns are the band weights on :func:`support_grid` of the global weights
+    ``w_global`` (the poses the whole exposure visits, with a margin); every band starts
+    from ``w_global`` (the global model) and :func:`reblur.solve.active_set` solves eq. 5
+    (or eq. 3) on :class:`RollingOperator` windows.
+
+    Parameters
+    ----------
+    reference, observed : array-like
+        As :func:`reblur.estimate.estimate_motion`.
+    grid : PoseGrid
+        The grid of ``w_global`` (full observation geometry).
+    w_global : ndarray, ``grid.shape``
+        Global-shutter weights (e.g. ``estimate_motion(...).weights``).
+    boxes : sequence of (y0, x0, h, w), optional
+        Windows; default :func:`rolling_windows`.
+    base : (3, 3) ndarray, optional
+        Coarse alignment composed before every pose.
+    lam, occlusion
+        Eq. 5's ``lambda``, and eq. 5 (True) or eq. 3.
+    params : RollingParams, optional
+    scale : float, optional
+        Intensity full scale (default from the dtypes).
+
+    Returns
+    -------
+    RollingMotion
+        On the sub-grid, with ``info["readout"]`` from :func:`readout_fraction`.
+    """
+    t0 = time.perf_counter()
+    p = params or RollingParams()
+    bands = RowBands(grid.image_shape[0], p.n_bands)
+    if boxes is None:
+        boxes = rolling_windows(observed.shape[:2], p.n_bands, p.side)
+    boxes = [as_box(b) for b in boxes]
+    sub = support_grid(grid, w_global, p.t_margin, p.b_margin)
+    ops, gs = _window_operators(reference, observed, sub, boxes, base, scale)
+    w0 = np.broadcast_to(embed_weights(w_global, sub, grid), (p.n_bands, *sub.shape)).copy()
+    w, info, rops = _fit(ops, gs, bands, w0, lam, occlusion, p.max_outer)
+    motion = _motion(w, info, rops, gs, sub, bands, boxes, lam, occlusion)
+    motion.info["time_total_s"] = time.perf_counter() - t0
+    return motion
+
+
+# ---------------------------------------------------------------------------- readout
+def _moments(grid: PoseGrid, w: np.ndarray, pt: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and covariance of the displacement ``H_p^-1 pt - pt`` under weights ``w``."""
+    poses = grid.nonzero(w)
+    d = np.array([map_points(np.linalg.inv(grid.homography((b, i, j))), pt[None])[0] - pt
+                  for b, i, j, _ in poses])
+    v = np.array([p[3] for p in poses])
+    v = v / v.sum()
+    mu = v @ d
+    return mu, (d - mu).T @ ((d - mu) * v[:, None])
+
+
+def readout_fraction(motion: RollingMotion) -> tuple[float, dict]:
+    """The readout fraction the band weights' drift implies.
+
+    Two bands whose centres lie ``d`` rows apart (``d / H`` of the frame) see windows
+    ``r d / H`` exposures apart.  At a point, for a camera moving at a constant velocity
+    ``v`` (pixels per exposure) the kernel is a uniform segment of length ``|v|``, whose
+    variance along ``v`` is ``|v|^2 / 12``, and its centroid moves by ``r (d / H) v``
+    between the bands.  So ``r = |dm| / ((d / H) sqrt(12 s^2))`` with ``dm`` the centroid
+    drift and ``s^2`` the kernels' variance along it (the mean of the two bands').  It is
+    computed at the centre of every estimation window for every pair of neighbouring
+    bands, and the median is returned (clipped to [0, 1]).  A path that curves within an
+    exposure, or a fit that spreads a kernel over neighbouring poses, widens the kernel
+    and biases ``r`` low; a camera that stands still has no drift (``r`` is then
+    unobservable, and so is the rolling shutter).
+
+    Returns
+    -------
+    r : float
+    info : dict
+        ``per_pair``: the median estimate of every neighbouring band pair.
+    """
+    bands = motion.bands
+    c = bands.centres / bands.height
+    pts = np.array([[x0 + (w - 1) / 2.0, y0 + (h - 1) / 2.0]
+                    for y0, x0, h, w in motion.boxes], dtype=float)
+    per_pair, all_r = [], []
+    for b in range(bands.n_bands - 1):
+        if not (motion.weights[b].any() and motion.weights[b + 1].any()):
+            continue
+        rs = []
+        for pt in pts:
+            m0, s0 = _moments(motion.grid, motion.weights[b], pt)
+            m1, s1 = _moments(motion.grid, motion.weights[b + 1], pt)
+            dm = m1 - m0
+            norm = float(np.linalg.norm(dm))
+            if norm == 0.0:
+                rs.append(0.0)
+                continue
+            u = dm / norm
+            var = 0.5 * float(u @ s0 @ u + u @ s1 @ u)
+            rs.append(norm / ((c[b + 1] - c[b]) * np.sqrt(12.0 * var)) if var > 0 else 1.0)
+        per_pair.append(float(np.median(rs)))
+        all_r += rs
+    if not all_r:
+        return 0.0, dict(per_pair=[])
+    return float(np.clip(np.median(all_r), 0.0, 1.0)), dict(per_pair=per_pair)
+
+
+# ---------------------------------------------------------------------------- reblur
+class RollingPoses:
+    """The non-zero poses of every band (:class:`~reblur.tiled.SparsePoses` each)."""
+
+    def __init__(self, motion: RollingMotion, base: np.ndarray | None = None,
+                 rtol: float = 0.0):
+        self.bands = motion.bands
+        self.grid = motion.grid
+        self.per_band = [SparsePoses(motion.weights[b], motion.grid, base, rtol)
+                         for b in range(motion.bands.n_bands)]
+
+    @property
+    def n_poses(self) -> int:
+        return sum(p.n_poses for p in self.per_band)
+
+    def reblur_tile(self, reference, box, *, dtype=np.float32):
+        """Same as :func:`reblur_rolling_tile` (lets tile jobs call it as a method)."""
+        return reblur_rolling_tile(self, reference, box, dtype=dtype)
+
+
+def reblur_rolling_tile(poses: RollingPoses, reference, box, *, dtype=np.float32):
+    """Reblurred reference on one observation window, each row with its own weights.
+
+    For every band whose hat reaches the window's rows, the rows it reaches are reblurred
+    with the band's poses (:func:`reblur.tiled.reblur_tile`: one reference read per band,
+    halos from the poses) and added with the rows' ``phi_b``; so a row costs the warps of
+    at most two bands.
+
+    Returns
+    -------
+    out : (h, w, C) ndarray
+    valid : (h, w) bool ndarray
+        True where every pose of every band the row uses reads real reference pixels.
+    """
+    box = as_box(box)
+    C = reference.shape[2] if len(reference.shape) == 3 else 1
+    out = np.zeros((box.h, box.w, C), dtype)
+    valid = np.ones((box.h, box.w), bool)
+    phi = poses.bands.weights(np.arange(box.y0, box.y1)).astype(dtype)
+    for b, sp in enumerate(poses.per_band):
+        rows = np.flatnonzero(phi[b] > 0)
+        if rows.size == 0:
+            continue
+        r0, r1 = int(rows[0]), int(rows[-1]) + 1
+        part, ok = reblur_tile(sp, reference, Box(box.y0 + r0, box.x0, r1 - r0, box.w),
+                               dtype=dtype)
+        out[r0:r1] += phi[b, r0:r1, None, None] * part
+        valid[r0:r1] &= ok
+    return out, valid
+
+
+def reblur_rolling(reference, motion: RollingMotion, *, base: np.ndarray | None = None,
+                   tile_size: int = 1024, workers: int = 1, dtype=np.float32
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """Reblur the whole reference with band weights, tile by tile (numpy output)."""
+    poses = RollingPoses(motion, base)
+    H, W = motion.grid.image_shape
+    C = reference.shape[2] if len(reference.shape) == 3 else 1
+    two_d = len(reference.shape) == 2
+    out = np.zeros((H, W) if two_d else (H, W, C), dtype)
+    valid = np.zeros((H, W), bool)
+
+    def run(b: Box) -> None:
+        img, ok = reblur_rolling_tile(poses, reference, b, dtype=dtype)
+        out[b.slices] = img[:, :, 0] if two_d else img
+        valid[b.slices] = ok
+
+    run_tiles(run, list(iter_tiles((H, W), tile_size)), workers)
+    return out, valid
+
+
+# ---------------------------------------------------------------------------- choice
+@dataclass
+class ShutterChoice:
+    """Outcome of :func:`choose_shutter`.
+
+    Attributes
+    ----------
+    model : {"global", "rolling"}
+    global_ : RollingMotion
+        The global fit on the same windows and sub-grid (one band).
+    rolling : RollingMotion
+    criterion : dict
+        ``n`` (pixels compared), ``rss_global``, ``rss_rolling`` (inlier residual sums of
+        squares), ``k_global``, ``k_rolling`` (weights in use), ``bic_global``,
+        ``bic_rolling``, ``drop`` (relative RSS drop), ``readout``, ``rule``.
+    """
+
+    model: str
+    global_: RollingMotion
+    rolling: RollingMotion
+
+    @property
+    def motion(self) -> RollingMotion:
+        """The chosen model's fit."""
+        return self.rolling if self.model == "rolling" else self.global_
+    criterion: dict[str, Any]
+
+
+def _inlier_rss(ops, gs, ws, delta: float | None) -> tuple[list[float], int]:
+    """Sums of squared residuals of every fit in ``ws`` (with its operators) over the
+    pixels all of them leave as inliers (``|r| <= delta``; every valid pixel when
+    ``delta`` is None), and their count."""
+    rss = [0.0] * len(ws)
+    n = 0
+    for i_win, g in enumerate(gs):
+        rs = [g - fit_ops[i_win].matvec(w) for fit_ops, w in zip(ops, ws, strict=True)]
+        m = np.broadcast_to(ops[0][i_win].valid[:, :, None], g.shape)
+        if delta is not None:
+            for r in rs:
+                m = m & (np.abs(r) <= delta)
+        n += int(m.sum())
+        for i, r in enumerate(rs):
+            rss[i] += float(np.sum(r[m] ** 2))
+    return rss, n
+
+
+def choose_shutter(
+    reference,
+    observed,
+    grid: PoseGrid,
+    *,
+    w_start: np.ndarray,
+    base: np.ndarray | None = None,
+    lam: float = 0.1,
+    occlusion: bool = True,
+    params: RollingParams | None = None,
+    boxes: Sequence | None = None,
+    scale: float | None = None,
+) -> ShutterChoice:
+    """Fit the global and the rolling model on the same windows and pick one.
+
+    Both live on :func:`support_grid` of ``w_start`` (a global estimate, e.g. the
+    pipeline's on its own windows) and are solved on the same windows
+    (:func:`rolling_windows` by default): the global model (one band) from ``w_start``,
+    then the band model from the global fit (every band equal to it).  They are compared
+    on the windows' pixels that both fits leave as inliers (``|r| <= lam / 2``) with the
+    Bayesian information criterion of a Gaussian residual,
+    ``BIC = n log(RSS / n) + k log n`` (``k`` the weights in use).  The rolling model is
+    kept when ``BIC_rolling < BIC_global - params.bic_margin`` AND its RSS is lower by at
+    least ``params.min_drop`` (a fraction) AND the estimated readout is at least
+    ``params.min_readout``: the BIC alone treats the pixels as independent, while the
+    model's error (bilinear warps, the grid's discretisation, the bands' interpolation)
+    is spatially correlated, so more weights always win a little; the drop asks for a
+    clearly better fit, and the readout for the drift a rolling shutter makes (a tilting
+    global-shutter camera lets the bands fit their rows better too, without drift).
+    """
+    t0 = time.perf_counter()
+    p = params or RollingParams()
+    if boxes is None:
+        boxes = rolling_windows(observed.shape[:2], p.n_bands, p.side)
+    boxes = [as_box(b) for b in boxes]
+    sub = support_grid(grid, w_start, p.t_margin, p.b_margin)
+    ops, gs = _window_operators(reference, observed, sub, boxes, base, scale)
+    H = grid.image_shape[0]
+    one, many = RowBands(H, 1), RowBands(H, p.n_bands)
+    wg, ginfo, gops = _fit(ops, gs, one, embed_weights(w_start, sub, grid)[None], lam,
+                           occlusion, p.max_outer)
+    w0 = np.broadcast_to(wg, (p.n_bands, *sub.shape)).copy()
+    wr, rinfo, rops = _fit(ops, gs, many, w0, lam, occlusion, p.max_outer)
+    glob = _motion(wg, ginfo, gops, gs, sub, one, boxes, lam, occlusion)
+    roll = _motion(wr, rinfo, rops, gs, sub, many, boxes, lam, occlusion)
+    (rss_g, rss_r), n = _inlier_rss([gops, rops], gs, [wg, wr],
+                                    lam / 2.0 if occlusion else None)
+    k_g, k_r = int(np.count_nonzero(wg)), int(np.count_nonzero(wr))
+    n = max(n, 1)
+    bic_g = n * np.log(max(rss_g, 1e-300) / n) + k_g * np.log(n)
+    bic_r = n * np.log(max(rss_r, 1e-300) / n) + k_r * np.log(n)
+    drop = 1.0 - rss_r / rss_g if rss_g > 0 else 0.0
+    rolling = bool(bic_r < bic_g - p.bic_margin and drop >= p.min_drop
+                   and roll.info["readout"] >= p.min_readout)
+    crit = dict(n=n, rss_global=rss_g, rss_rolling=rss_r, k_global=k_g, k_rolling=k_r,
+                bic_global=float(bic_g), bic_rolling=float(bic_r), drop=float(drop),
+                readout=roll.info["readout"], time_s=time.perf_counter() - t0,
+                rule=f"rolling when BIC_rolling < BIC_global - {p.bic_margin:g}, the "
+                     f"inlier RSS drops by >= {p.min_drop:g} and the estimated readout is "
+                     f">= {p.min_readout:g}")
+    return ShutterChoice("rolling" if rolling else "global", glob, roll, crit)

@@ -1,0 +1,207 @@
+"""Rolling-shutter band model (reblur.rolling): operator, estimate, reblur, model choice."""
+
+import cv2
+import numpy as np
+import pytest
+
+from reblur.grid import PoseGrid, local_homography
+from reblur.operator import BlurOperator
+from reblur.rolling import RollingOperator, RowBands
+
+SHAPE = (120, 150)
+
+
+def _grid():
+    return PoseGrid(SHAPE, tx=np.arange(-2, 3), ty=np.arange(-1, 2), rz=[-1.0, 0.0, 1.5])
+
+
+def _image(seed=0, channels=1):
+    rng = np.random.default_rng(seed)
+    img = rng.random(SHAPE + ((channels,) if channels > 1 else ()))
+    return cv2.GaussianBlur(img, (0, 0), 1.2)
+
+
+def _phi(bands, rows):
+    """Independent hat functions: np.interp of the identity rows at the band centres."""
+    c = (np.arange(bands.n_bands) + 0.5) * bands.height / bands.n_bands - 0.5
+    return np.stack([np.interp(rows, c, np.eye(bands.n_bands)[b]) for b in range(len(c))])
+
+
+def test_bands_are_a_partition_of_unity_interpolating_between_centres():
+    bands = RowBands(100, 4)
+    rows = np.arange(100)
+    phi = bands.weights(rows)
+    np.testing.assert_allclose(phi.sum(axis=0), 1.0)
+    np.testing.assert_allclose(phi, _phi(bands, rows), atol=1e-12)
+    assert np.all((phi > 0).sum(axis=0) <= 2)
+    for b in range(4):
+        y0, y1 = bands.row_span(b)
+        pos = np.flatnonzero(phi[b] > 0)
+        assert (pos[0], pos[-1] + 1) == (y0, y1)
+    np.testing.assert_array_equal(RowBands(100, 1).weights(rows), 1.0)
+    with pytest.raises(ValueError, match="n_bands"):
+        RowBands(10, 0)
+
+
+@pytest.mark.parametrize("engine", ["fast", "exact"])
+def test_dot_test_in_float64(engine):
+    """Dense weights (more than 64 per band: the fast engine's float64 spectral path)."""
+    rng = np.random.default_rng(1)
+    img = _image(1, channels=2)
+    grid = PoseGrid(SHAPE, tx=np.arange(-4, 5), ty=np.arange(-2, 3), rz=[-1.0, 0.0, 1.5])
+    op = RollingOperator(img, grid, (20, 30, 70, 60), RowBands(SHAPE[0], 4), engine=engine,
+                         spectra_precision="double")
+    u = rng.random(op.grid.shape)
+    v = rng.standard_normal(op.dimsd)
+    lhs, rhs = float(np.vdot(op.matvec(u), v)), float(np.vdot(u, op.rmatvec(v)))
+    assert abs(lhs - rhs) <= 1e-10 * abs(lhs), (lhs, rhs)
+
+
+def _per_row_reference(img, grid, box, bands, W):
+    """Loops over rows and poses with plain cv2.warpPerspective of the whole reference."""
+    y0, x0, h, w = box
+    phi = _phi(bands, np.arange(y0, y0 + h))
+    out = np.zeros((h, w))
+    warped = {}
+    for i in range(h):
+        kernel = np.tensordot(phi[:, i], W, axes=1)
+        for k in np.flatnonzero(kernel.ravel()):
+            if k not in warped:
+                M = local_homography(grid.homography(int(k)), (0, 0), (x0, y0))
+                warped[k] = cv2.warpPerspective(img.astype(np.float32), M, (w, h),
+                                                flags=cv2.INTER_LINEAR)
+            out[i] += kernel.ravel()[k] * warped[k][i]
+    return out
+
+
+@pytest.mark.parametrize("n_bands", [1, 3, 5])
+def test_equals_a_per_row_reference(n_bands):
+    rng = np.random.default_rng(n_bands)
+    img, grid = _image(2), _grid()
+    box = (25, 35, 60, 70)
+    bands = RowBands(SHAPE[0], n_bands)
+    W = np.zeros((n_bands, *grid.shape))
+    for b in range(n_bands):  # each band its own sparse kernel
+        W[b].flat[rng.choice(grid.size, 6, replace=False)] = rng.random(6)
+    op = RollingOperator(img, grid, box, bands)
+    got = op.matvec(W)[:, :, 0]
+    want = _per_row_reference(img, grid, box, bands, W)
+    m = op.valid
+    assert m.mean() > 0.9
+    assert np.max(np.abs(got - want)[m]) < 1e-4 * np.max(np.abs(want))
+
+
+def test_identical_bands_are_the_global_operator():
+    rng = np.random.default_rng(4)
+    img, grid = _image(3, channels=3), _grid()
+    box = (0, 10, 120, 90)
+    glob = BlurOperator(img, grid, box, spectra_precision="double")
+    op = RollingOperator(img, grid, box, RowBands(SHAPE[0], 6), spectra_precision="double")
+    w = rng.random(grid.shape)
+    np.testing.assert_allclose(op.matvec(np.broadcast_to(w, op.grid.shape)), glob.matvec(w),
+                               rtol=1e-12, atol=1e-12)
+    r = rng.standard_normal(op.dimsd)
+    np.testing.assert_allclose(op.rmatvec(r).sum(axis=0), glob.rmatvec(r), rtol=1e-9,
+                               atol=1e-9)
+
+
+def test_columns_gather_and_combine_agree():
+    rng = np.random.default_rng(5)
+    img, grid = _image(4, channels=2), _grid()
+    op = RollingOperator(img, grid, (30, 20, 50, 40), RowBands(SHAPE[0], 4))
+    ks = rng.choice(op.grid.size, 7, replace=False)
+    vals = rng.random(7)
+    cols = [np.asarray(op.column(int(k))) for k in ks]
+    want = sum(v * c for v, c in zip(vals, cols, strict=True))
+    np.testing.assert_allclose(op.combine(ks, vals), want, rtol=1e-6, atol=1e-7)
+    rows, cc, ch = rng.integers(0, 50, 30), rng.integers(0, 40, 30), rng.integers(0, 2, 30)
+    np.testing.assert_allclose(op.gather_many(ks, rows, cc, ch),
+                               np.stack([c[rows, cc, ch] for c in cols], axis=1), rtol=1e-6)
+    np.testing.assert_allclose(op.column(int(ks[0]))[5:9], cols[0][5:9])
+    W = np.zeros(op.grid.size)
+    W[ks] = vals
+    np.testing.assert_allclose(op.matvec(W), op.combine(ks, vals), rtol=1e-5, atol=1e-6)
+
+
+# ---------------------------------------------------------------------------- estimate
+from reblur.estimate import estimate_motion  # noqa: E402
+from reblur.rolling import (  # noqa: E402
+    RollingMotion,
+    RollingParams,
+    RollingPoses,
+    choose_shutter,
+    readout_fraction,
+    reblur_rolling,
+    reblur_rolling_tile,
+    rolling_windows,
+)
+from reblur.testbed.rolling import render_rolling_tiled  # noqa: E402
+from reblur.tiled import SparsePoses, reblur_tile  # noqa: E402
+
+
+def test_readout_of_a_constant_velocity_path():
+    """Band b's kernel: 8 one-pixel steps starting at tx = b (a path of 8 px per exposure,
+    band centres a quarter frame apart, drift 1 px): r = 1 / (1/4 * sqrt(63)) = 0.504."""
+    grid = PoseGrid((400, 400), tx=np.arange(0, 12), ty=[0])
+    W = np.zeros((4, *grid.shape))
+    for b in range(4):
+        W[b, 0, 0, b:b + 8] = 1 / 8
+    motion = RollingMotion(W, grid, RowBands(400, 4), boxes=[(0, 0, 400, 400)])
+    r, info = readout_fraction(motion)
+    assert r == pytest.approx(1 / (0.25 * np.sqrt(63)), rel=1e-9)
+    still = RollingMotion(np.broadcast_to(W[:1], W.shape), grid, RowBands(400, 4),
+                          boxes=[(0, 0, 400, 400)])
+    assert readout_fraction(still)[0] == 0.0
+
+
+def _translation_path(shape, n_exposure, readout, v=(7.0, 2.0)):
+    """Homographies of a camera moving at a constant velocity ``v`` px per exposure."""
+    n_total = n_exposure + int(np.ceil(readout * n_exposure))
+    t = (np.arange(n_total) + 0.5) / n_exposure - (1 + readout) / 2
+    return np.stack([np.array([[1, 0, v[0] * s], [0, 1, v[1] * s], [0, 0, 1.0]]) for s in t])
+
+
+@pytest.fixture(scope="module")
+def scene():
+    rng = np.random.default_rng(11)
+    img = cv2.GaussianBlur(rng.random((256, 256)), (0, 0), 1.5)
+    return (img - img.min()) / np.ptp(img)
+
+
+@pytest.mark.parametrize("readout", [0.0, 0.5])
+def test_choice_keeps_the_shutter_that_made_the_pair(scene, readout):
+    """The test bed's rolling renderer (bicubic, 64 sub-poses per exposure), a constant
+    velocity of (7, 2) px per exposure: auto keeps rolling for r = 0.5 and estimates
+    r within 0.15; it keeps global for r = 0."""
+    hs = _translation_path(scene.shape, 64, readout)
+    obs, _ = render_rolling_tiled(scene, hs, readout=readout, n_exposure=64)
+    grid = PoseGrid(scene.shape, tx=np.arange(-8, 9), ty=np.arange(-4, 5))
+    p = RollingParams(n_bands=4, side=64)
+    boxes = rolling_windows(scene.shape, p.n_bands, p.side)
+    w = estimate_motion(scene, obs, grid, boxes=boxes, lam=1e-3, occlusion=False).weights
+    choice = choose_shutter(scene, obs, grid, w_start=w, lam=1e-3, occlusion=False, params=p)
+    assert choice.model == ("rolling" if readout else "global"), choice.criterion
+    if readout:
+        assert abs(choice.rolling.info["readout"] - readout) <= 0.15, choice.rolling.info
+
+
+def test_tiled_reblur_equals_the_operator(scene):
+    rng = np.random.default_rng(12)
+    grid = PoseGrid(scene.shape, tx=np.arange(-3, 4), ty=np.arange(-2, 3), rz=[-0.5, 0.0, 0.5])
+    W = np.zeros((5, *grid.shape))
+    for b in range(5):
+        W[b].flat[rng.choice(grid.size, 5, replace=False)] = rng.random(5)
+    motion = RollingMotion(W, grid, RowBands(256, 5))
+    box = (40, 30, 150, 120)
+    op = RollingOperator(scene, grid, box, motion.bands)
+    got, ok = reblur_rolling_tile(RollingPoses(motion), scene, box)
+    m = ok & op.valid
+    assert m.mean() > 0.8
+    # both warp in float32 onto different windows (OpenCV's coordinates differ by ~1e-6 px)
+    np.testing.assert_allclose(got[m], op.matvec(W)[m], atol=1e-5)
+    whole, valid = reblur_rolling(scene, motion, tile_size=64)
+    np.testing.assert_allclose(whole[40:190, 30:150][m], got[m][:, 0], atol=1e-5)
+    same = RollingMotion(np.broadcast_to(W[2], W.shape), grid, RowBands(256, 5))
+    a, _ = reblur_rolling_tile(RollingPoses(same), scene, box)
+    b, _ = reblur_tile(SparsePoses(W[2], grid), scene, box)
+    np.testing.assert_allclose(a, b, atol=1e-6)
