@@ -441,9 +441,8 @@ def estimate_field(
                             "measured": len(good), "applied": False}
     xs = sorted({b.x0 for b in boxes})
     ys = sorted({b.y0 for b in boxes})
-    spacing = float(min([b - a for a, b in zip(xs, xs[1:], strict=False)]
-                        + [b - a for a, b in zip(ys, ys[1:], strict=False)]
-                        + [boxes[0].w]))
+    steps = [b - a for v in (xs, ys) for a, b in zip(v, v[1:], strict=False)]
+    spacing = float(min(steps) if steps else boxes[0].w)
     centres = np.array([[before[i].cx, before[i].cy] for i in good]).reshape(-1, 2)
     vec = np.array([[before[i].dx, before[i].dy] for i in good]).reshape(-1, 2)
     keep = reject_outliers(centres, vec, spacing, p)
