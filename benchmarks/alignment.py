@@ -10,8 +10,9 @@ after side by side).
 
 **GoPro k-frame averages.**  Reference = sharp frame ``c`` of ``GOPR0477_11_00``, observation
 = mean of the ``k`` frames around it (:func:`reblur.testbed.gopro_pair`), for every ``c``
-the window fits and ``k = 4..16`` (``--gopro all``, 195 pairs) or the two of
-:data:`QUICK` (``--gopro quick``, the default).  Per pair: ran / refused (an
+the window fits and ``k = 4..16`` (``--gopro all``, 195 pairs), or the two pairs of issue
+#29 (:data:`QUICK`, frames 9-16 and 17-24 against frame 12; ``--gopro quick``, the
+default).  Per pair: ran / refused (an
 ``AlignmentError``, the library's refusal) / crashed (any other exception: the run died),
 with the one-line reason; the flagged share; and the flagged share OUTSIDE the moving
 people.  There is no ground truth for them, so the moving area is derived from the raw
@@ -23,15 +24,15 @@ frames alone (:func:`moving_area`):
    homographies on these frames moved the image centre by up to 8 px between 1/4 and 1/2
    size, and an unmasked one followed the player), and a shift leaves the floor's
    residual at the level of its faint texture, which step 2 tolerates;
-2. the per-pixel temporal standard deviation of the registered frames (gray, [0, 1]), on
-   the pixels every frame covers, is thresholded at ``0.04 + 1.0 x |grad I_c|`` (the
-   gradient term allows 1 px of residual misregistration: rolling shutter, the court's
-   relief);
+2. the per-pixel temporal standard deviation of the registered frames and frame ``c``
+   (gray, [0, 1]), on the pixels every frame covers, is thresholded at
+   ``0.04 + 1.0 x |grad I_c|`` (the gradient term allows 1 px of residual
+   misregistration: rolling shutter, the court's relief);
 3. components under 400 px are dropped, the rest closed with a 31 px disc, holes filled,
    dilated by 9 px;
-4. the mask (in frame ``c``) is carried into every frame of the window by its homography
-   and the union taken: the moving people's footprint in the average, smeared by the
-   camera's own motion as the blur smears them.
+4. the mask (in frame ``c``) is carried into every frame of the window and frame ``c``
+   by its registration and the union taken: the moving people's footprint in the average
+   and the reference, smeared by the camera's own motion as the blur smears them.
 
 "Outside" is the known pixels (not reblur's unknown) more than 3 px from that area
 (:func:`benchmarks.failure_modes._scores`' false-alarm rate with the area as the truth).
@@ -73,10 +74,11 @@ import numpy as np
 from benchmarks.common import REPO, commit, load_runs, save_runs
 
 RUNS = REPO / "docs" / "alignment_runs.json"
-#: ``(centre, k)`` of ``--gopro quick``: the two pairs issue #29 reports failing, frames
-#: 9-16 against 12 (a crash) and 17-24 against 21 (an AlignmentError).  Each takes about a
-#: minute on the shared 2-core machine: ``--gopro all`` is the sweep.
-QUICK = ((12, 8), (21, 8))
+#: ``(reference, first frame, k)`` of ``--gopro quick``: the two pairs issue #29 reports
+#: failing, frames 9-16 against frame 12 (a crash) and 17-24 against 12 (an
+#: AlignmentError; not a centred window).  Each takes one to two minutes on the shared
+#: 2-core machine: ``--gopro all`` is the sweep.
+QUICK = ((12, 9, 8), (12, 17, 8))
 K_RANGE = range(4, 17)
 CASES = ("lens3", "pincushion3", "lens3_changes", "parallax", "parallax_changes")
 QUICK_CASES = ("lens3_changes", "parallax_changes")
@@ -218,19 +220,19 @@ def _registration(centre: int, frame: int) -> np.ndarray:
     return _REGISTERED[key]
 
 
-def moving_area(centre: int, k: int) -> np.ndarray:
-    """The moving people's footprint in the average of ``k`` frames around ``centre`` (see
-    the module's docstring for the rule); boolean ``(720, 1280)``."""
+def moving_area(centre: int, frames: list[int]) -> np.ndarray:
+    """The moving people's footprint in the average of ``frames`` against frame ``centre``
+    (see the module's docstring for the rule); boolean ``(720, 1280)``."""
     import cv2
     import scipy.ndimage as ndi
 
-    from reblur.testbed import gopro_frame, gopro_frame_indices
+    from reblur.testbed import gopro_frame
 
-    frames = gopro_frame_indices(centre, k)
     ref = _gray(gopro_frame(centre))
     h, w = ref.shape
     stack, covered = [], np.ones((h, w), bool)
-    for i in frames:
+    seen = sorted(set(frames) | {centre})  # the reference's own people are a change too
+    for i in seen:
         wi = _registration(centre, i).astype(np.float32)
         flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
         stack.append(cv2.warpPerspective(_gray(gopro_frame(i)), wi, (w, h), flags=flags))
@@ -248,14 +250,15 @@ def moving_area(centre: int, k: int) -> np.ndarray:
     mask = ndi.binary_fill_holes(mask).astype(np.uint8)
     mask = cv2.dilate(mask, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (19, 19)))
     union = np.zeros((h, w), bool)
-    for i in frames:  # carried into each frame's own pixels: the footprint in the average
+    for i in seen:  # carried into each frame's own pixels: the footprint in the average
         union |= cv2.warpPerspective(mask, _registration(centre, i).astype(np.float32),
                                      (w, h), flags=cv2.INTER_NEAREST) > 0
     return union
 
 
-def gopro_set(which: str) -> list[tuple[int, int]]:
-    """``(centre, k)`` pairs of ``--gopro``: ``quick``, ``all`` or ``none``."""
+def gopro_set(which: str) -> list[tuple[int, int, int]]:
+    """``(reference, first frame, k)`` of ``--gopro``: ``quick``, ``all`` (every centred
+    window, :func:`reblur.testbed.gopro_frame_indices`) or ``none``."""
     from reblur.testbed import N_FRAMES
 
     if which == "none":
@@ -263,22 +266,33 @@ def gopro_set(which: str) -> list[tuple[int, int]]:
     if which == "quick":
         return list(QUICK)
     if which == "all":
-        return [(c, k) for k in K_RANGE for c in range(1 + k // 2, N_FRAMES - (k - 1) // 2 + 1)]
+        return [(c, c - k // 2, k) for k in K_RANGE
+                for c in range(1 + k // 2, N_FRAMES - (k - 1) // 2 + 1)]
     raise ValueError(f"--gopro must be quick, all or none, got {which!r}")
 
 
-def gopro_row(centre: int, k: int, src: Path | None) -> dict:
+def gopro_images(centre: int, first: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The reference frame and the mean of frames ``first .. first + k - 1``
+    (:func:`reblur.testbed.gopro_pair` for a centred window; the same mean otherwise)."""
+    from reblur.testbed import gopro_frame, gopro_frame_indices, gopro_pair
+
+    if gopro_frame_indices(centre, k)[0] == first:
+        return gopro_pair(centre, k)
+    acc = sum(gopro_frame(i).astype(np.float64) for i in range(first, first + k))
+    return gopro_frame(centre), np.rint(acc / k).astype(np.uint8)
+
+
+def gopro_row(centre: int, first: int, k: int, src: Path | None) -> dict:
     """One GoPro pair: status, flagged share, flagged share outside the moving area."""
     from benchmarks.failure_modes import _scores
-    from reblur.testbed import gopro_frame_indices, gopro_pair
 
-    ref, obs = gopro_pair(centre, k)
-    frames = gopro_frame_indices(centre, k)
+    ref, obs = gopro_images(centre, first, k)
+    frames = list(range(first, first + k))
     row = {"kind": "gopro", "centre": centre, "k": k, "frames": [frames[0], frames[-1]]}
     res = run_reblur(ref, obs, np.zeros((0, 2)), src)
     row.update({key: res[key] for key in ("status", "reason", "seconds", "method")
                 if key in res})
-    moving = moving_area(centre, k)
+    moving = moving_area(centre, frames)
     row["moving_share"] = float(moving.mean())
     if res["status"] == "ran":
         s = _scores(res["change"], res["unknown"],
@@ -410,7 +424,7 @@ def testbed_table(rows: list[dict]) -> str:
 
 
 def _key(r: dict) -> tuple:
-    return (r["label"], r["kind"], r.get("case"), r.get("centre"), r.get("k"))
+    return (r["label"], r["kind"], r.get("case"), r.get("centre"), tuple(r.get("frames", ())))
 
 
 def record(rows: list[dict], path: Path = RUNS) -> list[dict]:
@@ -433,17 +447,18 @@ def main(gopro: str = "quick", cases: tuple[str, ...] = QUICK_CASES, src: Path |
     for name in cases:
         rows.append(testbed_row(name, src, cache) | stamp)
         print(json.dumps(rows[-1]), flush=True)
-    for c, k in gopro_set(gopro):
-        rows.append(gopro_row(c, k, src) | stamp)
+    for c, first, k in gopro_set(gopro):
+        rows.append(gopro_row(c, first, k, src) | stamp)
         print(json.dumps(rows[-1]), flush=True)
     runs = record(rows) if save else rows
+    pairs = {(c, first, k) for c, first, k in gopro_set(gopro)}
     shown = [r for r in runs if (r["kind"] == "testbed" and r["case"] in cases) or (
-        r["kind"] == "gopro" and (r["centre"], r["k"]) in set(gopro_set(gopro)))]
+        r["kind"] == "gopro" and (r["centre"], r["frames"][0], r["k"]) in pairs)]
     return ("### Test-bed geometry\n\n" + testbed_table(
         sorted([r for r in shown if r["kind"] == "testbed"], key=lambda r: (r["case"],)))
             + "\n\n### GoPro k-frame averages\n\n" + gopro_table(
         sorted([r for r in shown if r["kind"] == "gopro"],
-               key=lambda r: (r["k"], r["centre"]))))
+               key=lambda r: (r["k"], r["centre"], r["frames"][0]))))
 
 
 # ---------------------------------------------------------------- the coarse table
@@ -526,7 +541,8 @@ if __name__ == "__main__":
         sys.exit(0)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--gopro", default="quick", choices=("quick", "all", "none"),
-                    help="GoPro pairs: a handful, every (centre, k) with k = 4..16, or none")
+                    help="GoPro pairs: issue #29's two, every centred window with k = 4..16, "
+                         "or none")
     ap.add_argument("--cases", type=_cases, default=QUICK_CASES,
                     help=f"test-bed cases, comma-separated, 'quick' or 'all' ({','.join(CASES)})")
     ap.add_argument("--src", type=Path, default=None, help="another checkout's src folder")
