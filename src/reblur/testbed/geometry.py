@@ -192,8 +192,8 @@ class Region:
 
 def roof_polygon(shape: tuple[int, ...], rng: np.random.Generator,
                  area: tuple[float, float] = (0.12, 0.2)) -> np.ndarray:
-    """A random "roof": a rotated rectangle of ``area`` (fractions of the image) near the
-    centre, kept a tenth of the image away from the edges."""
+    """A random "roof": a rotated rectangle of ``area`` (fractions of the image), kept a
+    tenth of the image away from the edges (centred on an axis where it cannot be)."""
     h, w = int(shape[0]), int(shape[1])
     frac = rng.uniform(*area)
     aspect = rng.uniform(0.6, 1.6)
