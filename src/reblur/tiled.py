@@ -71,7 +71,7 @@ def reblur_tile(poses: SparsePoses, reference, box, *, dtype=np.float32):
     if fld is None:
         return _reblur_poses(poses, reference, box, dtype)
     # the local displacement: reblur a window grown by its reach, resample at p + d(p)
-    pad = int(np.ceil(fld.bound(box))) + 2
+    pad = int(np.ceil(fld.bound(box))) + 3
     img, ok = _reblur_poses(poses, reference, box.grow(pad, pad, pad, pad), dtype)
     return fld.resample(img, box, ok, pad)
 
