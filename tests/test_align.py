@@ -20,6 +20,9 @@ from conftest import LEVIR, WHU
 
 from reblur import align as align_mod
 from reblur.align import Alignment, AlignmentError, coarse_align, overview, overview_matrix
+from reblur.align import coarse as coarse_mod
+from reblur.align import overviews as overviews_mod
+from reblur.align.verify import check_plausible
 from reblur.grid import map_points, pose_homography, translation
 from reblur.warp import Box, warp_window
 
@@ -128,7 +131,7 @@ def test_overview_block_mean_in_strips(monkeypatch):
     rng = np.random.default_rng(0)
     a = rng.integers(0, 65536, size=(37, 53, 3), dtype=np.uint16)
     rec = _Recorder(a)
-    monkeypatch.setattr(align_mod, "_STRIP_BYTES", 6 * 48 * 3 * 4 * 2)  # two block rows
+    monkeypatch.setattr(overviews_mod, "_STRIP_BYTES", 6 * 48 * 3 * 4 * 2)  # two block rows
     small, scale = overview(rec, max_side=10)
     k = 6  # ceil(53 / 10)
     assert scale == pytest.approx(1 / k)
@@ -311,7 +314,7 @@ def test_bad_arguments(scene):
 )
 def test_implausible_homographies_are_refused(H, reason):
     with pytest.raises(AlignmentError, match=reason):
-        align_mod._check_plausible(
+        check_plausible(
             H, (SIZE, SIZE), (SIZE, SIZE), max_zoom=2.0, max_anisotropy=2.0, min_overlap=0.2
         )
 
@@ -386,7 +389,7 @@ def test_shakes_share_work_but_not_results(case, scenes, monkeypatch):
             separate.append(_outcome(err))
 
     calls = {"sift": 0, "overview": 0}
-    match, ov = align_mod._match_features, align_mod._overview_k
+    match, ov = coarse_mod.match_features, coarse_mod.overview_k
 
     def counting_match(*args, **kwargs):
         calls["sift"] += 1
@@ -396,8 +399,8 @@ def test_shakes_share_work_but_not_results(case, scenes, monkeypatch):
         calls["overview"] += 1
         return ov(*args, **kwargs)
 
-    monkeypatch.setattr(align_mod, "_match_features", counting_match)
-    monkeypatch.setattr(align_mod, "_overview_k", counting_overview)
+    monkeypatch.setattr(coarse_mod, "match_features", counting_match)
+    monkeypatch.setattr(coarse_mod, "overview_k", counting_overview)
     shared = []
     for s, a in align_mod.coarse_align_shakes(ref, obs, SHAKES):
         shared.append((s, _outcome(a)))
@@ -467,7 +470,7 @@ def test_overview_cache_reads_once_and_derives_coarser_factors():
         gain, offset = np.linspace(0.8, 1.2, C), np.linspace(-0.1, 0.1, C)
         view = ScaledView(cache, 255.0, gain, offset)
         plain = ScaledView(a, 255.0, gain, offset)
-        direct = align_mod._read_block_means(plain, 3)
+        direct = overviews_mod.read_block_means(plain, 3)
         for got, want in zip(view.block_means(3), direct, strict=True):
             np.testing.assert_allclose(got, want, atol=1e-5)
         assert cache.reads == 2

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from conftest import levir_before
 
+from reblur.align import measure_shifts, probe_boxes, refine_alignment
 from reblur.grid import PoseGrid, map_points, pose_homography
-from reblur.refine import measure_shifts, probe_boxes, refine_alignment
 from reblur.tiled import SparsePoses
 from reblur.warp import warp_window
 

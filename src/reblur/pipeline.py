@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from .align import OverviewCache, block_means, overview_matrix
+from .align import OverviewCache, block_means, overview_matrix, refine_alignment
 from .decide import (
     DecisionParams,
     change_statistic,
@@ -33,7 +33,6 @@ from .decide.photometry import with_model_error
 from .estimate import estimate_motion, intensity_scale
 from .grid import PoseGrid
 from .io import chunk_cached
-from .refine import refine_alignment
 from .result import ChangeResult, CropChoice
 from .robust import inlier_scale, robust_line
 from .select import SelectParams, select_windows
@@ -768,7 +767,7 @@ def detect_changes(
     refine : bool
         After the motion estimate, measure the residual misregistration of the reblurred
         reference on probe windows spread over the whole image and correct the base
-        homography (:func:`reblur.refine.refine_alignment`): the grid cannot represent a
+        homography (:func:`reblur.align.refine_alignment`): the grid cannot represent a
         residual scale / shear / perspective error of the coarse alignment, and the
         estimation windows do not see the rest of the image.
     windows : int, optional

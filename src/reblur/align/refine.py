@@ -27,9 +27,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .grid import PoseGrid, map_points
-from .tiled import SparsePoses, reblur_tile
-from .warp import Box, read_window
+from ..grid import PoseGrid, map_points
+from ..tiled import SparsePoses, reblur_tile
+from ..warp import Box, read_window
 
 __all__ = ["ProbeShift", "measure_shifts", "probe_boxes", "refine_alignment", "Refinement"]
 

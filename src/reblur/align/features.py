@@ -1,0 +1,99 @@
+"""SIFT features on one overview level, a ratio test and a robust homography."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..grid import map_points
+from .overviews import Level, overview_matrix, to_full
+from .result import AlignmentError
+
+
+def _to_u8(a: np.ndarray) -> np.ndarray:
+    lo, hi = np.percentile(a, [0.5, 99.5])
+    if hi <= lo:
+        hi = lo + 1e-12
+    return np.clip((a - lo) * (255.0 / (hi - lo)), 0, 255).astype(np.uint8)
+
+
+@dataclass
+class Features:
+    H: np.ndarray  # full resolution
+    src: np.ndarray  # inlier reference points, full resolution
+    dst: np.ndarray  # inlier observation points, full resolution
+    n_matches: int
+    n_inliers: int
+
+
+def match_features(
+    level: Level,
+    *,
+    n_features: int,
+    ratio: float,
+    ransac_px: float,
+    min_inliers: int,
+    min_inlier_ratio: float,
+) -> Features:
+    """SIFT + ratio test + robust homography on one level; raise AlignmentError on failure."""
+    sift = cv2.SIFT_create(nfeatures=n_features)
+    kr, dr = sift.detectAndCompute(_to_u8(level.ref), None)
+    ko, do = sift.detectAndCompute(_to_u8(level.obs), None)
+    nk = min(len(kr), len(ko))
+    if dr is None or do is None or nk < min_inliers:
+        raise AlignmentError(
+            f"images are textureless: only {nk} feature points found (< {min_inliers})"
+        )
+    pairs = cv2.BFMatcher(cv2.NORM_L2).knnMatch(dr, do, k=2)
+    good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < ratio * p[1].distance]
+    # keep one match per observation point (the closest)
+    best: dict[int, cv2.DMatch] = {}
+    for mt in good:
+        if mt.trainIdx not in best or mt.distance < best[mt.trainIdx].distance:
+            best[mt.trainIdx] = mt
+    good = list(best.values())
+    n = len(good)
+    if n < min_inliers:
+        raise AlignmentError(
+            f"too few feature matches ({n} < {min_inliers}) between reference and observation"
+        )
+    src = np.float64([kr[mt.queryIdx].pt for mt in good])
+    dst = np.float64([ko[mt.trainIdx].pt for mt in good])
+    Hs, mask = None, None
+    if n >= 3 * min_inliers:
+        Hs, mask = cv2.findHomography(
+            src, dst, cv2.USAC_MAGSAC, ransac_px, maxIters=20000, confidence=0.9999
+        )
+    if Hs is None or mask is None or int(mask.sum()) < min_inliers:
+        A, mask = cv2.estimateAffinePartial2D(
+            src, dst, method=cv2.RANSAC, ransacReprojThreshold=ransac_px, maxIters=20000,
+            confidence=0.9999,
+        )
+        Hs = None if A is None else np.vstack([A, [0.0, 0.0, 1.0]])
+    if Hs is None or mask is None:
+        raise AlignmentError(
+            f"no consistent transform among {n} feature matches between reference and observation"
+        )
+    inl = mask.ravel().astype(bool)
+    ni = int(inl.sum())
+    if ni < min_inliers:
+        raise AlignmentError(
+            f"too few feature inliers ({ni} < {min_inliers} of {n} matches) between reference "
+            "and observation"
+        )
+    if ni < min_inlier_ratio * n:
+        raise AlignmentError(
+            f"feature matches are inconsistent: {ni} inliers of {n} matches "
+            f"(< {100 * min_inlier_ratio:.0f} %)"
+        )
+    A = overview_matrix(level.scale)
+    return Features(
+        H=to_full(np.asarray(Hs, float), level.scale),
+        src=map_points(A, src[inl]),
+        dst=map_points(A, dst[inl]),
+        n_matches=n,
+        n_inliers=ni,
+    )
+

@@ -1,0 +1,118 @@
+"""Checks of an alignment: plausibility of a homography, correlation under it, texture.
+
+An estimate that folds or mirrors the reference, zooms or stretches it beyond the limits,
+or leaves too little overlap raises :class:`~reblur.align.AlignmentError` -- never silent
+garbage.
+"""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+
+from ..grid import map_points
+from .overviews import Level, to_level
+from .result import AlignmentError
+
+
+def _quad_area(q: np.ndarray) -> float:
+    x, y = q[:, 0], q[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+
+
+def corners(shape: tuple[int, int]) -> np.ndarray:
+    h, w = shape
+    return np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], dtype=float)
+
+
+def check_plausible(
+    H: np.ndarray,
+    ref_shape: tuple[int, int],
+    obs_shape: tuple[int, int],
+    *,
+    max_zoom: float,
+    max_anisotropy: float,
+    min_overlap: float,
+) -> float:
+    """Raise AlignmentError unless ``H`` is a plausible viewpoint change; return the overlap."""
+    if not np.all(np.isfinite(H)) or abs(np.linalg.det(H)) < 1e-12:
+        raise AlignmentError("alignment is degenerate: singular or non-finite homography")
+    rc = corners(ref_shape)
+    wz = rc @ H[2, :2] + H[2, 2]
+    if np.any(wz <= 1e-6 * np.abs(H[2, 2])):
+        raise AlignmentError(
+            "alignment is degenerate: the reference crosses the horizon of the homography"
+        )
+    q = map_points(H, rc)
+    # every turn of the mapped quadrilateral must keep the reference's orientation
+    e = np.roll(q, -1, axis=0) - q
+    turns = e[:, 0] * np.roll(e, -1, axis=0)[:, 1] - e[:, 1] * np.roll(e, -1, axis=0)[:, 0]
+    if np.any(turns <= 0):
+        raise AlignmentError("alignment is degenerate: the mapped reference is folded or mirrored")
+    zoom = math.sqrt(_quad_area(q) / _quad_area(rc))
+    if not 1.0 / max_zoom <= zoom <= max_zoom:
+        raise AlignmentError(
+            f"alignment is degenerate: zoom {zoom:.3g} outside [1/{max_zoom:g}, {max_zoom:g}]"
+        )
+    # local anisotropy at the four corners and the centre (Jacobian singular values)
+    pts = np.vstack([rc, rc.mean(axis=0)])
+    for x, y in pts:
+        wv = H[2, 0] * x + H[2, 1] * y + H[2, 2]
+        u = (H[0, 0] * x + H[0, 1] * y + H[0, 2]) / wv
+        v = (H[1, 0] * x + H[1, 1] * y + H[1, 2]) / wv
+        J = (H[:2, :2] - np.outer([u, v], H[2, :2])) / wv
+        s = np.linalg.svd(J, compute_uv=False)
+        if s[1] <= 0 or s[0] / s[1] > max_anisotropy:
+            raise AlignmentError(
+                f"alignment is degenerate: local stretch ratio {s[0] / max(s[1], 1e-12):.3g} "
+                f"exceeds {max_anisotropy:g}"
+            )
+    oc = corners(obs_shape)
+    inter, _ = cv2.intersectConvexConvex(q.astype(np.float32), oc.astype(np.float32))
+    overlap = float(inter) / _quad_area(oc) if _quad_area(oc) > 0 else 0.0
+    if overlap < min_overlap:
+        raise AlignmentError(
+            f"alignment is implausible: the mapped reference covers {100 * overlap:.1f} % of the "
+            f"observation (< {100 * min_overlap:.0f} %)"
+        )
+    return overlap
+
+
+def intensity_spread(a: np.ndarray) -> float:
+    lo, hi = np.percentile(a, [1.0, 99.0])
+    return float(hi - lo)
+
+
+
+def max_corner_shift(H1: np.ndarray, H2: np.ndarray, shape: tuple[int, int]) -> float:
+    c = corners(shape)
+    return float(np.max(np.hypot(*(map_points(H1, c) - map_points(H2, c)).T)))
+
+
+
+def correlation(level: Level, H: np.ndarray, sigma: float) -> float:
+    """Correlation of the smoothed reference and observation under ``H`` on one level."""
+    Hs = to_level(H, level.scale)
+    h, w = level.ref.shape
+    ref = cv2.GaussianBlur(level.ref, (0, 0), sigma)
+    obs = cv2.GaussianBlur(level.obs, (0, 0), sigma)
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    back = cv2.warpPerspective(obs, Hs, (w, h), flags=flags, borderMode=cv2.BORDER_CONSTANT)
+    cover = cv2.warpPerspective(
+        level.obs_mask.astype(np.float32), Hs, (w, h), flags=flags,
+        borderMode=cv2.BORDER_CONSTANT,
+    )
+    r = int(math.ceil(3 * sigma)) + 1
+    m = ((cover > 0.999) & level.ref_mask.astype(bool)).astype(np.uint8)
+    m = cv2.erode(m, np.ones((2 * r + 1, 2 * r + 1), np.uint8)).astype(bool)
+    if m.sum() < 64:
+        return float("nan")
+    a = ref[m].astype(np.float64)
+    b = back[m].astype(np.float64)
+    a -= a.mean()
+    b -= b.mean()
+    den = math.sqrt(float(a @ a) * float(b @ b))
+    return float(a @ b) / den if den > 0 else float("nan")
+
