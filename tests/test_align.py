@@ -19,7 +19,14 @@ import zarr
 from conftest import LEVIR, WHU
 
 from reblur import align as align_mod
-from reblur.align import Alignment, AlignmentError, coarse_align, overview, overview_matrix
+from reblur.align import (
+    Alignment,
+    AlignmentError,
+    AlignParams,
+    coarse_align,
+    overview,
+    overview_matrix,
+)
 from reblur.align import coarse as coarse_mod
 from reblur.align import overviews as overviews_mod
 from reblur.align.verify import check_plausible
@@ -185,7 +192,7 @@ def test_recovers_viewpoint_under_camera_shake(scenes, name):
 def test_low_resolution_working_scale(scene):
     """max_side=256 works on a 1/4 overview: the pixel-centre conversion must be exact."""
     ref, obs, H_true = scene
-    a = coarse_align(ref, obs, max_side=256)
+    a = coarse_align(ref, obs, AlignParams(max_side=256))
     assert a.scale == 0.25
     assert _ref_corner_error(a.H, H_true, ref.shape) <= 2.0
 
@@ -193,7 +200,7 @@ def test_low_resolution_working_scale(scene):
 def test_without_polish_is_only_coarse(scene):
     """A correlation/feature optimum sits near a mode of the blur, not at its mean."""
     ref, obs, H_true = scene
-    a = coarse_align(ref, obs, polish=False)
+    a = coarse_align(ref, obs, AlignParams(polish=False))
     assert "kernel" not in a.method and a.n_regions == 0
     assert a.residual_px is not None and np.isfinite(a.residual_px)
     assert _obs_corner_error(a.H, H_true, obs.shape) <= 25.0
@@ -201,7 +208,7 @@ def test_without_polish_is_only_coarse(scene):
 
 def test_phase_correlation_path(scene):
     ref, obs, H_true = scene
-    a = coarse_align(ref, obs, method="ecc")
+    a = coarse_align(ref, obs, AlignParams(method="ecc"))
     assert a.method == "phase+ecc+kernel"
     assert a.n_matches == 0 and a.residual_px is None
     assert _obs_corner_error(a.H, H_true, obs.shape) <= 2.0
@@ -295,11 +302,52 @@ def test_bad_arguments(scene):
     ref, obs, _ = scene
     assert issubclass(AlignmentError, ValueError)
     with pytest.raises(ValueError, match="method"):
-        coarse_align(ref, obs, method="sift")
+        coarse_align(ref, obs, AlignParams(method="sift"))
     with pytest.raises(ValueError, match="shape"):
         coarse_align(ref[None], obs)
     with pytest.raises(ValueError, match="min_side"):
-        coarse_align(ref, obs, min_side=512, max_side=256)
+        coarse_align(ref, obs, AlignParams(min_side=512, max_side=256))
+
+
+@pytest.mark.parametrize(
+    ("options", "pattern"),
+    [
+        (dict(method="sift"), r"AlignParams\.method must be one of .*'sift'"),
+        (dict(motion="projective"), r"AlignParams\.motion"),
+        (dict(min_side=8), r"AlignParams\.min_side must be an integer >= 16"),
+        (dict(max_side=100.5), r"AlignParams\.max_side must be an integer"),
+        (dict(min_side=512, max_side=256), r"min_side <= max_side.*raise max_side"),
+        (dict(min_agree=1.5), r"AlignParams\.min_agree must lie in \[0, 1\], got 1\.5"),
+        (dict(min_overlap=-0.1), r"AlignParams\.min_overlap must lie in \[0, 1\]"),
+        (dict(ransac_px=0.0), r"AlignParams\.ransac_px must be a finite number > 0"),
+        (dict(max_zoom=float("inf")), r"AlignParams\.max_zoom must be a finite number >= 1"),
+        (dict(max_anisotropy=0.5), r"AlignParams\.max_anisotropy"),
+        (dict(min_inliers=3), r"AlignParams\.min_inliers must be an integer >= 4"),
+        (dict(polish="yes"), r"AlignParams\.polish must be True or False"),
+        (dict(nodata=float("nan")), r"AlignParams\.nodata must be a finite number or None"),
+        (dict(rotations=(0.0, float("nan"))), r"AlignParams\.rotations .* finite"),
+        (dict(rotations=()), r"AlignParams\.rotations must be a non-empty"),
+    ],
+)
+def test_align_params_refuse_bad_options(options, pattern):
+    with pytest.raises(ValueError, match=pattern):
+        AlignParams(**options)
+
+
+def test_align_params_are_frozen_and_normalised():
+    p = AlignParams(rotations=[-5, 0, 5], nodata=None)
+    assert p.rotations == (-5.0, 0.0, 5.0) and isinstance(p.rotations, tuple)
+    assert hash(p) == hash(AlignParams(rotations=(-5.0, 0.0, 5.0), nodata=None))
+    with pytest.raises(AttributeError):
+        p.method = "ecc"  # type: ignore[misc]
+    with pytest.raises(TypeError, match="unexpected keyword"):
+        AlignParams(shake_px=8.0)  # the extent is coarse_align's argument, not an option
+    rng = np.random.default_rng(0)
+    ref = rng.random((64, 64)).astype(np.float32)
+    with pytest.raises(TypeError, match="AlignParams"):
+        coarse_align(ref, ref, {"method": "ecc"})
+    with pytest.raises(ValueError, match="shake_px must be a finite number"):
+        coarse_align(ref, ref, shake_px=float("inf"))
 
 
 @pytest.mark.parametrize(
@@ -423,16 +471,16 @@ def test_shakes_arguments():
         next(align_mod.coarse_align_shakes(ref, ref, (8.0,), shake_px=4.0))
     with pytest.raises(ValueError, match="shake_px"):
         next(align_mod.coarse_align_shakes(ref, ref, (8.0, -1.0)))
-    with pytest.raises(ValueError, match="method"):
+    with pytest.raises(TypeError, match="method"):
         next(align_mod.coarse_align_shakes(ref, ref, (8.0,), method="nope"))
     # a textureless image is refused at every extent, with coarse_align's message
     flat = np.zeros((64, 64), np.float32)
-    got = list(align_mod.coarse_align_shakes(flat, ref, (8.0, 16.0), min_side=32))
+    got = list(align_mod.coarse_align_shakes(flat, ref, (8.0, 16.0), AlignParams(min_side=32)))
     assert [s for s, _ in got] == [8.0, 16.0]
     for _, err in got:
         assert isinstance(err, AlignmentError) and "textureless" in str(err)
     with pytest.raises(AlignmentError, match="textureless"):
-        coarse_align(flat, ref, min_side=32)
+        coarse_align(flat, ref, AlignParams(min_side=32))
 
 
 def test_overview_cache_reads_once_and_derives_coarser_factors():

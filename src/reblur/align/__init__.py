@@ -49,11 +49,12 @@ integers, and ``H`` maps a reference pixel to the observation pixel.
 
 from .coarse import coarse_align, coarse_align_shakes
 from .overviews import OverviewCache, block_means, overview, overview_matrix
+from .params import AlignParams
 from .refine import ProbeShift, Refinement, measure_shifts, probe_boxes, refine_alignment
 from .result import Alignment, AlignmentError
 
 __all__ = [
-    "Alignment", "AlignmentError", "OverviewCache", "ProbeShift", "Refinement", "block_means",
-    "coarse_align", "coarse_align_shakes", "measure_shifts", "overview", "overview_matrix",
-    "probe_boxes", "refine_alignment",
+    "AlignParams", "Alignment", "AlignmentError", "OverviewCache", "ProbeShift", "Refinement",
+    "block_means", "coarse_align", "coarse_align_shakes", "measure_shifts", "overview",
+    "overview_matrix", "probe_boxes", "refine_alignment",
 ]

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -18,8 +18,9 @@ import numpy as np
 
 from ..grid import map_points, translation
 from .overviews import Level, to_full, to_level
+from .params import AlignParams
 from .result import AlignmentError
-from .verify import max_corner_shift
+from .verify import check_blocks, max_corner_shift
 
 log = logging.getLogger(__name__)
 
@@ -196,61 +197,39 @@ def _gradient_estimate(
 
 def gradient_align(
     levels: list[Level],
-    H0: np.ndarray | None,
     ref_shape: tuple[int, int],
     fine: int,
-    *,
-    rotations: tuple[float, ...],
-    min_ncc: float,
-    min_blocks: int,
-    min_agree: float,
-    min_spread: float,
+    params: AlignParams,
     plausible: Callable[[np.ndarray], object],
+    *,
+    seed: np.ndarray | None = None,
+    hypotheses: Sequence[np.ndarray] | None = None,
 ) -> Blocks:
     """Alignment by gradient-block correlation (independent of local features).
 
-    Without an initial ``H0``: on the finest level whose longest side is at most 256,
-    every in-plane rotation of ``rotations`` (degrees, about the reference centre) is
-    tried and blocks searched over +-10 % of the side; the hypothesis with most confident
-    agreeing blocks wins.  Then, on each level down to ``fine``, the estimate is refined
-    with a +-8 pixel search.  Raises AlignmentError unless at least ``min_blocks``
-    confident blocks, and at least ``min_agree`` of all the confident ones, agree, spread
-    over ``min_spread`` of the block grid.
+    Without a ``seed``: on the finest level whose longest side is at most 256, every
+    homography of ``hypotheses`` (default: the in-plane rotations ``params.rotations``
+    about the reference centre, :func:`rotation_hypotheses`) is tried and blocks searched
+    over +-10 % of the side; the hypothesis with most confident agreeing blocks wins.
+    Then, on each level down to ``fine``, the estimate is refined with a +-8 pixel search
+    (a ``seed`` is refined on level ``fine`` only).  ``plausible`` raises AlignmentError on
+    an implausible estimate.  Raises AlignmentError unless at least ``params.min_blocks``
+    confident blocks, and at least ``params.min_agree`` of all the confident ones, agree,
+    spread over ``params.min_spread`` of the block grid.
     """
-    h, w = ref_shape
-    if H0 is None:
-        ic = next((i for i, lv in enumerate(levels) if lv.side <= 256), len(levels) - 1)
-        ic = max(ic, fine)
-        lv = levels[ic]
-        search = max(8, round(0.1 * lv.side))
-        best: Blocks | None = None
-        for rz in rotations:
-            Hr = translation((w - 1) / 2.0, (h - 1) / 2.0) @ rotation(rz) @ translation(
-                -(w - 1) / 2.0, -(h - 1) / 2.0
-            )
-            b = _gradient_estimate(
-                lv, Hr, ref_shape, block=_COARSE_BLOCK_PX, search=search, sigma=1.0,
-                min_ncc=min_ncc, tol=1.5, iterations=1,
-            )
-            log.debug("gradient hypothesis rz=%g: %s", rz, None if b is None else b.n_agree)
-            if b is not None and (best is None or b.n_agree > best.n_agree):
-                best = b
-        if best is None or best.n_agree < 4:
-            n = 0 if best is None else best.n_agree
-            raise AlignmentError(
-                f"no consistent gradient structure: {n} confident blocks agree at "
-                f"{lv.ref.shape[1]}x{lv.ref.shape[0]} px"
-            )
-        H0, start = best.H, ic - 1
+    if seed is None:
+        if hypotheses is None:
+            hypotheses = rotation_hypotheses(ref_shape, params.rotations)
+        H0, start = _best_hypothesis(levels, hypotheses, ref_shape, fine, params.block_ncc)
     else:
-        start = fine
+        H0, start = seed, fine
     plausible(H0)
     H, out = H0, None
     for i in range(max(start, fine), fine - 1, -1):
         lv = levels[i]
         b = _gradient_estimate(
             lv, H, ref_shape, block=min(_BLOCK_PX, max(lv.obs.shape) // 4), search=8,
-            sigma=1.0, min_ncc=min_ncc, tol=1.0,
+            sigma=1.0, min_ncc=params.block_ncc, tol=1.0,
         )
         if b is None:
             raise AlignmentError(
@@ -262,19 +241,47 @@ def gradient_align(
     assert out is not None
     log.debug("gradient blocks: %d agree of %d confident, %d in all; spread %.2f",
               out.n_agree, out.n_confident, out.n_blocks, out.spread)
-    need = max(min_blocks, math.ceil(min_agree * out.n_confident))
-    if out.n_agree < need:
-        raise AlignmentError(
-            f"alignment could not be verified: {out.n_agree} gradient blocks agree with it, "
-            f"of {out.n_confident} confident and {out.n_blocks} in all (need {need}): "
-            "images unrelated, changed too much or not one plane (parallax)"
-        )
-    if out.spread < min_spread:
-        raise AlignmentError(
-            f"alignment could not be verified: the {out.n_agree} gradient blocks that agree "
-            f"with it span {100 * out.spread:.0f} % of the image (< {100 * min_spread:.0f} %)"
-        )
+    check_blocks(out.n_agree, out.n_confident, out.n_blocks, out.spread, params)
     return out
+
+
+def rotation_hypotheses(ref_shape: tuple[int, int], rotations: Sequence[float]) -> list[np.ndarray]:
+    """In-plane rotations (degrees) about the centre of the reference, as homographies."""
+    h, w = ref_shape
+    return [translation((w - 1) / 2.0, (h - 1) / 2.0) @ rotation(rz) @ translation(
+        -(w - 1) / 2.0, -(h - 1) / 2.0) for rz in rotations]
+
+
+def _best_hypothesis(
+    levels: list[Level],
+    hypotheses: Sequence[np.ndarray],
+    ref_shape: tuple[int, int],
+    fine: int,
+    min_ncc: float,
+) -> tuple[np.ndarray, int]:
+    """The hypothesis with the most confident agreeing blocks on a coarse level (the
+    finest whose longest side is at most 256, not finer than ``fine``), corrected by them,
+    and the level to refine from next.  AlignmentError when fewer than 4 blocks agree."""
+    ic = next((i for i, lv in enumerate(levels) if lv.side <= 256), len(levels) - 1)
+    ic = max(ic, fine)
+    lv = levels[ic]
+    search = max(8, round(0.1 * lv.side))
+    best: Blocks | None = None
+    for k, Hr in enumerate(hypotheses):
+        b = _gradient_estimate(
+            lv, Hr, ref_shape, block=_COARSE_BLOCK_PX, search=search, sigma=1.0,
+            min_ncc=min_ncc, tol=1.5, iterations=1,
+        )
+        log.debug("gradient hypothesis %d: %s", k, None if b is None else b.n_agree)
+        if b is not None and (best is None or b.n_agree > best.n_agree):
+            best = b
+    if best is None or best.n_agree < 4:
+        n = 0 if best is None else best.n_agree
+        raise AlignmentError(
+            f"no consistent gradient structure: {n} confident blocks agree at "
+            f"{lv.ref.shape[1]}x{lv.ref.shape[0]} px"
+        )
+    return best.H, ic - 1
 
 
 def rotation(deg: float) -> np.ndarray:

@@ -14,6 +14,7 @@ import numpy as np
 
 from ..grid import translation
 from .overviews import Level, to_full, to_level
+from .params import MOTIONS, AlignParams
 from .result import AlignmentError
 from .verify import max_corner_shift
 
@@ -61,22 +62,21 @@ def _ecc_level(
     return to_full(M / M[2, 2], level.scale), float(rho)
 
 
-
 def ecc_refine(
     levels: list[Level],
     H: np.ndarray,
     start: int,
     stop: int,
     ref_shape: tuple[int, int],
+    params: AlignParams,
     *,
-    motion: int,
-    blur_px: float,
-    sigma_min: float,
-    iterations: int,
     max_jump: float,
     tolerant: bool = False,
 ) -> tuple[np.ndarray, float, float]:
     """Coarse-to-fine ECC from level ``start`` down to level ``stop`` (inclusive).
+
+    The motion model, pre-blur and iterations are ``params.motion``, ``params.blur_px``
+    (at least one level pixel) and ``params.ecc_iterations``.
 
     Returns ``(H, rho, scale)`` of the finest level that converged.  Raises AlignmentError
     when no level converges or the estimate jumps by more than ``max_jump`` of a level's
@@ -84,6 +84,8 @@ def ecc_refine(
     ``tolerant`` (a trusted initial ``H``), levels that fail before any converged are
     skipped instead.
     """
+    motion, blur_px, sigma_min = MOTIONS[params.motion], params.blur_px, 1.0
+    iterations = params.ecc_iterations
     rho_out, scale_out, done = float("nan"), float("nan"), False
     for i in range(start, stop - 1, -1):
         lv = levels[i]

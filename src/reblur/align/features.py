@@ -9,6 +9,7 @@ import numpy as np
 
 from ..grid import map_points
 from .overviews import Level, overview_matrix, to_full
+from .params import AlignParams
 from .result import AlignmentError
 
 
@@ -28,16 +29,13 @@ class Features:
     n_inliers: int
 
 
-def match_features(
-    level: Level,
-    *,
-    n_features: int,
-    ratio: float,
-    ransac_px: float,
-    min_inliers: int,
-    min_inlier_ratio: float,
-) -> Features:
-    """SIFT + ratio test + robust homography on one level; raise AlignmentError on failure."""
+def match_features(level: Level, params: AlignParams) -> Features:
+    """SIFT + ratio test + robust homography on one level; raise AlignmentError on failure.
+
+    Reads ``n_features``, ``ratio``, ``ransac_px``, ``min_inliers`` and
+    ``min_inlier_ratio`` of ``params``."""
+    n_features, ratio, ransac_px = params.n_features, params.ratio, params.ransac_px
+    min_inliers, min_inlier_ratio = params.min_inliers, params.min_inlier_ratio
     sift = cv2.SIFT_create(nfeatures=n_features)
     kr, dr = sift.detectAndCompute(_to_u8(level.ref), None)
     ko, do = sift.detectAndCompute(_to_u8(level.obs), None)

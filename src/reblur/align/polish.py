@@ -7,16 +7,91 @@ the observation is the mean camera displacement (:func:`kernel_polish`).
 
 from __future__ import annotations
 
+import logging
 import math
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 from scipy.optimize import nnls
 
 from .overviews import Level, to_full, to_level
+from .params import AlignParams
+from .result import AlignmentError
+from .verify import check_regions, max_corner_shift
+
+log = logging.getLogger(__name__)
 
 #: Side, in pixels of the working level, of the kernel-polish regions.
 REGION_PX = 32
+
+
+@dataclass
+class Polished:
+    """A polished and verified estimate: ``H`` (full resolution), the regions that agree
+    with it, those where the blur model fits, and all regions."""
+
+    H: np.ndarray
+    n_agree: int
+    n_fit: int
+    n_total: int
+
+
+def region_grid(level: Level, shake_px: float) -> tuple[int, int]:
+    """``(ny, nx)`` polish regions on ``level``: about :data:`REGION_PX` level pixels, and
+    at least 6 pixels per kernel tap for a shake of ``shake_px`` full-resolution pixels."""
+    shake = int(math.ceil(shake_px * level.scale))
+    region_px = max(REGION_PX, math.sqrt(6.0) * (2 * max(shake + 2, 2) + 1))
+    ny, nx = (int(np.clip(round(n / region_px), 3, 8)) for n in level.obs.shape)
+    return ny, nx
+
+
+def polish_and_verify(
+    level: Level,
+    H: np.ndarray,
+    shake_px: float,
+    ref_shape: tuple[int, int],
+    params: AlignParams,
+    plausible: Callable[[np.ndarray], object],
+) -> Polished:
+    """Kernel polish of ``H`` on the working ``level``, verified by its regions.
+
+    The polish runs with kernels of radius ``shake + 2``, then ``shake + 1`` level pixels
+    (``shake`` the extent ``shake_px`` on the level); a polish that moves the corners by
+    more than twice the radius or that ``plausible`` refuses is not used.  Raises
+    AlignmentError unless enough regions agree with the result
+    (:func:`~reblur.align.verify.check_regions`).
+    """
+    shake = int(math.ceil(shake_px * level.scale))
+    n_regions = region_grid(level, shake_px)
+    n_agree, n_fit, spread, accepted = 0, 0, 0.0, None
+    for R in (shake + 2, shake + 1):
+        R = max(R, 2)
+        Hp, n_agree, n_fit, spread = kernel_polish(
+            level, H, R, n_regions=n_regions, min_r2=params.min_r2, max_pixels=8192,
+            max_sd=max(1.0, shake_px * level.scale),
+        )
+        if n_agree < 8:
+            break
+        jump = max_corner_shift(Hp, H, ref_shape) * level.scale
+        if jump > 2 * R:
+            log.debug("kernel polish rejected: corners moved by %.1f level px", jump)
+            n_agree = 0
+            break
+        try:
+            plausible(Hp)
+        except AlignmentError as err:
+            log.debug("kernel polish rejected: %s", err)
+            n_agree = 0
+            break
+        H, accepted = Hp, (n_agree, n_fit, spread)
+    if accepted is not None:
+        n_agree, n_fit, spread = accepted
+    log.debug("polish: %d regions agree, %d fit, spread %.2f", n_agree, n_fit, spread)
+    n_total = n_regions[0] * n_regions[1]
+    check_regions(n_agree, n_fit, spread, n_total, params, shake_px)
+    return Polished(H, n_agree, n_fit, n_total)
 
 
 def kernel_polish(

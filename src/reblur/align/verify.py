@@ -14,6 +14,7 @@ import numpy as np
 
 from ..grid import map_points
 from .overviews import Level, to_level
+from .params import AlignParams
 from .result import AlignmentError
 
 
@@ -116,3 +117,50 @@ def correlation(level: Level, H: np.ndarray, sigma: float) -> float:
     den = math.sqrt(float(a @ a) * float(b @ b))
     return float(a @ b) / den if den > 0 else float("nan")
 
+
+
+def check_textured(name: str, a: np.ndarray) -> None:
+    """Raise AlignmentError when the overview ``a`` of the image ``name`` is (nearly)
+    constant."""
+    tol = 1e-4 * max(1.0, float(np.max(np.abs(a))))
+    if intensity_spread(a) <= tol:
+        raise AlignmentError(f"images are textureless: the {name} is (nearly) constant")
+
+
+def check_regions(n_agree: int, n_fit: int, spread: float, n_total: int, params: AlignParams,
+                  shake_px: float) -> None:
+    """Raise AlignmentError unless enough kernel-polish regions agree with the estimate:
+    at least 8, ``params.min_regions`` of the ``n_total`` regions and ``params.min_agree``
+    of the ``n_fit`` where the blur model fits, spread over ``params.min_spread`` of the
+    region grid."""
+    need = max(8, math.ceil(params.min_regions * n_total), math.ceil(params.min_agree * n_fit))
+    if n_agree >= need and spread < params.min_spread:
+        raise AlignmentError(
+            f"alignment could not be verified: the {n_agree} regions that agree with it "
+            f"span {100 * spread:.0f} % of the image (< {100 * params.min_spread:.0f} %)"
+        )
+    if n_agree < need:
+        raise AlignmentError(
+            f"alignment could not be verified: {n_agree} regions agree with it, of "
+            f"{n_fit} where the blur model fits and {n_total} in all (need {need}): images "
+            f"unrelated, changed too much or blurred by more than shake_px={shake_px:g}"
+        )
+
+
+def check_blocks(n_agree: int, n_confident: int, n_blocks: int, spread: float,
+                 params: AlignParams) -> None:
+    """Raise AlignmentError unless enough confident gradient blocks agree with the
+    estimate: at least ``params.min_blocks`` and ``params.min_agree`` of the
+    ``n_confident``, spread over ``params.min_spread`` of the block grid."""
+    need = max(params.min_blocks, math.ceil(params.min_agree * n_confident))
+    if n_agree < need:
+        raise AlignmentError(
+            f"alignment could not be verified: {n_agree} gradient blocks agree with it, "
+            f"of {n_confident} confident and {n_blocks} in all (need {need}): "
+            "images unrelated, changed too much or not one plane (parallax)"
+        )
+    if spread < params.min_spread:
+        raise AlignmentError(
+            f"alignment could not be verified: the {n_agree} gradient blocks that agree "
+            f"with it span {100 * spread:.0f} % of the image (< {100 * params.min_spread:.0f} %)"
+        )
