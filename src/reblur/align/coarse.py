@@ -8,12 +8,13 @@ extent) and decides between their results, for one shake extent at a time
 
 1. ``auto``: the SIFT estimate (refined by ECC), if it holds, seeds the gradient blocks
    (:func:`_features_seed`); ``auto`` and ``gradient``: the gradient blocks, from that
-   seed or from rotation hypotheses, decide and verify (:func:`_gradient_blocks`), and the
-   kernel polish is kept where its blur model fits (:func:`_polish_and_keep`).
+   seed or from rotation hypotheses -- or from the caller's hint instead of both --
+   decide and verify (:func:`_gradient_blocks`), and the kernel polish is kept where its
+   blur model fits (:func:`_polish_and_keep`).
 2. ``features`` (or ``auto`` when the blocks failed): the SIFT estimate, polished and
-   verified by its regions (:func:`_features_fallback`).
-3. ``ecc`` (or ``auto`` when both failed): phase correlation, ECC coarse to fine, the
-   polish and a correlation check (:func:`_phase_fallback`).
+   verified by its regions (:func:`_features_fallback`); with a hint it must lie near it.
+3. ``ecc`` (or ``auto`` when both failed): phase correlation (or the hint), ECC coarse to
+   fine, the polish and a correlation check (:func:`_phase_fallback`).
 4. The checks and diagnostics of the result (:func:`_result`).
 """
 
@@ -29,14 +30,20 @@ from typing import Any
 import numpy as np
 
 from ..grid import map_points
-from .blocks import Blocks, gradient_align
+from .blocks import Blocks, gradient_align, rotation_hypotheses
 from .ecc import ecc_refine, phase_init
 from .features import Features, match_features
 from .overviews import Level, block_factor, image_shape, overview_k, pyramid
 from .params import AlignParams
 from .polish import REGION_PX, polish_and_verify
 from .result import Alignment, AlignmentError
-from .verify import check_plausible, check_textured, correlation, max_corner_shift
+from .verify import (
+    check_near_hint,
+    check_plausible,
+    check_textured,
+    correlation,
+    max_corner_shift,
+)
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +55,7 @@ def coarse_align(
     params: AlignParams | None = None,
     *,
     shake_px: float = 16.0,
+    hint: np.ndarray | None = None,
 ) -> Alignment:
     """Estimate the global reference -> observation homography at low resolution.
 
@@ -65,6 +73,13 @@ def coarse_align(
         angle: 1 degree is 17 px per 1000 px of radius).  It picks the working level of the
         refinement (the finest level where it spans at most 4 pixels) and the kernel size of
         the polish; a blur much larger than this fails verification.
+    hint : (3, 3) array-like, optional
+        A rough reference -> observation homography in full-resolution pixels (a few
+        degrees and tens of pixels off is fine), e.g. from georeferencing or picked by
+        hand.  It replaces the SIFT seed and the rotation hypotheses of the gradient blocks
+        and the phase-correlation start of the fallback, so it reaches pairs neither
+        finds (large rotations, captures years apart); every estimate must then stay
+        within ``params.hint_reach`` of it.  The result's ``method`` starts with ``hint``.
 
     Returns
     -------
@@ -79,7 +94,8 @@ def coarse_align(
         verify; or an implausible homography (folded, extreme zoom or stretch, too little
         overlap).  The message gives the reason on one line.
     ValueError
-        Bad arguments (shapes, dtypes, ``shake_px``).
+        Bad arguments (shapes, dtypes, ``shake_px``, a hint that is not an invertible 3x3
+        homography or is implausible for these images).
 
     See Also
     --------
@@ -116,7 +132,7 @@ def coarse_align(
     (True, 'features')
     """
     params = _checked(params, (shake_px,))
-    prep = _prepare(reference, observed, params)
+    prep = _prepare(reference, observed, params, hint)
     return _align(prep, params, shake_px)
 
 
@@ -125,6 +141,8 @@ def coarse_align_shakes(
     observed,
     shakes: Sequence[float] = (8.0, 16.0, 32.0, 64.0),
     params: AlignParams | None = None,
+    *,
+    hint: np.ndarray | None = None,
 ) -> Iterator[tuple[float, Alignment | AlignmentError]]:
     """:func:`coarse_align` for several camera-shake extents, sharing what does not depend
     on the extent.
@@ -134,7 +152,7 @@ def coarse_align_shakes(
     each set of inputs they read (the shake extent only picks the working level, which
     these stages may share); the kernel polish and the checks run for each extent.  Each
     result is exactly the one a separate ``coarse_align(reference, observed, params,
-    shake_px=s)`` gives.
+    shake_px=s, hint=hint)`` gives.
 
     Parameters
     ----------
@@ -144,6 +162,8 @@ def coarse_align_shakes(
         Shake extents (``shake_px`` of :func:`coarse_align`), tried in this order.
     params : AlignParams, optional
         The options, as for :func:`coarse_align`.
+    hint : (3, 3) array-like, optional
+        A rough reference -> observation homography, as for :func:`coarse_align`.
 
     Yields
     ------
@@ -175,7 +195,7 @@ def coarse_align_shakes(
     shakes = tuple(shakes)
     params = _checked(params, shakes)
     try:
-        prep = _prepare(reference, observed, params)
+        prep = _prepare(reference, observed, params, hint)
     except AlignmentError as err:
         for sp in shakes:
             yield sp, AlignmentError(str(err))
@@ -209,6 +229,7 @@ class Prepared:
     obs_shape: tuple[int, int]
     scale0: float
     levels: list[Level]
+    hint: np.ndarray | None = None
     memo: dict = field(default_factory=dict)
 
     def cached(self, key: Hashable, compute: Callable[[], Any]) -> Any:
@@ -225,11 +246,13 @@ class Prepared:
         return got
 
 
-def _prepare(reference, observed, params: AlignParams) -> Prepared:
-    """Overviews of both images (each read once) and their pyramid.
+def _prepare(reference, observed, params: AlignParams, hint) -> Prepared:
+    """Overviews of both images (each read once), their pyramid, and the checked hint.
 
-    Raises ValueError when they are too small, AlignmentError when one is textureless."""
+    Raises ValueError when they are too small or the hint is bad, AlignmentError when one
+    is textureless."""
     ref_shape, obs_shape = image_shape(reference), image_shape(observed)
+    hint = None if hint is None else _checked_hint(hint, ref_shape, obs_shape, params)
     k = block_factor(max(ref_shape + obs_shape), params.max_side)
     scale0 = 1.0 / k
     ref0, obs0 = overview_k(reference, k), overview_k(observed, k)
@@ -241,7 +264,30 @@ def _prepare(reference, observed, params: AlignParams) -> Prepared:
     check_textured("reference", ref0)
     check_textured("observation", obs0)
     levels = pyramid(ref0, obs0, scale0, params.min_side, params.nodata)
-    return Prepared(ref_shape, obs_shape, scale0, levels)
+    return Prepared(ref_shape, obs_shape, scale0, levels, hint)
+
+
+def _checked_hint(hint, ref_shape: tuple[int, int], obs_shape: tuple[int, int],
+                  params: AlignParams) -> np.ndarray:
+    """``hint`` as a normalised float64 homography; ValueError saying what is wrong."""
+    how = "give the reference -> observation homography in full-resolution pixels"
+    try:
+        H = np.array(hint, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"alignment hint is not a 3x3 array of numbers; {how}") from None
+    if H.shape != (3, 3) or not np.all(np.isfinite(H)):
+        raise ValueError(f"alignment hint must be 3x3 finite numbers, got shape {H.shape}; "
+                         f"{how}")
+    if H[2, 2] == 0 or abs(np.linalg.det(H / H[2, 2])) < 1e-12:
+        raise ValueError(f"alignment hint is singular (not invertible); {how}")
+    H = H / H[2, 2]
+    try:
+        check_plausible(H, ref_shape, obs_shape, max_zoom=params.max_zoom,
+                        max_anisotropy=params.max_anisotropy, min_overlap=params.min_overlap)
+    except AlignmentError as err:
+        raise ValueError(f"alignment hint is implausible for these images ({err}); {how}, "
+                         "or relax AlignParams' max_zoom, max_anisotropy, min_overlap") from None
+    return H
 
 
 # ---------------------------------------------------------------------- one shake extent
@@ -276,9 +322,13 @@ class _Shake:
         return len(self.prep.levels) - 1
 
     @property
+    def hint(self) -> np.ndarray | None:
+        return self.prep.hint
+
+    @property
     def key(self) -> Hashable:
         """What every memoised stage reads besides its level indices and seed."""
-        return self.params
+        return self.params, None if self.hint is None else self.hint.tobytes()
 
     def first_at_most(self, side: int) -> int:
         """The finest level whose longest side is at most ``side`` (else the coarsest)."""
@@ -291,9 +341,12 @@ class _Shake:
     def plausible(self, H: np.ndarray) -> float:
         """Raise AlignmentError unless ``H`` is plausible; return the overlap."""
         p = self.params
-        return check_plausible(H, self.prep.ref_shape, self.prep.obs_shape,
-                               max_zoom=p.max_zoom, max_anisotropy=p.max_anisotropy,
-                               min_overlap=p.min_overlap)
+        overlap = check_plausible(H, self.prep.ref_shape, self.prep.obs_shape,
+                                  max_zoom=p.max_zoom, max_anisotropy=p.max_anisotropy,
+                                  min_overlap=p.min_overlap)
+        if self.hint is not None:
+            check_near_hint(H, self.hint, self.prep.ref_shape, p.hint_reach)
+        return overlap
 
     def polish(self, H: np.ndarray):
         """:func:`~reblur.align.polish.polish_and_verify` of ``H`` on the working level."""
@@ -329,7 +382,7 @@ def _align(prep: Prepared, params: AlignParams, shake_px: float) -> Alignment:
     ctx = _Shake(prep, params, shake_px)
     est = None
     if params.method in ("auto", "gradient"):
-        seed = _features_seed(ctx) if params.method == "auto" else None
+        seed = _features_seed(ctx) if params.method == "auto" and ctx.hint is None else None
         est = _gradient_blocks(ctx, seed)
         if est is None and params.method == "gradient":
             raise AlignmentError(ctx.errors[-1])
@@ -403,8 +456,14 @@ def _features_seed(ctx: _Shake) -> _Estimate | None:
 
 def _gradient_blocks(ctx: _Shake, seed: _Estimate | None) -> _Estimate | None:
     """Gradient blocks from ``seed`` (if any, and if that fails) from the rotation
-    hypotheses; None when neither verifies (the reasons go to ``ctx.errors``)."""
+    hypotheses, or from the hint alone; None when none verifies (the reasons go to
+    ``ctx.errors``)."""
     fine = min(ctx.first_at_most(ctx.params.gradient_side), ctx.work)
+    hypotheses = None
+    if ctx.hint is not None:  # the rotation hypotheses about the hint instead of the identity
+        hypotheses = [ctx.hint @ R for R in rotation_hypotheses(ctx.prep.ref_shape,
+                                                                 ctx.params.rotations)]
+    first = ["gradient"] if ctx.hint is None else ["hint", "gradient"]
     for s in ([seed, None] if seed is not None else [None]):
         H0 = None if s is None else s.H
         try:
@@ -412,7 +471,7 @@ def _gradient_blocks(ctx: _Shake, seed: _Estimate | None) -> _Estimate | None:
             blocks: Blocks = ctx.prep.cached(
                 ("gradient", fine, None if H0 is None else H0.tobytes(), ctx.key),
                 functools.partial(gradient_align, ctx.levels, ctx.prep.ref_shape, fine,
-                                  ctx.params, ctx.plausible, seed=H0),
+                                  ctx.params, ctx.plausible, seed=H0, hypotheses=hypotheses),
             )
         except AlignmentError as err:
             log.debug("gradient alignment failed (seed %s): %s", s is not None, err)
@@ -420,7 +479,7 @@ def _gradient_blocks(ctx: _Shake, seed: _Estimate | None) -> _Estimate | None:
             continue
         blocks = replace(blocks, H=blocks.H.copy())
         if s is None:
-            return _Estimate(blocks.H, ["gradient"], n_blocks=blocks.n_agree)
+            return _Estimate(blocks.H, first, n_blocks=blocks.n_agree)
         return _Estimate(blocks.H, s.stages + ["gradient"], feats=s.feats,
                          n_blocks=blocks.n_agree)
     return None
@@ -459,7 +518,8 @@ def _features_fallback(ctx: _Shake) -> _Estimate | None:
         try:
             est = _features_estimate(ctx, i)
         except AlignmentError as err:
-            if ctx.params.method == "features":  # ``auto`` recorded it as a seed
+            if ctx.params.method == "features" or ctx.hint is not None:
+                # (``auto`` without a hint recorded it as a seed)
                 ctx.errors.append(str(err))
             continue
         if ctx.params.polish:
@@ -482,13 +542,14 @@ def _polish_verified(ctx: _Shake, est: _Estimate) -> None:
 
 
 def _phase_fallback(ctx: _Shake) -> _Estimate:
-    """Phase correlation for the translation, ECC coarse to fine, the polish, and a
-    correlation check; raises the refusal with every stage's reason when it fails."""
+    """Phase correlation for the translation (or the hint), ECC coarse to fine, the
+    polish, and a correlation check; raises the refusal with every stage's reason when it
+    fails."""
     try:
         # memoised: reads the shake extent only through the working level
         H = ctx.prep.cached(("phase-ecc", ctx.work, ctx.key),
                             functools.partial(_phase_ecc, ctx)).copy()
-        est = _Estimate(H, ["phase", "ecc"])
+        est = _Estimate(H, ["phase" if ctx.hint is None else "hint", "ecc"])
         if ctx.params.polish:
             _polish_verified(ctx, est)
         lv = ctx.levels[ctx.work]
@@ -504,8 +565,9 @@ def _phase_fallback(ctx: _Shake) -> _Estimate:
 
 
 def _phase_ecc(ctx: _Shake) -> np.ndarray:
-    """Phase correlation on the coarsest level, then ECC down to the working level."""
-    H = phase_init(ctx.levels[ctx.top])
+    """Phase correlation on the coarsest level (or the hint), then ECC down to the working
+    level."""
+    H = phase_init(ctx.levels[ctx.top]) if ctx.hint is None else ctx.hint
     ctx.plausible(H)
     H, _, _ = ecc_refine(ctx.levels, H, ctx.top, ctx.work, ctx.prep.ref_shape, ctx.params,
                          max_jump=0.25)

@@ -164,3 +164,16 @@ def check_blocks(n_agree: int, n_confident: int, n_blocks: int, spread: float,
             f"alignment could not be verified: the {n_agree} gradient blocks that agree "
             f"with it span {100 * spread:.0f} % of the image (< {100 * params.min_spread:.0f} %)"
         )
+
+
+def check_near_hint(H: np.ndarray, hint: np.ndarray, ref_shape: tuple[int, int],
+                    reach: float) -> None:
+    """Raise AlignmentError when ``H`` moves a reference corner farther than ``reach``
+    times the reference's diagonal from where ``hint`` puts it."""
+    limit = reach * math.hypot(*ref_shape)
+    moved = max_corner_shift(H, hint, ref_shape)
+    if not moved <= limit:
+        raise AlignmentError(
+            f"the estimate puts the reference corners {moved:.0f} px from the hint's "
+            f"(> {limit:.0f} px, hint_reach={reach:g})"
+        )
