@@ -11,6 +11,7 @@ with the viewpoint warp.
 from __future__ import annotations
 
 import json
+import re
 
 import cv2
 import numpy as np
@@ -283,8 +284,20 @@ def test_unrelated_images_raise(scene):
     with pytest.raises(AlignmentError):
         coarse_align(ref, obs)
     noise = rng.random((SIZE, SIZE, 3)).astype(np.float32)
-    with pytest.raises(AlignmentError):
+    with pytest.raises(AlignmentError) as refused:
         coarse_align(ref, noise)
+    # one line: each stage tried with its evidence, then what would let the user go on
+    msg = str(refused.value)
+    assert "\n" not in msg
+    assert re.match(r"alignment \(features\): too few feature matches \(\d+ < 12\)", msg), msg
+    assert "; fallback (gradient blocks): no consistent gradient structure: 0 confident " \
+           "blocks agree at 256x256 px" in msg, msg
+    assert "; fallback (phase + ECC): ECC did not converge" in msg, msg
+    go_on = msg.split(" -- to go on: ")[1]
+    for option in ("--align-hint FILE", "hint=", "georeferenced inputs", "--no-align",
+                   "align=False"):
+        assert option in go_on, msg
+    assert "shake" not in go_on  # the blur model was never the problem
     with pytest.raises(AlignmentError):
         coarse_align(noise, ref)
 
@@ -588,3 +601,18 @@ def test_bad_hints_are_refused(scene):
     # a hint is normalised; a correct one gives the usual answer
     a = coarse_align(ref, obs, hint=2.0 * H_true)
     assert a.method.startswith("hint") and _obs_corner_error(a.H, H_true, obs.shape) <= 2.0
+
+
+def test_refusals_say_which_option_helps(scene):
+    """A shaken pair aligned with too small a shake extent: the polish cannot verify it,
+    and the refusal names a larger extent; a hint that is refused asks for a closer one."""
+    ref, obs, _ = scene
+    with pytest.raises(AlignmentError) as refused:
+        coarse_align(ref, obs, shake_px=4)
+    msg = str(refused.value)
+    assert re.search(r"\(kernel polish\): could not be verified: \d+ regions agree", msg), msg
+    assert msg.endswith("if the blur spans more than 4 px, a larger shake extent (shake_px=8)")
+    noise = np.random.default_rng(12).random((SIZE, SIZE)).astype(np.float32)
+    with pytest.raises(AlignmentError, match=r"^alignment \(gradient blocks\)") as refused:
+        coarse_align(ref, noise, hint=translation(5.0, -3.0))
+    assert "to go on: a closer --align-hint FILE" in str(refused.value)

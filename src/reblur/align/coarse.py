@@ -43,6 +43,7 @@ from .verify import (
     check_textured,
     correlation,
     max_corner_shift,
+    refusal,
 )
 
 log = logging.getLogger(__name__)
@@ -259,10 +260,15 @@ def _prepare(reference, observed, params: AlignParams, hint) -> Prepared:
     if min(ref0.shape + obs0.shape) < 16:
         raise ValueError(
             f"images {ref_shape} and {obs_shape} are too small or elongated to align at "
-            f"max_side={params.max_side}; raise max_side"
+            f"max_side={params.max_side}; raise max_side, or use --no-align (align=False) "
+            "if the images are already registered"
         )
-    check_textured("reference", ref0)
-    check_textured("observation", obs0)
+    try:
+        check_textured("reference", ref0)
+        check_textured("observation", obs0)
+    except AlignmentError as err:
+        raise AlignmentError(f"alignment (overviews): {err}: nothing to align or compare; "
+                             "check the input (blank, saturated or all nodata?)") from None
     levels = pyramid(ref0, obs0, scale0, params.min_side, params.nodata)
     return Prepared(ref_shape, obs_shape, scale0, levels, hint)
 
@@ -285,7 +291,8 @@ def _checked_hint(hint, ref_shape: tuple[int, int], obs_shape: tuple[int, int],
         check_plausible(H, ref_shape, obs_shape, max_zoom=params.max_zoom,
                         max_anisotropy=params.max_anisotropy, min_overlap=params.min_overlap)
     except AlignmentError as err:
-        raise ValueError(f"alignment hint is implausible for these images ({err}); {how}, "
+        why = str(err).split(": ", 1)[-1]
+        raise ValueError(f"alignment hint is implausible for these images ({why}); {how}, "
                          "or relax AlignParams' max_zoom, max_anisotropy, min_overlap") from None
     return H
 
@@ -297,13 +304,13 @@ class _Shake:
 
     ``work`` is the working level of ECC and the polish: the finest where the shake spans
     at most 4 pixels, but large enough for a grid of polish regions.  ``errors`` collects
-    the reasons of the stages that failed, for the refusal."""
+    the stages that failed and why, for the refusal."""
 
     prep: Prepared
     params: AlignParams
     shake_px: float
     work: int = 0
-    errors: list[str] = field(default_factory=list)
+    errors: list[tuple[str, str]] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         levels, top = self.prep.levels, len(self.prep.levels) - 1
@@ -353,9 +360,13 @@ class _Shake:
         return polish_and_verify(self.levels[self.work], H, self.shake_px,
                                  self.prep.ref_shape, self.params, self.plausible)
 
-    def refused(self, *more: str) -> AlignmentError:
-        """The refusal: every stage's reason, once each, in order."""
-        return AlignmentError("; fallback: ".join(dict.fromkeys(self.errors + list(more))))
+    def failed(self, stage: str, err: Exception) -> None:
+        """Record why ``stage`` failed."""
+        self.errors.append((stage, str(err)))
+
+    def refused(self) -> AlignmentError:
+        """The refusal: every stage's reason and what would let the user go on."""
+        return refusal(self.errors, self.shake_px, hinted=self.hint is not None)
 
 
 @dataclass
@@ -385,7 +396,7 @@ def _align(prep: Prepared, params: AlignParams, shake_px: float) -> Alignment:
         seed = _features_seed(ctx) if params.method == "auto" and ctx.hint is None else None
         est = _gradient_blocks(ctx, seed)
         if est is None and params.method == "gradient":
-            raise AlignmentError(ctx.errors[-1])
+            raise ctx.refused()
         if est is not None and params.polish:
             _polish_and_keep(ctx, est)
     if est is None and params.method in ("auto", "features"):
@@ -394,7 +405,11 @@ def _align(prep: Prepared, params: AlignParams, shake_px: float) -> Alignment:
         est = _phase_fallback(ctx)
     if est is None:
         raise ctx.refused()
-    return _result(ctx, est)
+    try:
+        return _result(ctx, est)
+    except AlignmentError as err:
+        ctx.failed("checks", err)
+        raise ctx.refused() from None
 
 
 # ---------------------------------------------------------------------- the stages
@@ -450,7 +465,7 @@ def _features_seed(ctx: _Shake) -> _Estimate | None:
             return _features_estimate(ctx, i)
         except AlignmentError as err:
             log.debug("feature alignment failed at level %d: %s", i, err)
-            ctx.errors.append(str(err))
+            ctx.failed("features", err)
     return None
 
 
@@ -475,7 +490,7 @@ def _gradient_blocks(ctx: _Shake, seed: _Estimate | None) -> _Estimate | None:
             )
         except AlignmentError as err:
             log.debug("gradient alignment failed (seed %s): %s", s is not None, err)
-            ctx.errors.append(str(err))
+            ctx.failed("gradient blocks", err)
             continue
         blocks = replace(blocks, H=blocks.H.copy())
         if s is None:
@@ -520,14 +535,14 @@ def _features_fallback(ctx: _Shake) -> _Estimate | None:
         except AlignmentError as err:
             if ctx.params.method == "features" or ctx.hint is not None:
                 # (``auto`` without a hint recorded it as a seed)
-                ctx.errors.append(str(err))
+                ctx.failed("features", err)
             continue
         if ctx.params.polish:
             try:
                 _polish_verified(ctx, est)
             except AlignmentError as err:
                 log.debug("feature estimate at level %d rejected: %s", i, err)
-                ctx.errors.append(str(err))
+                ctx.failed("kernel polish", err)
                 continue
         return est
     return None
@@ -545,22 +560,26 @@ def _phase_fallback(ctx: _Shake) -> _Estimate:
     """Phase correlation for the translation (or the hint), ECC coarse to fine, the
     polish, and a correlation check; raises the refusal with every stage's reason when it
     fails."""
+    start = "phase" if ctx.hint is None else "hint"
+    stage = f"{start} + ECC"
     try:
         # memoised: reads the shake extent only through the working level
         H = ctx.prep.cached(("phase-ecc", ctx.work, ctx.key),
                             functools.partial(_phase_ecc, ctx)).copy()
-        est = _Estimate(H, ["phase" if ctx.hint is None else "hint", "ecc"])
+        est = _Estimate(H, [start, "ecc"])
         if ctx.params.polish:
+            stage = "kernel polish"
             _polish_verified(ctx, est)
+        stage = "correlation"
         lv = ctx.levels[ctx.work]
         rho = correlation(lv, est.H, max(1.0, ctx.params.blur_px * lv.scale))
         if not rho >= ctx.params.min_ecc:
             raise AlignmentError(
-                f"correlation {rho:.2f} < {ctx.params.min_ecc:g} after alignment: images "
-                "look unrelated"
+                f"{rho:.2f} < {ctx.params.min_ecc:g} after alignment: images look unrelated"
             )
     except AlignmentError as err:
-        raise ctx.refused(str(err)) from None
+        ctx.failed(stage, err)
+        raise ctx.refused() from None
     return est
 
 

@@ -8,6 +8,7 @@ garbage.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import cv2
 import numpy as np
@@ -39,23 +40,23 @@ def check_plausible(
 ) -> float:
     """Raise AlignmentError unless ``H`` is a plausible viewpoint change; return the overlap."""
     if not np.all(np.isfinite(H)) or abs(np.linalg.det(H)) < 1e-12:
-        raise AlignmentError("alignment is degenerate: singular or non-finite homography")
+        raise AlignmentError("degenerate estimate: singular or non-finite homography")
     rc = corners(ref_shape)
     wz = rc @ H[2, :2] + H[2, 2]
     if np.any(wz <= 1e-6 * np.abs(H[2, 2])):
         raise AlignmentError(
-            "alignment is degenerate: the reference crosses the horizon of the homography"
+            "degenerate estimate: the reference crosses the horizon of the homography"
         )
     q = map_points(H, rc)
     # every turn of the mapped quadrilateral must keep the reference's orientation
     e = np.roll(q, -1, axis=0) - q
     turns = e[:, 0] * np.roll(e, -1, axis=0)[:, 1] - e[:, 1] * np.roll(e, -1, axis=0)[:, 0]
     if np.any(turns <= 0):
-        raise AlignmentError("alignment is degenerate: the mapped reference is folded or mirrored")
+        raise AlignmentError("degenerate estimate: the mapped reference is folded or mirrored")
     zoom = math.sqrt(_quad_area(q) / _quad_area(rc))
     if not 1.0 / max_zoom <= zoom <= max_zoom:
         raise AlignmentError(
-            f"alignment is degenerate: zoom {zoom:.3g} outside [1/{max_zoom:g}, {max_zoom:g}]"
+            f"implausible estimate: zoom {zoom:.3g} outside [1/{max_zoom:g}, {max_zoom:g}]"
         )
     # local anisotropy at the four corners and the centre (Jacobian singular values)
     pts = np.vstack([rc, rc.mean(axis=0)])
@@ -67,7 +68,7 @@ def check_plausible(
         s = np.linalg.svd(J, compute_uv=False)
         if s[1] <= 0 or s[0] / s[1] > max_anisotropy:
             raise AlignmentError(
-                f"alignment is degenerate: local stretch ratio {s[0] / max(s[1], 1e-12):.3g} "
+                f"implausible estimate: local stretch ratio {s[0] / max(s[1], 1e-12):.3g} "
                 f"exceeds {max_anisotropy:g}"
             )
     oc = corners(obs_shape)
@@ -75,7 +76,7 @@ def check_plausible(
     overlap = float(inter) / _quad_area(oc) if _quad_area(oc) > 0 else 0.0
     if overlap < min_overlap:
         raise AlignmentError(
-            f"alignment is implausible: the mapped reference covers {100 * overlap:.1f} % of the "
+            f"implausible estimate: the mapped reference covers {100 * overlap:.1f} % of the "
             f"observation (< {100 * min_overlap:.0f} %)"
         )
     return overlap
@@ -136,12 +137,12 @@ def check_regions(n_agree: int, n_fit: int, spread: float, n_total: int, params:
     need = max(8, math.ceil(params.min_regions * n_total), math.ceil(params.min_agree * n_fit))
     if n_agree >= need and spread < params.min_spread:
         raise AlignmentError(
-            f"alignment could not be verified: the {n_agree} regions that agree with it "
+            f"could not be verified: the {n_agree} regions that agree with it "
             f"span {100 * spread:.0f} % of the image (< {100 * params.min_spread:.0f} %)"
         )
     if n_agree < need:
         raise AlignmentError(
-            f"alignment could not be verified: {n_agree} regions agree with it, of "
+            f"could not be verified: {n_agree} regions agree with it, of "
             f"{n_fit} where the blur model fits and {n_total} in all (need {need}): images "
             f"unrelated, changed too much or blurred by more than shake_px={shake_px:g}"
         )
@@ -155,13 +156,13 @@ def check_blocks(n_agree: int, n_confident: int, n_blocks: int, spread: float,
     need = max(params.min_blocks, math.ceil(params.min_agree * n_confident))
     if n_agree < need:
         raise AlignmentError(
-            f"alignment could not be verified: {n_agree} gradient blocks agree with it, "
+            f"could not be verified: {n_agree} gradient blocks agree with it, "
             f"of {n_confident} confident and {n_blocks} in all (need {need}): "
             "images unrelated, changed too much or not one plane (parallax)"
         )
     if spread < params.min_spread:
         raise AlignmentError(
-            f"alignment could not be verified: the {n_agree} gradient blocks that agree "
+            f"could not be verified: the {n_agree} gradient blocks that agree "
             f"with it span {100 * spread:.0f} % of the image (< {100 * params.min_spread:.0f} %)"
         )
 
@@ -177,3 +178,25 @@ def check_near_hint(H: np.ndarray, hint: np.ndarray, ref_shape: tuple[int, int],
             f"the estimate puts the reference corners {moved:.0f} px from the hint's "
             f"(> {limit:.0f} px, hint_reach={reach:g})"
         )
+
+
+def refusal(reasons: Sequence[tuple[str, str]], shake_px: float, *,
+            hinted: bool) -> AlignmentError:
+    """The one-line refusal of an alignment: each stage that failed with its measured
+    evidence (``reasons``: ``(stage, reason)`` in the order tried, repeats dropped), then
+    the options that would let the user go on.  A failed kernel polish (the blur model did
+    not fit) also suggests a larger shake extent than ``shake_px``; a refusal despite a
+    hint (``hinted``) asks for a closer one."""
+    parts = [f"({stage}): {reason}" for stage, reason in dict.fromkeys(reasons)]
+    if hinted:
+        hint = ("a closer --align-hint FILE (hint=; within a few degrees and tens of pixels "
+                "of the reference -> observation homography)")
+    else:
+        hint = ("--align-hint FILE (hint=: a rough reference -> observation homography in "
+                "full-resolution pixels)")
+    go_on = (f"to go on: {hint}, georeferenced inputs, or --no-align (align=False) if the "
+             "images are already registered")
+    if any(stage == "kernel polish" for stage, _ in reasons):
+        go_on += (f"; if the blur spans more than {shake_px:g} px, a larger shake extent "
+                  f"(shake_px={max(8.0, 2.0 * shake_px):g})")
+    return AlignmentError(f"alignment {'; fallback '.join(parts)} -- {go_on}")
