@@ -50,11 +50,19 @@ integers, and ``H`` maps a reference pixel to the observation pixel.
 from .coarse import coarse_align, coarse_align_shakes
 from .overviews import OverviewCache, block_means, overview, overview_matrix
 from .params import AlignParams
-from .refine import ProbeShift, Refinement, measure_shifts, probe_boxes, refine_alignment
+from .refine import (
+    ProbeShift,
+    Refinement,
+    RefineParams,
+    measure_shifts,
+    probe_boxes,
+    refine_alignment,
+)
 from .result import Alignment, AlignmentError
 
 __all__ = [
-    "AlignParams", "Alignment", "AlignmentError", "OverviewCache", "ProbeShift", "Refinement",
+    "AlignParams", "Alignment", "AlignmentError", "OverviewCache", "ProbeShift", "RefineParams",
+    "Refinement",
     "block_means", "coarse_align", "coarse_align_shakes", "measure_shifts", "overview",
     "overview_matrix", "probe_boxes", "refine_alignment",
 ]
