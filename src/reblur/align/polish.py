@@ -122,56 +122,20 @@ def kernel_polish(
     ny, nx = n_regions
     if h < 2 * R + 8 * ny or w < 2 * R + 8 * nx:
         return H, 0, 0, 0.0
-    ref = cv2.warpPerspective(
-        level.ref, Hs, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
-    )
-    cover = cv2.warpPerspective(
-        level.ref_mask.astype(np.float32), Hs, (w, h), flags=cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_CONSTANT,
-    )
-    valid = ((cover > 0.999) & level.obs_mask.astype(bool)).astype(np.uint8)
-    # a core pixel is usable when the kernel's whole footprint is valid
-    valid = cv2.erode(valid, np.ones((2 * R + 1, 2 * R + 1), np.uint8), borderValue=0)
+    ref, valid = _warped(level, Hs, R)
     ys = np.linspace(R, h - R, ny + 1).astype(int)
     xs = np.linspace(R, w - R, nx + 1).astype(int)
-    taps = np.arange(-R, R + 1, dtype=float)
     src, dst = [], []
     for i in range(ny):
         for j in range(nx):
             y0, y1, x0, x1 = ys[i], ys[i + 1], xs[j], xs[j + 1]
-            core = valid[y0:y1, x0:x1].astype(bool)
-            n = int(core.sum())
-            if n < 0.5 * core.size or n < 4 * (2 * R + 1) ** 2:
-                continue
-            step = max(1, int(math.ceil(math.sqrt(n / max_pixels))))
-            sel = np.zeros_like(core)
-            sel[::step, ::step] = core[::step, ::step]
-            b = level.obs[y0:y1, x0:x1][sel].astype(np.float64)
-            ext = ref[y0 - R : y1 + R, x0 - R : x1 + R]
-            win = np.lib.stride_tricks.sliding_window_view(ext, (y1 - y0, x1 - x0))
-            # column (a, c) holds the reference shifted by (R - c, R - a)
-            A = win[:, :, sel].reshape((2 * R + 1) ** 2, -1).T.astype(np.float64)
-            A -= A.mean(axis=0)
-            b -= b.mean()
-            bb = float(b @ b)
-            if bb <= 1e-12 * b.size:
-                continue
-            k, rnorm = nnls(A, b, maxiter=50 * A.shape[1])
-            mass = float(k.sum())
-            if mass <= 0 or 1.0 - rnorm**2 / bb < min_r2:
-                continue
-            K = k.reshape(2 * R + 1, 2 * R + 1) / mass
-            dy = -float(K.sum(axis=1) @ taps)  # g(x) = sum_d k_d ref(x - d), d = (R - c, R - a)
-            dx = -float(K.sum(axis=0) @ taps)
-            # a camera-shake kernel is compact; one fitted where the scene changed spreads
-            sd = math.sqrt(
-                float(K.sum(axis=1) @ (taps + dy) ** 2) + float(K.sum(axis=0) @ (taps + dx) ** 2)
-            )
-            if sd > max_sd:
+            d = _kernel_centroid(level.obs, ref, valid, (y0, y1, x0, x1), R, min_r2=min_r2,
+                                 max_sd=max_sd, max_pixels=max_pixels)
+            if d is None:
                 continue
             p = np.array([(x0 + x1 - 1) / 2.0, (y0 + y1 - 1) / 2.0])
             src.append(p)
-            dst.append(p + (dx, dy))
+            dst.append(p + d)
     if len(src) < 8:
         return H, 0, len(src), 0.0
     # correction C maps the warped-reference frame to the observation: H' = C @ H
@@ -183,3 +147,69 @@ def kernel_polish(
     spread = cv2.contourArea(cv2.convexHull(inl)) / float((xs[-1] - xs[0]) * (ys[-1] - ys[0]))
     return Hn, int(mask.sum()), len(src), float(spread)
 
+
+def _warped(level: Level, Hs: np.ndarray, R: int) -> tuple[np.ndarray, np.ndarray]:
+    """The reference warped by the level homography ``Hs`` into the observation frame, and
+    the pixels where a ``(2R+1)^2`` kernel's whole footprint holds data in both images."""
+    h, w = level.obs.shape
+    ref = cv2.warpPerspective(
+        level.ref, Hs, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
+    )
+    cover = cv2.warpPerspective(
+        level.ref_mask.astype(np.float32), Hs, (w, h), flags=cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+    )
+    valid = ((cover > 0.999) & level.obs_mask.astype(bool)).astype(np.uint8)
+    # a core pixel is usable when the kernel's whole footprint is valid
+    valid = cv2.erode(valid, np.ones((2 * R + 1, 2 * R + 1), np.uint8), borderValue=0)
+    return ref, valid
+
+
+def _kernel_centroid(
+    obs: np.ndarray,
+    ref: np.ndarray,
+    valid: np.ndarray,
+    region: tuple[int, int, int, int],
+    R: int,
+    *,
+    min_r2: float,
+    max_sd: float,
+    max_pixels: int,
+) -> tuple[float, float] | None:
+    """Centroid ``(dx, dy)`` of the non-negative ``(2R+1)^2`` kernel that blurs the warped
+    reference ``ref`` into ``obs`` on ``region = (y0, y1, x0, x1)`` (at most ``max_pixels``
+    of its ``valid`` pixels); None when too little is valid, the kernel explains less than
+    ``min_r2`` of the variance, or it spreads beyond ``max_sd`` (no camera shake)."""
+    y0, y1, x0, x1 = region
+    core = valid[y0:y1, x0:x1].astype(bool)
+    n = int(core.sum())
+    if n < 0.5 * core.size or n < 4 * (2 * R + 1) ** 2:
+        return None
+    step = max(1, int(math.ceil(math.sqrt(n / max_pixels))))
+    sel = np.zeros_like(core)
+    sel[::step, ::step] = core[::step, ::step]
+    b = obs[y0:y1, x0:x1][sel].astype(np.float64)
+    ext = ref[y0 - R : y1 + R, x0 - R : x1 + R]
+    win = np.lib.stride_tricks.sliding_window_view(ext, (y1 - y0, x1 - x0))
+    # column (a, c) holds the reference shifted by (R - c, R - a)
+    A = win[:, :, sel].reshape((2 * R + 1) ** 2, -1).T.astype(np.float64)
+    A -= A.mean(axis=0)
+    b -= b.mean()
+    bb = float(b @ b)
+    if bb <= 1e-12 * b.size:
+        return None
+    k, rnorm = nnls(A, b, maxiter=50 * A.shape[1])
+    mass = float(k.sum())
+    if mass <= 0 or 1.0 - rnorm**2 / bb < min_r2:
+        return None
+    K = k.reshape(2 * R + 1, 2 * R + 1) / mass
+    taps = np.arange(-R, R + 1, dtype=float)
+    dy = -float(K.sum(axis=1) @ taps)  # g(x) = sum_d k_d ref(x - d), d = (R - c, R - a)
+    dx = -float(K.sum(axis=0) @ taps)
+    # a camera-shake kernel is compact; one fitted where the scene changed spreads
+    sd = math.sqrt(
+        float(K.sum(axis=1) @ (taps + dy) ** 2) + float(K.sum(axis=0) @ (taps + dx) ** 2)
+    )
+    if sd > max_sd:
+        return None
+    return dx, dy
