@@ -32,8 +32,12 @@ the current estimate and of the observation are correlated block by block (96 px
 corrects the estimate.  Enough confident blocks -- a clear majority of them -- spread over
 the image must agree; unrelated images give almost no confident block.  The initial
 estimate is the SIFT one when it holds, else the best of a few in-plane rotation
-hypotheses searched with larger blocks on a coarse level.  The polish then runs as well
-and is kept where its blur model fits (a same-scene pair).
+hypotheses searched with larger blocks on a coarse level -- or, given a rough ``hint``
+homography (from georeferencing, or by hand), the rotation hypotheses about it, which
+reaches large rotations and pairs the features miss.  The polish then runs as well and is
+kept where its blur model fits (a same-scene pair).  A refusal names each stage tried, its
+evidence and what would let the user go on.  The options are one validated
+:class:`AlignParams`.
 
 :func:`coarse_align_shakes` tries several shake extents on one pair: the overviews, the
 pyramid, and the stages that read the extent only through the working level (features,
