@@ -604,14 +604,18 @@ def test_bad_hints_are_refused(scene):
 
 
 def test_refusals_say_which_option_helps(scene):
-    """A shaken pair aligned with too small a shake extent: the polish cannot verify it,
-    and the refusal names a larger extent; a hint that is refused asks for a closer one."""
-    ref, obs, _ = scene
+    """A pair shaken by 8 px aligned with a shake extent of 2 px: the polish cannot verify
+    it, and the refusal names a larger extent, with which it aligns; a hint that is
+    refused asks for a closer one."""
+    ref, obs, H_true = scene
+    features = AlignParams(max_side=256, method="features")
     with pytest.raises(AlignmentError) as refused:
-        coarse_align(ref, obs, shake_px=4)
+        coarse_align(ref, obs, features, shake_px=2)
     msg = str(refused.value)
     assert re.search(r"\(kernel polish\): could not be verified: \d+ regions agree", msg), msg
-    assert msg.endswith("if the blur spans more than 4 px, a larger shake extent (shake_px=8)")
+    assert msg.endswith("if the blur spans more than 2 px, a larger shake extent (shake_px=8)")
+    a = coarse_align(ref, obs, features, shake_px=8)
+    assert a.method.endswith("kernel") and _obs_corner_error(a.H, H_true, obs.shape) < 2.0
     noise = np.random.default_rng(12).random((SIZE, SIZE)).astype(np.float32)
     with pytest.raises(AlignmentError, match=r"^alignment \(gradient blocks\)") as refused:
         coarse_align(ref, noise, hint=translation(5.0, -3.0))
