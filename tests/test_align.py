@@ -538,12 +538,13 @@ def test_overview_cache_reads_once_and_derives_coarser_factors():
 
 
 # ---------------------------------------------------------------------------- hint
-def _rotated_40(image, seed):
+def _rotated_40(image, seed, shake=6.0, roll=0.5):
     """``image`` seen rotated by 40 degrees and shifted by (60, -35) px about the centre,
-    shaken (6 px, 0.5 degree): beyond the +-12 degrees of the rotation hypotheses."""
+    shaken (``shake`` px, ``roll`` degrees): beyond the +-12 degrees of the rotation
+    hypotheses."""
     rng = np.random.default_rng(seed)
     V = pose_homography(60.0, -35.0, rz=40.0, center=CENTER)
-    return _observe(image, V, rng, n=20, shake=6.0, roll=0.5)
+    return _observe(image, V, rng, n=20, shake=shake, roll=roll)
 
 
 def test_hint_reaches_a_large_rotation(scene):
@@ -572,18 +573,20 @@ def test_hint_reaches_a_large_rotation(scene):
 def test_hint_reaches_a_pair_years_apart():
     """LEVIR test_102 before and after (years apart: SIFT finds 3 consistent matches),
     the later image rotated by 40 degrees: the default refuses, a rough hint aligns.  The
-    truth ignores the dataset's own before / after misregistration: the default alignment
-    of the same pair without the rotation is already 3 px off it at the corners."""
+    truth ignores the dataset's own before / after misregistration, about 2 px here
+    (seeds 5-7: 2.2-2.4 px at the centre, 3.1-3.8 px at the corners), hence the bounds;
+    the shake is light because the blocks alone (the polish does not fit between captures
+    years apart) sit near a mode of the blur, not at its mean."""
     ref = _read(LEVIR / "A" / "test_102.png")
-    obs, H_true = _rotated_40(_read(LEVIR / "B" / "test_102.png"), 5)
+    obs, H_true = _rotated_40(_read(LEVIR / "B" / "test_102.png"), 5, shake=3.0, roll=0.2)
     with pytest.raises(AlignmentError, match="too few feature inliers"):
         coarse_align(ref, obs, shake_px=8)
     hint = pose_homography(75.0, -45.0, rz=35.0, center=CENTER)
     a = coarse_align(ref, obs, shake_px=8, hint=hint)
-    assert a.method.startswith("hint+gradient") and a.n_blocks >= 20, a
-    assert _ref_corner_error(a.H, H_true, ref.shape) < 8.0, a
+    assert a.method.startswith("hint+gradient") and a.n_blocks >= 30, a
+    assert _ref_corner_error(a.H, H_true, ref.shape) < 5.0, a
     c = map_points(a.H, [CENTER]) - map_points(H_true, [CENTER])
-    assert np.hypot(*c[0]) < 4.5, a
+    assert np.hypot(*c[0]) < 3.2, a
 
 
 def test_bad_hints_are_refused(scene):
