@@ -1,4 +1,4 @@
-"""Tests for reblur.field: the local residual displacement field after the homography."""
+"""Tests for reblur.align.field: the local residual displacement field after the homography."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from reblur.field import (
+from reblur.align.field import (
     DisplacementField,
     FieldParams,
     estimate_field,

@@ -1,4 +1,4 @@
-"""The georeferenced prior (reblur.georef) on real GeoTIFF pairs made by GDAL.
+"""The georeferenced prior (reblur.align.georef) on real GeoTIFF pairs made by GDAL.
 
 Expected values come from outside the code under test: the analytic affine map of two
 north-up transforms, PROJ's own reprojection of individual pixel centres (rasterio.warp), and
@@ -21,7 +21,7 @@ from rasterio.crs import CRS
 from rasterio.warp import calculate_default_transform
 from rasterio.warp import transform as proj_transform
 
-from reblur.georef import geo_homography
+from reblur.align.georef import geo_homography
 from reblur.io import open_image
 from reblur.testbed.geo import DEFAULT_ORIGIN, geo_pair
 from reblur.testbed.scenes import levir_image

@@ -35,7 +35,7 @@ class SparsePoses:
         Coarse alignment composed before every pose.
     rtol : float
         Weights below ``rtol * max(w)`` are dropped (0 keeps every non-zero pose).
-    field : reblur.field.DisplacementField, optional
+    field : reblur.align.field.DisplacementField, optional
         Local residual displacement applied after the poses: the reblurred image is
         resampled at ``p + field(p)`` (parallax, lens distortion).
     """

@@ -6,7 +6,7 @@ homography removes: edges that do not line up, hence false alarms.  As local
 co-registration does for sharp imagery (AROSICS: a grid of tie points, a smooth
 displacement field), this module measures the residual on a lattice of tie points and
 fits a smooth field to it -- but measured between the REBLURRED reference and the
-observation (:func:`reblur.refine.measure_shifts`), so the camera-shake blur, which moves
+observation (:func:`reblur.align.refine.measure_shifts`), so the camera-shake blur, which moves
 a correlation peak towards a mode of the blur, does not bias the tie points.
 
 1. Tie points: probe windows on a regular lattice over the observation; each one's
@@ -50,7 +50,7 @@ import numpy as np
 from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
-from .warp import Box, as_box
+from ..warp import Box, as_box
 
 __all__ = [
     "DisplacementField", "FieldEstimate", "FieldParams", "estimate_field", "fit_field",
