@@ -468,3 +468,18 @@ def test_cli_on_a_pair_decoded_in_strips(tmp_path):
     strips = cv2.imread(str(tmp_path / "strips" / "changes.png"), cv2.IMREAD_UNCHANGED)
     assert mem.any()
     np.testing.assert_array_equal(strips, mem)
+
+
+@pytest.mark.slow
+def test_progressive_jpeg_over_gdals_libjpeg_cap_is_read(tmp_path):
+    """A valid progressive JPEG whose coefficients (2 bytes a sample: 545 MB here) pass the
+    500 MiB GDAL lets libjpeg use by default was refused as "truncated or corrupt (Backing
+    store not supported)" by the data check."""
+    a = np.zeros((16_500, 16_500), np.uint8)
+    a[::64] = 200
+    assert cv2.imwrite(str(tmp_path / "p.jpg"), a, [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])
+    del a
+    img = open_image(tmp_path / "p.jpg")
+    assert img.shape == (16_500, 16_500)
+    np.testing.assert_array_equal(img.array[:130, :3], cv2.imread(
+        str(tmp_path / "p.jpg"), cv2.IMREAD_GRAYSCALE)[:130, :3])

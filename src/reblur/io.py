@@ -1111,30 +1111,27 @@ def _check_jpeg_data(path: Path) -> None:
     import rasterio
     from rasterio.windows import Window
 
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            with rasterio.Env(GDAL_ERROR_ON_LIBJPEG_WARNING=True, CPL_LOG="/dev/null"):
-                src = rasterio.open(path, driver="JPEG")
-    except Exception:  # noqa: BLE001 - not for GDAL to say: the decoder below decides
-        return
+    # set when the dataset is opened: GDAL sizes libjpeg's memory then
     env = dict(GDAL_ERROR_ON_LIBJPEG_WARNING=True, CPL_LOG="/dev/null", GDAL_CACHEMAX=64,
                JPEGMEM=f"{IN_MEMORY_MAX_BYTES // 2**20}M")
-    with src:
-        rows = max(1, (64 * 2**20) // max(1, src.width * src.count))
+    with warnings.catch_warnings(), rasterio.Env(**env):
+        warnings.simplefilter("ignore")
         try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                with rasterio.Env(**env):
-                    for y in range(0, src.height, rows):
-                        src.read(window=Window(0, y, src.width, min(rows, src.height - y)))
-        except MemoryError:
-            raise
-        except Exception as exc:  # noqa: BLE001 - any libjpeg complaint means corrupt data
-            cause = exc.__cause__ or exc
-            msg = str(cause).splitlines()[0] if str(cause) else type(cause).__name__
-            why = msg.split("libjpeg:", 1)[1].strip() if "libjpeg:" in msg else msg
-            raise _fail(path, f"JPEG data is truncated or corrupt ({why})") from exc
+            src = rasterio.open(path, driver="JPEG")
+        except Exception:  # noqa: BLE001 - not for GDAL to say: the decoder below decides
+            return
+        with src:
+            rows = max(1, (64 * 2**20) // max(1, src.width * src.count))
+            try:
+                for y in range(0, src.height, rows):
+                    src.read(window=Window(0, y, src.width, min(rows, src.height - y)))
+            except MemoryError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - any libjpeg complaint: corrupt data
+                cause = exc.__cause__ or exc
+                msg = str(cause).splitlines()[0] if str(cause) else type(cause).__name__
+                why = msg.split("libjpeg:", 1)[1].strip() if "libjpeg:" in msg else msg
+                raise _fail(path, f"JPEG data is truncated or corrupt ({why})") from exc
 
 
 #: Bands and bytes per sample of what imagecodecs decodes a Pillow mode to (a palette to
