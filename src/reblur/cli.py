@@ -278,7 +278,8 @@ def overwrite_option(f: Callable) -> Callable:
 def max_pixels_option(default: int) -> Callable:
     return click.option(
         "--max-pixels", type=click.IntRange(min=1), default=default, show_default=True,
-        help="Refuse larger images (height x width): a guard against decompression bombs.",
+        help="Refuse larger images (height x width), or images decoding to more than 4 "
+             "bytes per allowed pixel: a guard against decompression bombs.",
     )
 
 
