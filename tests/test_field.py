@@ -160,3 +160,62 @@ def test_estimate_field_measures_a_known_distortion_through_the_reblur(corner_px
     q = np.random.default_rng(4).uniform(32, 480, (200, 2))
     err = np.hypot(*(est.field.displacement(q) - _radial(q, shape, corner_px)).T)
     assert np.sqrt(np.mean(err**2)) < 0.1
+
+
+def test_reach_map_marks_a_step_and_not_a_smooth_field():
+    """A field with a 4 px step between two halves: the reach is >= 3 px within a tie-point
+    spacing of the step and 0 far from it; a smooth (affine) field has reach 0."""
+    d = np.zeros((9, 17, 2), np.float32)
+    d[:, 9:, 0] = 4.0  # a step between node columns 8 and 9 (x = 256 .. 288)
+    fld = DisplacementField(0.0, 0.0, 32.0, d)
+    r = fld.reach_map(Box(0, 0, 256, 512))
+    assert fld.max_reach() == 4
+    assert r[:, 250:300].min() >= 3
+    assert r[:, :150].max() == 0 and r[:, 420:].max() == 0
+    smooth, _ = _affine_field((256, 512), step=32.0)
+    assert smooth.max_reach() == 0 and not smooth.reach_map(Box(0, 0, 256, 512)).any()
+
+
+def test_tolerance_reach_is_the_extremes_over_the_disc():
+    """The interval widened by a per-pixel reach equals the min / max of the reference
+    over a disc of that radius, computed by brute force."""
+    from reblur.decide.tolerance import ModelTolerance, tolerance_interval
+
+    rng = np.random.default_rng(5)
+    m = rng.random((40, 50)).astype(np.float32)
+    reach = np.zeros((40, 50), np.uint8)
+    reach[10:30, 5:25] = 2
+    reach[5:15, 30:45] = 3
+    lo, hi = tolerance_interval(m, ModelTolerance(), reach)
+    for y, x in [(0, 0), (12, 6), (20, 20), (8, 40), (14, 44), (35, 48)]:
+        r = int(reach[y, x])
+        vals = [m[min(max(y + dy, 0), 39), min(max(x + dx, 0), 49)]
+                for dy in range(-r, r + 1) for dx in range(-r, r + 1) if dy * dy + dx * dx <= r * r]
+        assert lo[y, x] == pytest.approx(min(vals)) and hi[y, x] == pytest.approx(max(vals))
+
+
+@pytest.mark.parametrize("case", ["lens3", "parallax"])
+def test_detect_changes_meets_the_bounds_on_test_bed_geometry(case):
+    """Test-bed pairs (independent renderer) with 3 px of lens distortion at the corners or
+    a roof 4 px of parallax from the ground, no change: the geometry (homography, poses and
+    field) is within 0.5 px RMS of the truth away from occlusion edges, and at most 0.3 %
+    of the known pixels is flagged."""
+    import reblur
+    from reblur.testbed import failure_pair
+
+    pair = failure_pair(case)
+    res = reblur.detect_changes(pair.reference, pair.observed)
+    assert res.field is not None
+    h, w = pair.valid.shape
+    ys, xs = np.mgrid[16:h:32, 16:w:32]
+    pts = np.stack([xs.ravel(), ys.ravel()], axis=1).astype(np.float64)
+    ok = pair.valid[ys.ravel(), xs.ravel()] & ~res.unknown[ys.ravel(), xs.ravel()]
+    if pair.occlusion.any():
+        band = pair.geometry.occlusion_window((0, h, 0, w), band_px=3)
+        ok &= ~band[ys.ravel(), xs.ravel()]
+    pts = pts[ok]
+    src = res.motion.source_points(pts + res.field.displacement(pts), res.alignment)
+    err = np.hypot(*(src - pair.geometry.centroid(pts)).T)
+    assert np.sqrt(np.mean(err**2)) <= 0.5
+    known = pair.valid & ~res.unknown
+    assert np.count_nonzero(res.change & known) <= 0.003 * np.count_nonzero(known)

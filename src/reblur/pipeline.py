@@ -724,6 +724,18 @@ def _estimate_stage(
                      field=fld, field_info=field_info)
 
 
+def _decision_params(decision: DecisionParams | None, illumination: str | None,
+                     fld: Any) -> DecisionParams:
+    """The decision's options with the ``illumination`` override and the geometric reach of
+    the local displacement field (0 without one)."""
+    p = decision or DecisionParams()
+    if illumination is not None:
+        p = dataclasses.replace(p, illumination=illumination)
+    if fld is not None:
+        p = dataclasses.replace(p, geometry_reach=max(int(p.geometry_reach), fld.max_reach()))
+    return p
+
+
 def _windows_of(motion) -> list[tuple[tuple[int, ...], np.ndarray | None, np.ndarray | None]]:
     """The estimation windows, the estimate's change term on each and the pixels it left
     out as a known change (None where missing)."""
@@ -964,8 +976,7 @@ def detect_changes(
     dec = reblur_and_decide(
         reference, observed, poses, s_ref=s_ref, s_obs=s_obs, gain=gain, offset=offset,
         tile_size=tile_size, threshold=threshold, workers=workers,
-        params=decision if illumination is None else dataclasses.replace(
-            decision or DecisionParams(), illumination=illumination),
+        params=_decision_params(decision, illumination, est.field),
         keep_reblurred=keep, change_out=change_out, unknown_out=unknown_out,
         scheduler=scheduler, work_dir=work_dir,
         progress=(lambda f: report("reblur + decide", f)) if progress else None,

@@ -257,11 +257,15 @@ def run_tile(
                                s_ref=job.s_ref, s_obs=job.s_obs, gain=gain, offset=offset)
         obs, reb, unk = loaded
         prev = padded
+        # where the local displacement field is uncertain, the tolerance reaches farther
+        fld = getattr(job.poses, "field", None)
+        reach = (fld.reach_map(padded, job.params.geometry_reach)
+                 if fld is not None and job.params.geometry_reach > 0 else None)
         # an attempt that will be re-run stops as soon as it is known to be incomplete
         mask, info = decide_tile(
             obs, reb, unk, threshold=job.threshold, photometry=job.photometry, box=padded,
             core=core, params=job.params, image_shape=(H, W), stop_incomplete=not last,
-            statistic=stat, keep_statistic=not last,
+            statistic=stat, keep_statistic=not last, reach=reach,
         )
         stat = info.pop("statistic", None)
         if info["complete"] or last:

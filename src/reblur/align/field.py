@@ -52,6 +52,9 @@ from scipy.spatial import cKDTree
 
 from ..warp import Box, as_box
 
+#: Largest geometric reach (pixels) the decision's tolerance takes from a field.
+MAX_REACH = 4
+
 __all__ = [
     "DisplacementField", "FieldEstimate", "FieldParams", "estimate_field", "fit_field",
     "lattice_boxes", "reject_outliers",
@@ -211,6 +214,46 @@ class DisplacementField:
         i1 = int(np.clip(math.ceil((b.y1 - 1 - self.y0) / self.step), 0, ny - 1))
         return float(np.abs(self.d[i0:i1 + 1, j0:j1 + 1]).max())
 
+    def _node_variation(self) -> np.ndarray:
+        """At each node, the largest change of the field (vector norm) to any node within
+        two steps (one tie-point spacing): how far a smooth fit may miss a sharp step."""
+        d = self.d.astype(np.float64)
+        ny, nx = d.shape[:2]
+        p = np.pad(d, ((2, 2), (2, 2), (0, 0)), mode="edge")
+        v = np.zeros((ny, nx))
+        for dy in range(-2, 3):
+            for dx in range(-2, 3):
+                diff = p[2 + dy:2 + dy + ny, 2 + dx:2 + dx + nx] - d
+                np.maximum(v, np.hypot(diff[..., 0], diff[..., 1]), out=v)
+        return v
+
+    def max_reach(self, cap: int = MAX_REACH) -> int:
+        """Largest value :meth:`reach_map` takes anywhere (the decision's halo needs it)."""
+        return int(min(cap, np.floor(self._node_variation().max() + 0.5)))
+
+    def reach_map(self, box, cap: int = MAX_REACH) -> np.ndarray:
+        """Per-pixel geometric uncertainty (whole pixels) of the field on a window.
+
+        Where the field varies by ``v`` pixels within one tie-point spacing, a smooth fit
+        can miss a sharp step (a roof's edge under parallax) by up to about ``v``; the
+        decision widens its tolerance by ``round(v)`` pixels there, capped at ``cap``
+        (:mod:`reblur.decide.tolerance`).  Each pixel takes the largest value of the
+        nodes of its cell and their neighbours; 0 where the field is smooth.
+
+        Returns
+        -------
+        (h, w) uint8 ndarray
+        """
+        b = as_box(box)
+        ny, nx = self.d.shape[:2]
+        r = np.minimum(np.floor(self._node_variation() + 0.5), cap).astype(np.uint8)
+        r = cv2.dilate(r, np.ones((3, 3), np.uint8))  # the nodes around a cell
+        iy = np.clip(np.floor((np.arange(b.y0, b.y1) - self.y0) / self.step).astype(int),
+                     0, ny - 1)
+        ix = np.clip(np.floor((np.arange(b.x0, b.x1) - self.x0) / self.step).astype(int),
+                     0, nx - 1)
+        return r[np.ix_(iy, ix)]
+
     @property
     def magnitude(self) -> np.ndarray:
         """``|d|`` at the nodes, ``(ny, nx)`` float32."""
@@ -221,7 +264,8 @@ class DisplacementField:
         mag = self.magnitude
         return {"nodes": list(self.d.shape[:2]), "step_px": float(self.step),
                 "max_px": round(float(mag.max()), 4),
-                "rms_px": round(float(np.sqrt(np.mean(mag * mag))), 4)}
+                "rms_px": round(float(np.sqrt(np.mean(mag * mag))), 4),
+                "max_reach_px": self.max_reach()}
 
     def resample(self, image: np.ndarray, box, valid: np.ndarray, pad: int
                  ) -> tuple[np.ndarray, np.ndarray]:

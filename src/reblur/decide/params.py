@@ -84,6 +84,11 @@ class DecisionParams:
         error where the texture fits best, and elsewhere it can be larger (a roll and a
         perspective viewpoint grow it towards the corners).  The hard-geometry rows of
         ``benchmarks/realism.py`` are the check: at most 0.02 % false alarms with two.
+    geometry_reach : int
+        Largest per-pixel geometric reach the tiles pass to the statistic (the local
+        displacement field's uncertainty, :mod:`reblur.decide.tolerance`); set by the
+        pipeline from the field, 0 without one.  It enters :attr:`pixel_reach`, hence the
+        halo.
     edge_test_shift, edge_test_contrast : float
         The loose tolerance of the edge-artefact test: a region that is not object-like
         (a strip, a branching network) is kept when it persists under this tolerance (a
@@ -132,6 +137,7 @@ class DecisionParams:
         (0.25, 0.0), (0.5, 0.02), (0.5, 0.03), (1.0, 0.03), (1.0, 0.05), (1.0, 0.08))
     calibration_target: float = 2e-4
     calibration_margin: int = 2
+    geometry_reach: int = 0
 
     def __post_init__(self):
         lv = tuple(float(v) for v in self.levels)
@@ -164,6 +170,8 @@ class DecisionParams:
         if self.illumination not in ("auto", "global", "field"):
             raise ValueError(f"illumination must be 'auto', 'global' or 'field', got "
                              f"{self.illumination!r}")
+        if not 0 <= int(self.geometry_reach) <= 8:
+            raise ValueError(f"geometry_reach must lie in [0, 8] px, got {self.geometry_reach}")
         if not 0.0 <= self.edge_test_fraction <= 1.0:
             raise ValueError(f"edge_test_fraction must lie in [0, 1], got "
                              f"{self.edge_test_fraction}")
@@ -195,7 +203,7 @@ class DecisionParams:
         """How far the per-pixel residual looks: the 3 x 3 stencils of the model error and
         the tolerance interval."""
         return max([1, self.tolerance.reach, self.loose_tolerance.reach]
-                   + [t.reach for t in self.ladder])
+                   + [t.reach for t in self.ladder]) + int(self.geometry_reach)
 
     @property
     def smooth_radius(self) -> int:

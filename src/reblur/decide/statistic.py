@@ -36,6 +36,7 @@ def change_statistic(
     edge_k=None,
     curv_k=None,
     tolerance: ModelTolerance | None = None,
+    reach: np.ndarray | None = None,
 ) -> np.ndarray:
     """Local RMS of the robust per-band z-scores of ``observed - matched``.
 
@@ -64,6 +65,9 @@ def change_statistic(
     tolerance : ModelTolerance, optional
         The residual is taken from the model's tolerance interval around ``matched``
         (:func:`reblur.decide.tolerance.tolerant_reference`) instead of ``matched`` itself.
+    reach : (h, w) integer ndarray, optional
+        Per-pixel geometric reach widening that interval (the local displacement field's
+        uncertainty, :meth:`reblur.align.field.DisplacementField.reach_map`).
 
     Returns
     -------
@@ -103,7 +107,7 @@ def change_statistic(
     e = np.zeros((h, w), f32) if C > 1 else np.empty((h, w), f32)
     for c in range(C):
         mc = m[:, :, c]
-        mt = tolerant_reference(o[:, :, c], mc, tolerance)
+        mt = tolerant_reference(o[:, :, c], mc, tolerance, reach)
         g32 = _grad2_f32(mc) if ks[c] > 0 else None
         l32 = _laplacian_f32(mc) if kc[c] > 0 else None
         s2 = f32(s[c] * s[c])

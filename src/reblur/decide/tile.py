@@ -75,7 +75,8 @@ def tile_boxes(
 
 
 def _tile_statistic(o, matched, known, photometry: Photometry, p: DecisionParams,
-                    box: tuple[int, int, int, int], image_shape, previous) -> np.ndarray:
+                    box: tuple[int, int, int, int], image_shape, previous,
+                    reach: np.ndarray | None = None) -> np.ndarray:
     """:func:`change_statistic` over a padded tile, reusing ``previous = (S, box)`` (an
     earlier tile inside this one, same inputs) where its values are exact.
 
@@ -91,7 +92,8 @@ def _tile_statistic(o, matched, known, photometry: Photometry, p: DecisionParams
         return change_statistic(o[sl], matched[sl], known[sl], photometry.sigma,
                                 smooth=p.smooth, truncate=p.truncate,
                                 edge_k=photometry.edge_k, curv_k=photometry.curv_k,
-                                tolerance=p.tolerance)
+                                tolerance=p.tolerance,
+                                reach=None if reach is None else reach[sl])
 
     by0, bx0, bh, bw = box
     if previous is None:
@@ -134,6 +136,7 @@ def decide_tile(
     stop_incomplete: bool = False,
     statistic: tuple[np.ndarray, Any] | None = None,
     keep_statistic: bool = False,
+    reach: np.ndarray | None = None,
 ) -> tuple[np.ndarray | None, dict[str, Any]]:
     """Decide change on one padded tile and return its core.
 
@@ -170,6 +173,9 @@ def decide_tile(
         (the values are those of a computation over the whole tile).
     keep_statistic : bool
         Return ``(S, box)`` as ``info["statistic"]``, for ``statistic=`` of a re-run.
+    reach : (h, w) integer ndarray, optional
+        Per-pixel geometric reach of the statistic's tolerance over the padded tile (the
+        local displacement field's uncertainty; at most ``params.geometry_reach``).
 
     Returns
     -------
@@ -200,7 +206,8 @@ def decide_tile(
         raise ValueError(f"core {(cy0, cx0, ch, cw)} is not inside box {(by0, bx0, bh, bw)}")
     shape = image_shape if image_shape is not None else photometry.image_shape
     matched = photometry.apply(r, (by0, bx0, bh, bw))
-    S = _tile_statistic(o, matched, known, photometry, p, (by0, bx0, bh, bw), shape, statistic)
+    S = _tile_statistic(o, matched, known, photometry, p, (by0, bx0, bh, bw), shape, statistic,
+                        reach)
     ly, lx = cy0 - by0, cx0 - bx0
     # completeness: regions reaching the core must stay clear of non-border tile edges
     m = p.local_radius

@@ -23,6 +23,12 @@ So the observation is compared not with one value of the matched reblurred refer
   times the range of the scene under the kernel; ``contrast`` is that ``d``, the
   relative accuracy of the blur model.
 
+* **geometry** (optional, per pixel): where the local displacement field of the alignment
+  (:mod:`reblur.align.field`) varies by ``r`` pixels within a tie-point spacing, its smooth
+  fit may miss a sharp step (a roof's edge under parallax) by up to that much: the interval
+  is widened to the minimum and maximum of ``m`` over a disc of ``r`` pixels there
+  (``reach``, an integer map; 0 elsewhere, where nothing changes).
+
 The residual that enters the statistic is the distance of the observation from this
 interval (:func:`tolerant_reference` returns the interval's point nearest to it).  A
 change whose contrast exceeds ``contrast`` times the local range (and the shift's reach)
@@ -88,7 +94,24 @@ def _padded(m: np.ndarray, r: int) -> np.ndarray:
     return cv2.copyMakeBorder(m, r, r, r, r, cv2.BORDER_REPLICATE)
 
 
-def tolerance_interval(matched: np.ndarray, tol: ModelTolerance) -> tuple[np.ndarray, np.ndarray]:
+def _disc(r: int) -> np.ndarray:
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    return ((yy * yy + xx * xx) <= r * r).astype(np.uint8)
+
+
+def _widen_by_reach(m: np.ndarray, lo: np.ndarray, hi: np.ndarray, reach: np.ndarray) -> None:
+    """Widen ``[lo, hi]`` in place to the extremes of ``m`` over a disc of ``reach`` px."""
+    for r in np.unique(reach):
+        if r <= 0:
+            continue
+        where = reach == r
+        k = _disc(int(r))
+        np.minimum(lo, cv2.erode(m, k, borderType=cv2.BORDER_REPLICATE), out=lo, where=where)
+        np.maximum(hi, cv2.dilate(m, k, borderType=cv2.BORDER_REPLICATE), out=hi, where=where)
+
+
+def tolerance_interval(matched: np.ndarray, tol: ModelTolerance,
+                       reach: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Lower and upper bound of the values ``matched`` may take under the tolerance.
 
     Parameters
@@ -96,6 +119,8 @@ def tolerance_interval(matched: np.ndarray, tol: ModelTolerance) -> tuple[np.nda
     matched : (h, w) ndarray
         One band of the photometrically matched reblurred reference.
     tol : ModelTolerance
+    reach : (h, w) integer ndarray, optional
+        Per-pixel geometric reach (pixels; see the module docstring).
 
     Returns
     -------
@@ -128,18 +153,20 @@ def tolerance_interval(matched: np.ndarray, tol: ModelTolerance) -> tuple[np.nda
         hi = m.copy()
     if tol.contrast > 0.0:
         r = int(tol.radius)
-        yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
-        disc = ((yy * yy + xx * xx) <= r * r).astype(np.uint8)
+        disc = _disc(r)
         rng = cv2.dilate(m, disc, borderType=cv2.BORDER_REPLICATE)
         rng -= cv2.erode(m, disc, borderType=cv2.BORDER_REPLICATE)
         rng *= f32(tol.contrast)
         lo -= rng
         hi += rng
+    if reach is not None:
+        _widen_by_reach(m, lo, hi, reach)
     return lo, hi
 
 
 def tolerant_reference(observed: np.ndarray, matched: np.ndarray,
-                       tol: ModelTolerance | None) -> np.ndarray:
+                       tol: ModelTolerance | None,
+                       reach: np.ndarray | None = None) -> np.ndarray:
     """The value within the tolerance interval of ``matched`` nearest to ``observed``.
 
     ``observed - tolerant_reference(observed, matched, tol)`` is the residual the model
@@ -150,15 +177,19 @@ def tolerant_reference(observed: np.ndarray, matched: np.ndarray,
     observed, matched : (h, w) ndarray
         One band of the observation and of the matched reblurred reference.
     tol : ModelTolerance or None
-        None or an inactive tolerance returns ``matched`` itself.
+        None or an inactive tolerance (and no ``reach``) returns ``matched`` itself.
+    reach : (h, w) integer ndarray, optional
+        Per-pixel geometric reach (:func:`tolerance_interval`).
 
     Returns
     -------
     (h, w) ndarray
     """
-    if tol is None or not tol.active:
+    if reach is not None and not reach.any():
+        reach = None
+    if (tol is None or not tol.active) and reach is None:
         return matched
-    lo, hi = tolerance_interval(matched, tol)
+    lo, hi = tolerance_interval(matched, tol or ModelTolerance(), reach)
     o = np.asarray(observed, dtype=np.float32)
     np.maximum(lo, np.minimum(o, hi), out=lo)
     return lo
