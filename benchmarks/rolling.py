@@ -12,7 +12,8 @@ Per pair, :func:`reblur.detect_changes` runs with ``shutter="global"`` (before) 
 ``"auto"`` (and ``"rolling"`` with ``--all``): ``FAR`` is the flagged share of the
 unchanged known pixels farther than 3 px from a change, ``recall`` the flagged share of
 the changed known pixels; ``model`` is what auto kept, ``r est`` the estimated readout,
-``s`` the run's seconds.  Rows go to ``docs/rolling_runs.json``.
+``s`` the run's wall seconds and ``cpu s`` its process CPU seconds (the machine is shared:
+compare the two models' times within one run).  Rows go to ``docs/rolling_runs.json``.
 """
 
 from __future__ import annotations
@@ -56,13 +57,15 @@ def run(pair, shutter: str) -> dict:
     """``detect_changes`` with a shutter model, scored."""
     import reblur
 
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     res = reblur.detect_changes(pair.reference, pair.observed, shutter=shutter)
-    seconds = time.perf_counter() - t
+    seconds, cpu = time.perf_counter() - t, time.process_time() - c
     known = pair.valid & ~np.asarray(res.unknown, bool)
     out = scores(np.asarray(res.change, bool), pair.truth, known)
     sh = res.decision.get("shutter", {})
-    out.update(seconds=seconds, model=sh.get("model", "global"), readout=sh.get("readout"),
+    out.update(seconds=seconds, cpu_seconds=cpu,
+               shutter_seconds=res.timings.get("shutter", 0.0),
+               model=sh.get("model", "global"), readout=sh.get("readout"),
                drop=sh.get("criterion", {}).get("drop"))
     return out
 
@@ -83,12 +86,13 @@ def matrix(size: int, readouts, shutters) -> list[dict]:
 def _cell(d: dict) -> list[str]:
     rec = "-" if d["recall"] is None else f"{d['recall']:.3f}"
     r = "-" if d.get("readout") is None else f"{d['readout']:.2f}"
-    return [f"{100 * d['far']:.3f} %", rec, d["model"], r, f"{d['seconds']:.0f}"]
+    return [f"{100 * d['far']:.3f} %", rec, d["model"], r,
+            f"{d['seconds']:.0f} ({d.get('cpu_seconds', float('nan')):.0f})"]
 
 
 def table(rows: list[dict], shutters) -> str:
     head = "| readout | changes | " + " | ".join(
-        f"{s} FAR | recall | model | r est | s" for s in shutters) + " |"
+        f"{s} FAR | recall | model | r est | s (cpu s)" for s in shutters) + " |"
     lines = [head, "|" + "---|" * (2 + 5 * len(shutters))]
     for row in rows:
         cells = [f"{row['readout']:g}", "yes" if row["changes"] else "no"]
