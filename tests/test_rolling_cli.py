@@ -44,7 +44,7 @@ def test_shutter_rolling_is_used_and_reported(tmp_path, rolling_pair):
     assert sh["asked"] == "rolling" and sh["model"] == "rolling"
     assert 0.0 <= sh["readout"] <= 1.0
     bands = sh["rolling"]["bands"]
-    assert len(bands) == 4 and all(abs(b["weight_sum"] - 1) < 0.1 for b in bands)
+    assert len(bands) == 6 and all(abs(b["weight_sum"] - 1) < 0.1 for b in bands)
     assert sh["criterion"]["rule"].startswith("rolling when BIC")
     assert report["files"]["rolling.png"] == "rolling.png"
     assert (tmp_path / "out" / "rolling.png").stat().st_size > 0
