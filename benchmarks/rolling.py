@@ -53,12 +53,16 @@ def scores(change: np.ndarray, truth: np.ndarray, known: np.ndarray) -> dict:
                        if pos.any() else None)}
 
 
-def run(pair, shutter: str) -> dict:
-    """``detect_changes`` with a shutter model, scored."""
+def run(pair, shutter: str, bands: int | None = None) -> dict:
+    """``detect_changes`` with a shutter model (``bands`` row bands, default
+    :class:`~reblur.rolling.RollingParams`'), scored."""
     import reblur
+    from reblur.rolling import RollingParams
 
+    params = RollingParams() if bands is None else RollingParams(n_bands=bands)
     t, c = time.perf_counter(), time.process_time()
-    res = reblur.detect_changes(pair.reference, pair.observed, shutter=shutter)
+    res = reblur.detect_changes(pair.reference, pair.observed, shutter=shutter,
+                                rolling=params)
     seconds, cpu = time.perf_counter() - t, time.process_time() - c
     known = pair.valid & ~np.asarray(res.unknown, bool)
     out = scores(np.asarray(res.change, bool), pair.truth, known)
@@ -70,14 +74,15 @@ def run(pair, shutter: str) -> dict:
     return out
 
 
-def matrix(size: int, readouts, shutters) -> list[dict]:
+def matrix(size: int, readouts, shutters, bands: int | None = None,
+           changes=(False, True)) -> list[dict]:
     rows = []
-    for changes in (False, True):
+    for ch in changes:
         for r in readouts:
-            pair = make(r, changes, size)
-            row = {"size": size, "readout": r, "changes": changes}
+            pair = make(r, ch, size)
+            row = {"size": size, "readout": r, "changes": ch, "bands": bands}
             for sh in shutters:
-                row[sh] = run(pair, sh)
+                row[sh] = run(pair, sh, bands)
             print(json.dumps(row), flush=True)
             rows.append(row)
     return rows
@@ -107,8 +112,15 @@ if __name__ == "__main__":
     ap.add_argument("--size", type=int, default=768, help="side of the pairs (px)")
     ap.add_argument("--readouts", default="0,0.25,0.5,1", help="comma-separated fractions")
     ap.add_argument("--all", action="store_true", help="also shutter='rolling'")
+    ap.add_argument("--bands", type=int, default=None,
+                    help="row bands of the rolling model (default RollingParams')")
+    ap.add_argument("--no-change-only", action="store_true", help="only the pairs without "
+                    "changes")
+    ap.add_argument("--no-save", action="store_true", help=f"do not write {RUNS.name}")
     a = ap.parse_args()
     shutters = ["global", "auto"] + (["rolling"] if a.all else [])
-    rows = matrix(a.size, [float(v) for v in a.readouts.split(",")], shutters)
-    RUNS.write_text(json.dumps(rows, indent=1))
+    rows = matrix(a.size, [float(v) for v in a.readouts.split(",")], shutters, a.bands,
+                  (False,) if a.no_change_only else (False, True))
+    if not a.no_save:
+        RUNS.write_text(json.dumps(rows, indent=1))
     print(table(rows, shutters))
