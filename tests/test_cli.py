@@ -401,6 +401,103 @@ def test_usage_error_and_verbose_traceback(tmp_path, good_pair):
     assert res.stderr.strip().splitlines()[-1].startswith("reblur: error: ")
 
 
+# ---------------------------------------------------------------------------- CLI: alignment
+def _invoke(*args):
+    from click.testing import CliRunner
+
+    from reblur.cli import main
+
+    return CliRunner().invoke(main, [str(a) for a in args], prog_name="reblur")
+
+
+class _Called(Exception):
+    """Raised by a stand-in for detect_changes: the CLI got that far."""
+
+
+def _spy_detect(monkeypatch) -> dict:
+    """Replace reblur.detect_changes by a spy that records its keywords and stops."""
+    import reblur
+
+    seen: dict = {}
+
+    def spy(*a, **k):
+        seen.update(k)
+        raise _Called
+
+    monkeypatch.setattr(reblur, "detect_changes", spy)
+    return seen
+
+
+def test_detect_no_align_no_refine(tmp_path, good_pair, monkeypatch):
+    """--no-align and --no-refine reach the library as align=False, refine=False."""
+    seen = _spy_detect(monkeypatch)
+    res = _invoke("detect", *good_pair, "--out", tmp_path / "res", "-q")
+    assert res.exit_code == 1 and "_Called" in res.output, res.output
+    assert seen["align"] is True and seen["refine"] is True and seen["align_hint"] is None
+    res = _invoke("detect", *good_pair, "--out", tmp_path / "res", "--no-align", "--no-refine",
+                  "-q")
+    assert res.exit_code == 1 and "_Called" in res.output, res.output
+    assert seen["align"] is False and seen["refine"] is False and seen["align_hint"] is None
+
+
+@pytest.mark.parametrize("text", [
+    "1 0 12.5\n0 1 -3\n0 0 1\n",
+    "# a rough guess\n2, 0, 25,  0, 2, -6,  0, 0, 2  # row by row\n",
+    json.dumps({"H": [[1, 0, 12.5], [0, 1, -3], [0, 0, 1]]}),
+    json.dumps([1, 0, 12.5, 0, 1, -3, 0, 0, 1]),
+])
+def test_align_hint_file_reaches_the_library(tmp_path, good_pair, monkeypatch, text):
+    """Text or JSON, nested or flat, any scale: the normalised homography."""
+    seen = _spy_detect(monkeypatch)
+    hint = tmp_path / "hint.txt"
+    hint.write_text(text)
+    res = _invoke("detect", *good_pair, "--out", tmp_path / "res", "--align-hint", hint, "-q")
+    assert res.exit_code == 1 and "_Called" in res.output, res.output
+    assert seen["align"] is True
+    np.testing.assert_array_equal(seen["align_hint"], [[1, 0, 12.5], [0, 1, -3], [0, 0, 1]])
+
+
+@pytest.mark.parametrize(("content", "pattern"), [
+    (None, r"hint\.txt: no such file"),
+    (b"\xff\xfe\x00\x01binary", r"hint\.txt: not a text file"),
+    ("1 0 0\n0 1 0\n", r"hint\.txt: 6 numbers, expected 9 \(a 3x3 reference -> observation"),
+    ("1 0 0 0 1 0 0 0 1 5", r"10 numbers, expected 9"),
+    ("one two three", r"not a list of numbers"),
+    ('{"H": [[1, 0], [0, 1, 0], [0, 0, 1]]}', r"not a list of numbers"),
+    ("1 0 nan 0 1 0 0 0 1", r"non-finite"),
+    ("[[1, 2, 0], [2, 4, 0], [0, 0, 1]]", r"singular \(not invertible\)"),
+    ("1 0 0 0 1 0 0 0 0", r"singular"),
+])
+def test_align_hint_file_is_checked(tmp_path, content, pattern):
+    """A bad --align-hint file is refused while the options are read (the inputs do not
+    even exist): usage error 2, one line naming the file and what it must hold."""
+    hint = tmp_path / "hint.txt"
+    if isinstance(content, bytes):
+        hint.write_bytes(content)
+    elif content is not None:
+        hint.write_text(content)
+    res = _invoke("detect", tmp_path / "nope.png", tmp_path / "nope2.png", "--out",
+                  tmp_path / "res", "--align-hint", hint)
+    assert res.exit_code == 2, res.output
+    lines = res.output.strip().splitlines()
+    assert len(lines) == 1, res.output
+    assert lines[0].startswith("reblur: error: Invalid value for '--align-hint': "), lines[0]
+    assert re.search(pattern, lines[0]), lines[0]
+    assert not (tmp_path / "res").exists()
+
+
+def test_no_align_with_align_hint_is_a_usage_error(tmp_path, good_pair):
+    hint = tmp_path / "hint.txt"
+    hint.write_text("1 0 0 0 1 0 0 0 1")
+    res = _invoke("detect", *good_pair, "--out", tmp_path / "res", "--no-align",
+                  "--align-hint", hint)
+    assert res.exit_code == 2, res.output
+    assert re.fullmatch(r"reblur: error: --align-hint seeds the alignment that --no-align "
+                        r"skips: give one of them \(see 'reblur detect --help'\)\n",
+                        res.output), res.output
+    assert not (tmp_path / "res").exists()
+
+
 def test_help_lists_commands():
     from click.testing import CliRunner
 
@@ -414,7 +511,8 @@ def test_help_lists_commands():
     res = runner.invoke(main, ["detect", "--help"])
     assert res.exit_code == 0
     for opt in ("--t-max", "--rz-max", "--rz-step", "--lam", "--tile-size", "--threshold",
-                "--truth", "--max-pixels", "--workers", "--overwrite", "--quiet", "--verbose"):
+                "--truth", "--max-pixels", "--workers", "--overwrite", "--quiet", "--verbose",
+                "--no-align", "--no-refine", "--align-hint"):
         assert opt in res.output
     assert runner.invoke(main, ["--version"]).output.startswith("reblur, version")
     res = runner.invoke(main, ["evaluate", "a.png"])

@@ -1,4 +1,4 @@
-"""Tests for reblur.field: the local residual displacement field after the homography."""
+"""Tests for reblur.align.field: the local residual displacement field after the homography."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from reblur.field import (
+from reblur.align.field import (
     DisplacementField,
     FieldParams,
     estimate_field,
@@ -62,7 +62,7 @@ def test_field_rejects_bad_nodes():
 
 def test_reblur_tile_resamples_at_the_displaced_position():
     """Identity pose, a linear ramp reference: the field moves the sample to p + d(p),
-    so the output is the ramp at p + d(p) exactly (bilinear on a linear image)."""
+    so the output is the ramp at p + d(p) (bicubic interpolation reproduces a ramp)."""
     H, W = 120, 160
     y, x = np.mgrid[0:H, 0:W].astype(np.float64)
     ref = (0.002 * x + 0.003 * y).astype(np.float32)
@@ -76,7 +76,8 @@ def test_reblur_tile_resamples_at_the_displaced_position():
     dx, dy = truth(xx, yy)
     want = 0.002 * (xx + dx) + 0.003 * (yy + dy)
     assert valid.all()
-    np.testing.assert_allclose(out[..., 0], want, atol=2e-5)
+    # OpenCV's remap quantises positions to 1/32 px: 0.005 / 32 on this ramp
+    np.testing.assert_allclose(out[..., 0], want, atol=2e-4)
     plain, _ = reblur_tile(SparsePoses(w, grid), ref, box)
     assert np.abs(plain[..., 0] - want).max() > 1e-3  # the field did something
 

@@ -116,6 +116,43 @@ def test_textureless_input_says_so():
         reblur.detect_changes(flat, flat)
 
 
+def test_align_hint_is_passed_to_the_alignment(monkeypatch):
+    """A small pair rotated by 30 degrees: ``align_hint`` reaches the coarse alignment,
+    which it seeds (its method says so), and the result maps the reference where the true
+    homography does; with ``align=False`` a hint is a contradiction.  The run stops after
+    the alignment (the rest of the pipeline does not read the hint)."""
+    from reblur import pipeline
+    from reblur.grid import map_points, pose_homography
+    from reblur.warp import warp_window
+
+    ref = cv2.resize(levir_before(0), (384, 384), interpolation=cv2.INTER_AREA)
+    ref = ref.astype(np.float32)
+    c = (191.5, 191.5)
+    V = pose_homography(10.0, -6.0, rz=30.0, center=c)
+    obs, _ = warp_window(ref, V, (0, 0, 384, 384), dtype=np.float32)
+    hint = pose_homography(20.0, -16.0, rz=26.0, center=c)
+
+    class Aligned(Exception):
+        pass
+
+    seen = []
+    align_coarse = pipeline.align_coarse
+
+    def spy(reference, observed, shakes=(8.0, 16.0, 32.0, 64.0), hint=None):
+        seen.append(align_coarse(reference, observed, shakes, hint=hint))
+        raise Aligned
+
+    monkeypatch.setattr(pipeline, "align_coarse", spy)
+    with pytest.raises(Aligned):
+        reblur.detect_changes(ref, obs, align_hint=hint)
+    assert seen[0].method.startswith("hint+gradient"), seen[0]
+    corners = np.array([[0, 0], [383, 0], [383, 383], [0, 383]], float)
+    err = np.abs(map_points(seen[0].H, corners) - map_points(V, corners)).max()
+    assert err < 2.0, err
+    with pytest.raises(ValueError, match="align_hint needs align=True"):
+        reblur.detect_changes(ref, obs, align=False, align_hint=hint)
+
+
 def test_band_mismatch_and_nan_are_refused():
     a = np.zeros((64, 64, 3), np.float32)
     with pytest.raises(ValueError, match="band"):

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from conftest import levir_before
 
+from reblur.align import measure_shifts, probe_boxes, refine_alignment
 from reblur.grid import PoseGrid, map_points, pose_homography
-from reblur.refine import measure_shifts, probe_boxes, refine_alignment
 from reblur.tiled import SparsePoses
 from reblur.warp import warp_window
 
@@ -99,3 +99,68 @@ def test_no_reliable_probe_no_correction():
     assert all(not s.measured and s.reason.startswith("flat") for s in r.before)
     assert [d["reason"] for d in r.info["probe_shifts"]] == [s.reason for s in r.before]
     assert all(d["dx"] is None for d in r.info["probe_shifts"])
+
+
+def test_probes_beyond_the_horizon_are_skipped(reference):
+    """A strong perspective base: observation columns x >= 1000 map beyond the horizon of
+    the reference (the base's inverse divides by 1 - x / 1000), columns in between to
+    points past the reference's right edge.  Those probes are skipped with their reason;
+    the ones on the left are measured, and the refinement returns."""
+    base = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1e-3, 0.0, 1.0]])
+    grid, w = _grid_and_weights()
+    obs = np.zeros(reference.shape, np.float32)  # nothing right of the horizon
+    for tx in (0.0, 1.0):
+        o, _ = warp_window(reference, pose_homography(tx, 0.0, center=C) @ base,
+                           (0, 0, H, 990), dtype=np.float32)
+        obs[:, :990] += 0.5 * o.reshape(H, 990)
+    r = refine_alignment(reference, obs, w, grid, base)
+    boxes = probe_boxes((H, W), size=256)
+    assert len(r.before) == len(boxes)
+    inv = np.linalg.inv(base)
+    reasons = set()
+    for b, s in zip(boxes, r.before, strict=True):
+        corners = np.array([[b.x0, b.y0], [b.x1 - 1, b.y0], [b.x0, b.y1 - 1],
+                            [b.x1 - 1, b.y1 - 1]], float)
+        src = map_points(inv, corners)
+        if b.x0 < 1000 < b.x1 - 1:  # the window straddles the horizon
+            assert not s.measured and "beyond the horizon" in s.reason, (b, s)
+        elif b.x0 >= 1000 or src[:, 0].max() > W - 3 or src[:, 1].max() > H - 3:
+            # all of it beyond, or reading past the reference's edges
+            assert not s.measured and "the reference covers" in s.reason, (b, s)
+        else:
+            assert s.measured and np.hypot(s.dx, s.dy) < 0.05, (b, s)
+        reasons.add(s.reason.split(":")[0])
+    assert {"", "cannot be reblurred"} < reasons  # both kinds occur
+    assert not r.applied or r.info["after"]["n"] > 0
+
+
+@pytest.mark.parametrize(("G", "reason"), [
+    (np.zeros((3, 3)), "degenerate correction: singular"),
+    (np.array([[1.0, 0, 0], [0, 1.0, 0], [np.nan, 0, 1.0]]), "singular or non-finite"),
+    (np.array([[-1.0, 0, W - 1.0], [0, 1.0, 0], [0, 0, 1.0]]), "folded or mirrored"),
+    (np.array([[1.0, 0, 0], [0, 1.0, 0], [-1.5e-3, 0, 1.0]]), "crosses the horizon"),
+    (np.array([[1.0, 0, 600.0], [0, 1.0, 0], [0, 0, 1.0]]), r"moves the image corners by 600 px"),
+])
+def test_degenerate_corrections_are_rejected(reference, monkeypatch, G, reason):
+    """A fitted correction that is singular, folds the image or moves it by more than a
+    few probe sizes is rejected with the reason, not raised; the base stays."""
+    from reblur.align import refine as refine_mod
+
+    obs, grid, w = _observe(reference, np.eye(3))
+    monkeypatch.setattr(refine_mod, "_fit", lambda shifts, ransac_px: (G, "homography", 12))
+    base = pose_homography(0.5, 0.0, center=C)
+    r = refine_alignment(reference, obs, w, grid, base)
+    assert not r.applied and reason in r.info["rejected"], r.info
+    np.testing.assert_array_equal(r.base, base)
+    assert r.after == r.before and r.info["applied"] is False
+
+
+def test_refine_params_are_checked():
+    from reblur.align import RefineParams
+
+    for bad, pattern in ((dict(probe_size=8), "probe_size"), (dict(n_probes=0), "n_probes"),
+                         (dict(min_cc=1.5), "min_cc"), (dict(ransac_px=0.0), "ransac_px"),
+                         (dict(max_correction=float("inf")), "max_correction"),
+                         (dict(min_gain_px=-1.0), "min_gain_px")):
+        with pytest.raises(ValueError, match=rf"RefineParams\.{pattern}"):
+            RefineParams(**bad)

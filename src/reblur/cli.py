@@ -185,6 +185,45 @@ def _check_scheduler(ctx: click.Context, param: click.Parameter, value: str | No
     return value
 
 
+def _read_hint(ctx: click.Context, param: click.Parameter, value: Path | None):
+    """The ``--align-hint`` file: 9 finite numbers (a 3x3 reference -> observation
+    homography in full-resolution pixels, row by row) as JSON (a nested or flat list, or
+    an object with an ``"H"`` entry) or as text (whitespace or commas; ``#`` comments);
+    invertible.  Returns it normalised (``H[2, 2] = 1``)."""
+    if value is None:
+        return None
+    import numpy as np
+
+    name = display_path(value)
+    want = "a 3x3 reference -> observation homography in full-resolution pixels, row by row"
+    try:
+        text = value.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        why = "not a text file" if isinstance(exc, UnicodeDecodeError) else (
+            "no such file" if isinstance(exc, FileNotFoundError) else exc.strerror or exc)
+        raise click.BadParameter(f"{name}: {why}; give {want}") from None
+    try:
+        data = json.loads(text)
+        if isinstance(data, dict):
+            data = data.get("H", data.get("homography"))
+    except ValueError:
+        lines = (line.split("#", 1)[0] for line in text.splitlines())
+        data = " ".join(lines).replace(",", " ").replace("[", " ").replace("]", " ").split()
+    try:
+        H = np.array(data, dtype=np.float64).ravel()
+    except (TypeError, ValueError):
+        raise click.BadParameter(f"{name}: not a list of numbers; give {want}") from None
+    if H.size != 9:
+        raise click.BadParameter(f"{name}: {H.size} numbers, expected 9 ({want})")
+    if not np.all(np.isfinite(H)):
+        raise click.BadParameter(f"{name}: the homography has non-finite numbers; give {want}")
+    H = H.reshape(3, 3)
+    if H[2, 2] == 0 or abs(np.linalg.det(H / H[2, 2])) < 1e-12:
+        raise click.BadParameter(f"{name}: the homography is singular (not invertible); "
+                                 f"give {want}")
+    return H / H[2, 2]
+
+
 def _quiet_unraisable(unraisable: Any) -> None:
     """``sys.unraisablehook`` without -v: what a library could not raise (a coroutine
     garbage-collected at exit) is logged at debug level, not printed."""
@@ -239,7 +278,8 @@ def overwrite_option(f: Callable) -> Callable:
 def max_pixels_option(default: int) -> Callable:
     return click.option(
         "--max-pixels", type=click.IntRange(min=1), default=default, show_default=True,
-        help="Refuse larger images (height x width): a guard against decompression bombs.",
+        help="Refuse larger images (height x width), or images decoding to more than 4 "
+             "bytes per allowed pixel: a guard against decompression bombs.",
     )
 
 
@@ -442,6 +482,21 @@ def main() -> None:
 @click.option("--tilt-step", type=_Finite(min=0, min_open=True, max=10), default=None,
               help="--grid 6d: tilt / pan step (degrees; default: one pixel at the "
                    "farthest pixel beyond the shift of the centre).")
+@click.option("--no-align", is_flag=True,
+              help="Skip the coarse alignment: the images are already registered (same "
+                   "frame, up to the pose grid's --t-max / --rz-max).")
+@click.option("--align-hint", type=_PATH, default=None, callback=_read_hint, metavar="FILE",
+              help="A rough reference -> observation homography (3x3 numbers in "
+                   "full-resolution pixels, row by row; text or JSON) that seeds the coarse "
+                   "alignment: it reaches pairs the alignment refuses on its own (large "
+                   "rotations, captures years apart).")
+@click.option("--no-refine", is_flag=True,
+              help="Skip the geometric refinement of the alignment after the motion "
+                   "estimate (probe windows over the whole image).")
+@click.option("--no-field", is_flag=True,
+              help="Skip the local displacement field after the refinement (tie "
+                   "points on a lattice, a smooth field for parallax and lens "
+                   "distortion).")
 @max_pixels_option(DEFAULT_MAX_PIXELS)
 @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
               help="Threads for the tiled stages (processes with --scheduler processes).")
@@ -456,6 +511,7 @@ def main() -> None:
 def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float,
            rz_step: float | None, lam: float, tile_size: int, threshold: float | None,
            truth: Path | None, illumination: str, nodata: float | None, shutter: str,
+           no_align: bool, align_hint: Any, no_refine: bool, no_field: bool,
            grid_kind: str, focal: float | None, tz_max: float | None, tz_step: float | None,
            tilt_max: float | None, tilt_step: float | None,
            max_pixels: int, workers: int, scheduler: str | None, overwrite: bool,
@@ -474,6 +530,9 @@ def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float
 
     t0 = time.perf_counter()
     _check_grid(t_max, rz_max, rz_step)
+    if no_align and align_hint is not None:
+        raise click.UsageError("--align-hint seeds the alignment that --no-align skips: "
+                               "give one of them", ctx=click.get_current_context())
     six = _six_d_options(grid_kind, rz_max, dict(focal=focal, tz_max=tz_max, tz_step=tz_step,
                                                  tilt_max=tilt_max, tilt_step=tilt_step))
     inputs = [reference, observed] + ([truth] if truth is not None else [])
@@ -484,7 +543,9 @@ def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float
                           dict(t_max=t_max, rz_max=rz_max, rz_step=rz_step, lam=lam,
                                tile_size=tile_size, threshold=threshold, workers=workers,
                                scheduler=scheduler, illumination=illumination,
-                               shutter=shutter), nodata, six)
+                               shutter=shutter, align=not no_align,
+                               refine=not no_refine, local_field=not no_field,
+                               align_hint=align_hint), nodata, six)
     click.echo(display_path(summary_line(summary, out)))
 
 
@@ -537,6 +598,17 @@ def _detect(stage: Path, out_dir: Path, reference: Path, observed: Path, truth: 
 
     import reblur
 
+    georef = None
+    if options.get("align", True) and options.get("align_hint") is None:
+        # two georeferenced inputs: their CRSs and transforms seed the alignment
+        from .align.georef import image_prior
+
+        prior = image_prior(ref, obs)
+        if prior is not None:
+            options = dict(options, align_hint=prior.H)
+            georef = prior.to_dict()
+            log.info("alignment seeded by the georeferencing (fit residual %.2f px)",
+                     prior.residual_max)
     progress = None if quiet else _Progress()
     # full-size masks of large inputs (and every mask written by Dask workers) go to a zarr
     # store in the temporary output directory, never to memory; it is removed once the
@@ -561,7 +633,10 @@ def _detect(stage: Path, out_dir: Path, reference: Path, observed: Path, truth: 
                 result, stage, reference=ref, observed=obs, truth=truth_mask,
                 options=dict(options, **recorded, max_pixels=max_pixels, command="detect",
                              nodata=nodata,
-                             truth=str(truth) if truth is not None else None),
+                             truth=str(truth) if truth is not None else None,
+                             align_hint=None if options.get("align_hint") is None
+                             else options["align_hint"].tolist(),
+                             georef_prior=georef),
                 timings=dict(open=t_open),
             )
     finally:

@@ -242,6 +242,18 @@ def _spill(a: np.ndarray, name: str, store) -> Any:
         return z
 
 
+def _local_copy(a) -> bool:
+    """Whether ``a``, or a view it wraps, reads a temporary store of this machine
+    (:class:`reblur._decoded.DecodedImage`)."""
+    for _ in range(8):
+        if getattr(a, "temporary", False):
+            return True
+        a = getattr(a, "source", None)
+        if a is None:
+            return False
+    return False
+
+
 def portable(a, name: str = "image", store=None) -> Any:
     """An equivalent reader of ``a`` that can be pickled to other processes, reading the
     image by path: never the pixels themselves.
@@ -249,7 +261,9 @@ def portable(a, name: str = "image", store=None) -> Any:
     Parameters
     ----------
     a : array-like or str or path-like
-        numpy array (written once to a zarr array under ``store``, which is returned),
+        numpy array or a PNG / JPEG decoded into a temporary store (written once to a zarr
+        array under ``store``, which is returned; without ``store`` the temporary store is
+        read where it is, by processes of this machine),
         file path (:func:`open_source`), zarr array (as is when picklable, reopened by path
         when it wraps a TIFF file), or a lazy view with a ``source`` attribute (such as
         :class:`reblur.io.LazyBands`), converted recursively.
@@ -284,6 +298,13 @@ def portable(a, name: str = "image", store=None) -> Any:
     src = _tiff_source_of(a)
     if src is not None:
         return src
+    if store is not None and _local_copy(a):
+        # a PNG / JPEG decoded into a temporary store: copied where the workers can see it
+        if getattr(a, "temporary", False):
+            return _spill(a, name, store)
+        b = copy.copy(a)
+        b.source = portable(a.source, name, store)
+        return b
     try:
         pickle.dumps(a)
         return a

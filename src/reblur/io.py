@@ -11,21 +11,26 @@ windows sliced from it: ``image.array[y0:y1, x0:x1]`` returns a numpy array.
 
 Supported: PNG, JPEG, TIFF/BigTIFF/GeoTIFF, zarr arrays (a directory, or a group holding an
 array ``"0"`` or a single array); other formats imagecodecs can decode (BMP, WebP, ...) are
-read into memory.  Pixel types uint8, uint16 (never reduced to 8 bits), other integers and
-float32/float64; gray, gray+alpha, RGB, RGBA (alpha is dropped) and multi-band images.
+read into memory.  A large PNG or JPEG (more than :data:`LAZY_BYTES` decoded) is decoded once,
+in strips, into a temporary zarr store and read from it window by window like a large TIFF
+(:mod:`reblur._decoded`).  Pixel types uint8, uint16 (never reduced to 8 bits), other
+integers and float32/float64; gray, gray+alpha, RGB, RGBA (alpha is dropped) and multi-band
+images.
 
 Every problem with an input raises :class:`InputError` (a ``ValueError``) whose message is
 one line naming the file and the problem: missing file, unreadable, truncated or not an
 image, data the format would silently read as zeros or grey (a zarr chunk never written, a
 TIFF tile or strip with offset or byte count 0, a JPEG whose data ends early), smaller
-than :data:`MIN_SIDE` pixels on a side, more than ``max_pixels`` pixels or, for a format
-decoded in memory (PNG, JPEG, WebP, JPEG XL, ...), more than :data:`IN_MEMORY_MAX_BYTES`
-decoded bytes (decompression-bomb guards checked from the header -- size, bands and bit
-depth -- before any pixel is decoded; a format whose header cannot be read is refused), NaN or
-Inf pixels (refused: a float image is scanned window by window, never loaded whole).  A TIFF
-compression no installed codec decodes is refused when the file is opened, and the first chunk
-of a lazily read image is decoded then; any later window that fails to decode (a corrupt tile
-met by the estimate, a tile thread or a Dask worker) raises the same one-line
+than :data:`MIN_SIDE` pixels on a side, more than ``max_pixels`` pixels, more decoded bytes
+than ``max_pixels`` x :data:`BYTES_PER_PIXEL`, a format decoded whole whose decoder would
+need more than :data:`IN_MEMORY_MAX_BYTES`, or a lazily read image whose chunks exceed
+:data:`CHUNK_MAX_BYTES` (decompression-bomb guards checked from the header -- size, bands and
+sample type -- before any pixel is decoded; a format whose header cannot be read is refused,
+and so is an animation), NaN or Inf pixels (refused: a float image is scanned window by
+window, never loaded whole).  A TIFF compression no installed codec decodes is refused when
+the file is opened, and the first chunk of a lazily read image is decoded then; any later
+window that fails to decode (a corrupt tile met by the estimate, a tile thread or a Dask
+worker) raises the same one-line
 :class:`InputError`, naming the file and the window.  tifffile's own log lines are kept off
 the terminal while reading and folded into that message.
 
@@ -65,6 +70,9 @@ __all__ = [
     "chunk_cached",
     "tile_chunks",
     "DEFAULT_MAX_PIXELS",
+    "BYTES_PER_PIXEL",
+    "decoded_bytes_limit",
+    "convert_command",
     "MIN_SIDE",
     "open_image",
     "read_mask",
@@ -86,17 +94,28 @@ __all__ = [
 #: and typos; raise it with ``max_pixels=`` (``--max-pixels``) for larger images.
 DEFAULT_MAX_PIXELS = 4_000_000_000
 
+#: The decoded bytes an image may take are ``max_pixels`` times this: an allowed pixel is
+#: 4 bytes (RGBA at 8 bits, gray + alpha at 16, one float32 band), so images of deeper
+#: pixels count for more (an RGBA 16-bit image for twice its pixels).  Checked from the
+#: header (size, bands, sample type) before anything is decoded, for every format; 16 GB
+#: under the default limit.
+BYTES_PER_PIXEL = 4
+
 #: Minimum image side in pixels: smaller images cannot carry a blur estimate.
 MIN_SIDE = 32
 
-#: Images whose pixel data exceeds this many bytes stay on disk (TIFF and zarr only).
+#: Images whose pixel data exceeds this many bytes stay on disk: TIFF and zarr read window
+#: by window, PNG and JPEG decoded once, in strips, into a temporary store read the same way.
 LAZY_BYTES = 512 * 2**20
 
-#: PNG/JPEG/other codecs decode the whole image into memory: refuse more pixels than this.
-IN_MEMORY_MAX_PIXELS = 2**30
+#: A chunk (tile or strip) of a lazily read TIFF or zarr image may not decode to more: every
+#: window read decodes each chunk it touches whole (a single-strip TIFF: the whole image).
+CHUNK_MAX_BYTES = 512 * 2**20
 
-#: ... and more decoded bytes than this (what 2**30 RGBA pixels of 8 bits take), read from the
-#: header (size, bands and bit depth) before anything is decoded.
+#: A format that cannot be decoded in strips (WebP, JPEG 2000, JPEG XL, AVIF, an interlaced
+#: or palette PNG, a 12-bit JPEG, ...) is decoded whole in memory: refuse it when the
+#: decoder's peak (the decoded bytes times a measured factor per format, from the header)
+#: would exceed this; the message gives the command converting it to a tiled TIFF.
 IN_MEMORY_MAX_BYTES = 2**32
 
 #: Rec. 709 luminance weights (as ``skimage.color.rgb2gray``).
@@ -928,26 +947,121 @@ def check_finite(image: Image | Any, name: str | None = None, *,
             )
 
 
+# ---------------------------------------------------------------------------- limits
+def decoded_bytes_limit(max_pixels: int | None) -> int | None:
+    """The decoded bytes an image may take under ``max_pixels``: :data:`BYTES_PER_PIXEL`
+    per allowed pixel (None: no limit)."""
+    return None if max_pixels is None else int(max_pixels) * BYTES_PER_PIXEL
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """What an image file decodes to, read from its header before any pixel is decoded.
+
+    ``itemsize`` is bytes per sample (an upper bound where the header does not say:
+    ``exact`` False); ``streamable``: :mod:`reblur._decoded` can decode it in strips into a
+    temporary store; ``peak``: the decoder's peak memory over the decoded bytes when it
+    decodes the image whole (``python -m benchmarks.big_inputs --cases formats``);
+    ``gdal``: GDAL reads the format (for the conversion command in messages).
+    """
+
+    height: int
+    width: int
+    bands: int
+    itemsize: int
+    exact: bool = True
+    streamable: bool = False
+    peak: float = 1.0
+    gdal: bool = True
+
+    @property
+    def nbytes(self) -> int:
+        return self.height * self.width * self.bands * self.itemsize
+
+
+def convert_command(path: Path, gdal: bool = True) -> str:
+    """A shell command converting ``path`` to a tiled, compressed (Big)TIFF beside it, which
+    reblur reads window by window: GDAL's ``gdal_translate`` (which reads PNG and baseline
+    JPEG line by line), or tifffile for a format GDAL does not read."""
+    import shlex
+
+    path = Path(path)
+    dst = (path.with_name(f"{path.stem}.tiled.tif") if path.suffix.lower() in (".tif", ".tiff")
+           else path.with_suffix(".tif"))
+    src, dst_q = shlex.quote(display_path(path)), shlex.quote(display_path(dst))
+    if gdal:
+        return (f"gdal_translate -co TILED=YES -co COMPRESS=ZSTD -co BIGTIFF=IF_SAFER {src} "
+                f"{dst_q}")
+    return ("python -c 'import sys, imagecodecs, tifffile; tifffile.imwrite(sys.argv[2], "
+            "imagecodecs.imread(sys.argv[1]), tile=(512, 512), compression=\"zstd\", "
+            f"bigtiff=True)' {src} {dst_q}")
+
+
+def _check_bytes(path, what: str, lay: _Layout, max_pixels: int | None) -> int:
+    """The decoded bytes of ``lay``; raise when they exceed what ``max_pixels`` allows."""
+    n, cap = lay.nbytes, decoded_bytes_limit(max_pixels)
+    if cap is not None and n > cap:
+        s = "s" * (lay.bands != 1)
+        upto = "" if lay.exact else "up to "
+        raise _fail(
+            path,
+            f"{what} of {lay.width}x{lay.height} pixels, {lay.bands} band{s} of "
+            f"{8 * lay.itemsize} bits, would decode to {upto}{n:,} bytes, more than the limit "
+            f"of {cap:,} (--max-pixels {int(max_pixels):,} x {BYTES_PER_PIXEL} bytes); raise "
+            f"--max-pixels to at least {-(-n // BYTES_PER_PIXEL):,} if this is intended",
+        )
+    return n
+
+
+def _check_in_memory(path, what: str, lay: _Layout) -> None:
+    """Refuse an image whose whole decode would need more than :data:`IN_MEMORY_MAX_BYTES`."""
+    need = int(lay.nbytes * lay.peak)
+    if need > IN_MEMORY_MAX_BYTES:
+        raise _fail(
+            path,
+            f"{what} of {lay.width}x{lay.height} pixels would need about {need:,} bytes of "
+            f"memory to decode whole, more than the limit of {IN_MEMORY_MAX_BYTES:,}, and it "
+            "cannot be decoded in strips; convert it to a tiled TIFF first: "
+            f"{convert_command(path, lay.gdal)}",
+        )
+
+
+def _check_chunk_bytes(path, chunks, dtype, what: str, hint: str) -> None:
+    """Refuse a lazily read image whose chunks (tiles or strips) are too large to decode one
+    at a time: every window read decodes each chunk it touches whole."""
+    n = int(np.prod([int(c) for c in chunks], dtype=np.int64)) * np.dtype(dtype).itemsize
+    if n > CHUNK_MAX_BYTES:
+        raise _fail(path, f"{what} of {n:,} bytes each, and every window read decodes each one "
+                          f"it touches whole (limit {CHUNK_MAX_BYTES:,} bytes); {hint}")
+
+
 # ---------------------------------------------------------------------------- headers
-def _png_header(path: Path, data: bytes) -> tuple[int, int]:
+def _png_layout(path: Path, data) -> _Layout:
+    """The layout of a PNG from its IHDR and the chunks before its image data (a ``tRNS``
+    chunk adds an alpha band; a palette decodes to RGB)."""
     if len(data) < 33 or data[12:16] != b"IHDR":
         raise _fail(path, "not a valid PNG file (no IHDR header)")
     w, h = struct.unpack(">II", data[16:24])
-    return h, w
+    depth, colour, interlace = data[24], data[25], data[28]
+    trns, i = False, 8
+    while i + 8 <= len(data):
+        kind = bytes(data[i + 4 : i + 8])
+        if kind in (b"IDAT", b"IEND"):
+            break
+        trns = trns or kind == b"tRNS"
+        i += 12 + int.from_bytes(data[i : i + 4], "big")
+    bands = {0: 1, 2: 3, 3: 3, 4: 2, 6: 4}.get(colour, 4) + (trns and colour in (0, 2, 3))
+    plain = depth in (8, 16) and colour in (0, 2, 4, 6) and not trns and interlace == 0
+    return _Layout(h, w, bands, 2 if depth == 16 else 1, streamable=plain)
 
 
-def _png_layout(data: bytes) -> tuple[int, int]:
-    """``(bands, bytes per sample)`` a PNG decodes to, from its IHDR (palette: RGBA)."""
-    depth, colour = data[24], data[25]
-    bands = {0: 1, 2: 3, 3: 4, 4: 2, 6: 4}.get(colour, 4)
-    return bands, 2 if depth == 16 else 1
-
-
-def _jpeg_header(path: Path, data: bytes) -> tuple[int, int, int, int]:
-    """``(height, width, components, bytes per sample)`` from the first SOF marker; check
-    the image is complete (EOI after SOS)."""
+def _jpeg_layout(path: Path, data) -> _Layout:
+    """The layout of a JPEG from its first frame header; check the image is complete (an
+    end-of-image marker after the last scan), reading only the head and the tail of the
+    file.  Baseline, extended and progressive Huffman JPEGs of 8 bits and 1 or 3 components
+    decode in strips; a progressive one also needs its coefficients, 2 bytes per sample."""
     i, n = 2, len(data)
-    size = None
+    size = sos = None
     while i + 4 <= n:
         if data[i] != 0xFF:
             raise _fail(path, "not a valid JPEG file (corrupt marker structure)")
@@ -965,16 +1079,21 @@ def _jpeg_header(path: Path, data: bytes) -> tuple[int, int, int, int]:
                 break
             h, w = struct.unpack(">HH", data[i + 5 : i + 9])
             comps = data[i + 9] if i + 10 <= n else 4
-            size = (h, w, comps, 2 if data[i + 4] > 8 else 1)
+            size = (h, w, comps, 2 if data[i + 4] > 8 else 1, marker)
         if marker == 0xDA:  # start of scan: entropy-coded data follows
+            sos = i
             break
         i += 2 + seg_len
     if size is None:
         raise _fail(path, "not a valid JPEG file (no frame header) or truncated")
-    sos, eoi = data.rfind(b"\xff\xda"), data.rfind(b"\xff\xd9")
-    if sos < 0 or eoi < sos:
+    eoi = data.rfind(b"\xff\xd9")
+    if sos is None or eoi < sos or data.find(b"\xff\xda", eoi) >= 0:
         raise _fail(path, "JPEG file is truncated (no end-of-image marker after the last scan)")
-    return size
+    h, w, comps, itemsize, marker = size
+    progressive = marker in (0xC2, 0xC6, 0xCA, 0xCE)
+    return _Layout(h, w, comps, itemsize, peak=3.0 if progressive else 1.0,
+                   streamable=marker in (0xC0, 0xC1, 0xC2) and itemsize == 1
+                   and comps in (1, 3))
 
 
 def _check_jpeg_data(path: Path) -> None:
@@ -984,39 +1103,52 @@ def _check_jpeg_data(path: Path) -> None:
     end of data segment": a truncated file with an end marker appended) and decodes the rest
     as flat grey; imagecodecs, OpenCV and Pillow all accept the result.  GDAL's JPEG driver
     turns these warnings into errors (``GDAL_ERROR_ON_LIBJPEG_WARNING``), so the file is
-    decoded once through it, in strips of rows (a bounded amount of memory), as a check.
+    decoded once through it, in strips of rows, as a check: with GDAL's block cache limited
+    to 64 MB (its default, 5 % of the RAM, would keep the decoded rows) and without GDAL's
+    500 MB cap on libjpeg's memory, which refuses a valid progressive JPEG above 170 MP
+    ("Backing store not supported"; :func:`_check_in_memory` has bounded it already).
     """
     import rasterio
     from rasterio.windows import Window
 
-    try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            with rasterio.Env(GDAL_ERROR_ON_LIBJPEG_WARNING=True, CPL_LOG="/dev/null"):
-                src = rasterio.open(path, driver="JPEG")
-    except Exception:  # noqa: BLE001 - not for GDAL to say: the decoder below decides
-        return
-    with src:
-        rows = max(1, (64 * 2**20) // max(1, src.width * src.count))
+    # set when the dataset is opened: GDAL sizes libjpeg's memory then
+    env = dict(GDAL_ERROR_ON_LIBJPEG_WARNING=True, CPL_LOG="/dev/null", GDAL_CACHEMAX=64,
+               JPEGMEM=f"{IN_MEMORY_MAX_BYTES // 2**20}M")
+    with warnings.catch_warnings(), rasterio.Env(**env):
+        warnings.simplefilter("ignore")
         try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                with rasterio.Env(GDAL_ERROR_ON_LIBJPEG_WARNING=True, CPL_LOG="/dev/null"):
-                    for y in range(0, src.height, rows):
-                        src.read(window=Window(0, y, src.width, min(rows, src.height - y)))
-        except MemoryError:
-            raise
-        except Exception as exc:  # noqa: BLE001 - any libjpeg complaint means corrupt data
-            cause = exc.__cause__ or exc
-            msg = str(cause).splitlines()[0] if str(cause) else type(cause).__name__
-            why = msg.split("libjpeg:", 1)[1].strip() if "libjpeg:" in msg else msg
-            raise _fail(path, f"JPEG data is truncated or corrupt ({why})") from exc
+            src = rasterio.open(path, driver="JPEG")
+        except Exception:  # noqa: BLE001 - not for GDAL to say: the decoder below decides
+            return
+        with src:
+            rows = max(1, (64 * 2**20) // max(1, src.width * src.count))
+            try:
+                for y in range(0, src.height, rows):
+                    src.read(window=Window(0, y, src.width, min(rows, src.height - y)))
+            except MemoryError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - any libjpeg complaint: corrupt data
+                cause = exc.__cause__ or exc
+                msg = str(cause).splitlines()[0] if str(cause) else type(cause).__name__
+                why = msg.split("libjpeg:", 1)[1].strip() if "libjpeg:" in msg else msg
+                raise _fail(path, f"JPEG data is truncated or corrupt ({why})") from exc
 
 
-_PIL_BYTES = {"1": 1, "L": 1, "P": 4, "PA": 4, "LA": 2, "La": 2, "RGB": 3, "YCbCr": 3,
-              "LAB": 3, "HSV": 3, "RGBA": 4, "RGBa": 4, "RGBX": 4, "CMYK": 4, "I": 4, "F": 4,
-              "I;16": 2, "I;16L": 2, "I;16B": 2, "I;16N": 2}
+#: Bands and bytes per sample of what imagecodecs decodes a Pillow mode to (a palette to
+#: RGBA, at most).
+_PIL_LAYOUT = {"1": (1, 1), "L": (1, 1), "P": (4, 1), "PA": (4, 1), "LA": (2, 1),
+               "La": (2, 1), "RGB": (3, 1), "YCbCr": (3, 1), "LAB": (3, 1), "HSV": (3, 1),
+               "RGBA": (4, 1), "RGBa": (4, 1), "RGBX": (4, 1), "CMYK": (4, 1), "I": (1, 4),
+               "F": (1, 4), "I;16": (1, 2), "I;16L": (1, 2), "I;16B": (1, 2), "I;16N": (1, 2)}
 
+#: Peak memory of imagecodecs' decoder over the decoded bytes (as :func:`_other_layout`
+#: counts them), rounded up from ``python -m benchmarks.big_inputs --cases formats``
+#: (2000^2 RGB pictures: WebP 2.94, JPEG 2000 2.76 -- 32-bit planes first --, AVIF 1.22,
+#: JPEG XL 0.51 of its 16-byte bound, BMP 1.18, GIF 1.16 of its RGBA bound).  Others: 2.
+_DECODE_PEAK = {"JPEG2000": 3.0, "WEBP": 3.0, "AVIF": 1.5, "JXL": 1.0}
+
+#: Formats GDAL reads here (the conversion command uses gdal_translate for them).
+_GDAL_FORMATS = {"PNG", "JPEG", "WEBP", "JPEG2000", "BMP", "GIF"}
 
 def _jxl_size(data: bytes) -> tuple[int, int] | None:
     """``(height, width)`` from a JPEG XL SizeHeader (bare codestream or ISOBMFF container)."""
@@ -1062,85 +1194,72 @@ def _jxl_size(data: bytes) -> tuple[int, int] | None:
     return h, w
 
 
-def _other_header(path: Path, data: bytes) -> tuple[int, int, int]:
-    """``(height, width, decoded bytes per pixel)`` of a WebP, JPEG 2000, AVIF, BMP, GIF,
-    JPEG XL... image, read from its header without decoding it (an upper bound on the bytes
-    where the header does not say).
+def _other_layout(path: Path, data) -> _Layout:
+    """The layout of a WebP, JPEG 2000, AVIF, BMP, GIF, JPEG XL... image, read from its
+    header without decoding it (an upper bound on the bytes where the header does not say:
+    JPEG 2000 and AVIF samples may be 16-bit, JPEG XL may decode to four float32 bands).
 
     Raises
     ------
     InputError
-        When no header reader knows the format: its size cannot be checked before decoding.
+        When no header reader knows the format (its size cannot be checked before decoding),
+        or the file is an animation (imagecodecs would decode every frame).
     """
-    import io as _io
-
     from PIL import Image as PILImage
 
     old = PILImage.MAX_IMAGE_PIXELS
     PILImage.MAX_IMAGE_PIXELS = None  # the size is checked here, against our own limits
+    found = None
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            with PILImage.open(_io.BytesIO(data)) as im:
+            with PILImage.open(path) as im:
                 w, h = im.size
-                return h, w, _PIL_BYTES.get(im.mode, 8)
+                found = (im.format, im.mode, bool(getattr(im, "is_animated", False)))
     except Exception:  # noqa: BLE001 - not a format Pillow knows: try the others
         pass
     finally:
         PILImage.MAX_IMAGE_PIXELS = old
-    size = _jxl_size(data)
+    if found is not None:
+        name, mode, animated = found
+        if animated:
+            raise _fail(path, f"{name} file holds several frames (an animation); reblur "
+                              "compares single images: save the frame to compare as PNG or TIFF")
+        bands, itemsize = (4, 1) if name == "GIF" else _PIL_LAYOUT.get(mode, (4, 4))
+        loose = name in ("JPEG2000", "AVIF", "GIF") or mode not in _PIL_LAYOUT
+        wide = name in ("JPEG2000", "AVIF") or mode not in _PIL_LAYOUT  # 16-bit samples?
+        return _Layout(h, w, bands, max(itemsize, 2) if wide else itemsize, exact=not loose,
+                       peak=_DECODE_PEAK.get(name, 2.0), gdal=name in _GDAL_FORMATS)
+    size = _jxl_size(bytes(data))
     if size is not None:
-        return size[0], size[1], 16  # up to four float32 bands
+        return _Layout(size[0], size[1], 4, 4, exact=False, peak=_DECODE_PEAK["JXL"],
+                       gdal=False)
     raise _fail(path, "not an image file (unrecognised format), or a format whose size "
                       "cannot be checked before decoding; convert it to PNG or TIFF")
 
 
 # ---------------------------------------------------------------------------- readers
-def _read_codec(path: Path, fmt: str, max_pixels: int) -> Image:
-    import imagecodecs
+def _read_codec(path: Path, fmt: str, max_pixels: int | None, lazy: bool | None) -> Image:
+    """Read a PNG, JPEG or other single image: the header's size and decoded bytes checked
+    first; a large PNG or JPEG decoded in strips into a temporary store (read window by
+    window, :mod:`reblur._decoded`), anything else decoded whole in memory."""
+    import mmap
 
-    data = path.read_bytes()
-    if fmt == "png":
-        h, w = _png_header(path, data)
-        bands, itemsize = _png_layout(data)
-    elif fmt == "jpeg":
-        h, w, bands, itemsize = _jpeg_header(path, data)
-    else:
-        h, w, itemsize = _other_header(path, data)
-        bands = 1
-    _check_shape(path, (h, w), max_pixels)
-    label = fmt.upper() if fmt != "other" else "the"
-    if h * w > IN_MEMORY_MAX_PIXELS:
-        raise _fail(
-            path,
-            f"{label} image of {h * w:,} pixels is too large to decode in memory "
-            f"(limit {IN_MEMORY_MAX_PIXELS:,}); convert it to a tiled TIFF",
-        )
-    nbytes = h * w * bands * itemsize
-    if nbytes > IN_MEMORY_MAX_BYTES:
-        raise _fail(
-            path,
-            f"{label} image of {w}x{h} pixels would decode to {nbytes:,} bytes, more than "
-            f"can be decoded in memory (limit {IN_MEMORY_MAX_BYTES:,}); convert it to a "
-            "tiled TIFF",
-        )
-    if fmt == "png" and b"IEND" not in data[-16:]:
-        raise _fail(path, "PNG file is truncated (no IEND chunk at the end)")
-    if fmt == "jpeg":
-        _check_jpeg_data(path)
-    try:
-        if fmt == "png":
-            arr = imagecodecs.png_decode(data)
-        elif fmt == "jpeg":
-            arr = imagecodecs.jpeg8_decode(data)
-        else:
-            arr = imagecodecs.imread(data)
-    except Exception as exc:  # noqa: BLE001 - every codec failure means the same thing here
-        if fmt == "other":
-            raise _fail(path, "not an image file (unrecognised format)") from exc
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise _fail(path, f"cannot decode {fmt.upper()} image ({msg})") from exc
-    arr = np.asarray(arr)
+    with open(path, "rb") as fh, mmap.mmap(fh.fileno(), 0, access=mmap.ACCESS_READ) as data:
+        lay = {"png": _png_layout, "jpeg": _jpeg_layout}.get(fmt, _other_layout)(path, data)
+        what = f"{fmt.upper()} image" if fmt != "other" else "image"
+        _check_shape(path, (lay.height, lay.width), max_pixels)
+        nbytes = _check_bytes(path, what, lay, max_pixels)
+        if fmt == "png" and b"IEND" not in data[-16:]:
+            raise _fail(path, "PNG file is truncated (no IEND chunk at the end)")
+        to_disk = lay.streamable and (nbytes > LAZY_BYTES if lazy is None else bool(lazy))
+        if not to_disk:
+            _check_in_memory(path, what, lay)
+        if fmt == "jpeg":
+            _check_jpeg_data(path)
+        if to_disk:
+            return _read_to_disk(path, fmt, lay)
+        arr = _decode_whole(path, fmt, data)
     if arr.ndim == 3 and arr.shape[2] == 1:
         arr = arr[:, :, 0]
     _check_shape(path, arr.shape, max_pixels)
@@ -1148,12 +1267,47 @@ def _read_codec(path: Path, fmt: str, max_pixels: int) -> Image:
     return _drop_alpha(img, alpha=arr.ndim == 3 and arr.shape[2] in (2, 4))
 
 
-def _drop_alpha(img: Image, alpha: bool) -> Image:
+def _decode_whole(path: Path, fmt: str, data) -> np.ndarray:
+    import imagecodecs
+
+    try:
+        if fmt == "png":
+            return np.asarray(imagecodecs.png_decode(data))
+        if fmt == "jpeg":
+            return np.asarray(imagecodecs.jpeg8_decode(data))
+        return np.asarray(imagecodecs.imread(bytes(data)))
+    except MemoryError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - every codec failure means the same thing here
+        if fmt == "other":
+            raise _fail(path, "not an image file (unrecognised format)") from exc
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise _fail(path, f"cannot decode {fmt.upper()} image ({msg})") from exc
+
+
+def _read_to_disk(path: Path, fmt: str, lay: _Layout) -> Image:
+    """A PNG or JPEG decoded once into a temporary zarr store, read window by window."""
+    from . import _decoded
+
+    shape = (lay.height, lay.width) + ((lay.bands,) if lay.bands > 1 else ())
+    dtype = np.dtype(np.uint16 if lay.itemsize == 2 else np.uint8)
+    decode = _decoded.png_to_disk if fmt == "png" else _decoded.jpeg_to_disk
+    arr = decode(path, shape, dtype, _fail, convert_command(path))
+    img = Image(arr, path, fmt, notes=["decoded once, in strips, into a temporary store"],
+                _closer=arr.close)
+    return _drop_alpha(img, alpha=lay.bands in (2, 4), opaque=arr.opaque)
+
+
+def _drop_alpha(img: Image, alpha: bool, opaque: bool | None = None) -> Image:
     """The colour bands of an image with an alpha band; the alpha band becomes its
-    validity (transparent pixels hold no data) when it is not all opaque."""
+    validity (transparent pixels hold no data) when it is not all opaque (``opaque``: known
+    already, for an image on disk)."""
     if not alpha:
         return img
     keep = img.bands - 1
+    if opaque and not isinstance(img.array, np.ndarray):
+        arr = LazyBands(img.array, bands=range(keep))
+        return replace(img, array=arr, notes=img.notes + ["alpha band dropped (all opaque)"])
     if isinstance(img.array, np.ndarray):
         a = np.ascontiguousarray(img.array[:, :, keep])
         arr = img.array[:, :, :keep]
@@ -1271,6 +1425,8 @@ def _open_tiff(path: Path, max_pixels: int, lazy: bool | None,
         _check_shape(path, hw + ((bands,) if bands > 1 else ()), max_pixels)
         dtype = np.dtype(series.dtype)
         _check_dtype(path, dtype)
+        lay = _Layout(hw[0], hw[1], bands, dtype.itemsize)
+        nbytes = _check_bytes(path, "TIFF image", lay, max_pixels)
         if int(page.photometric) == 3:  # palette
             raise _fail(path, "palette (indexed colour) TIFF images are not supported")
         _check_tiff_codec(path, page)
@@ -1293,10 +1449,10 @@ def _open_tiff(path: Path, max_pixels: int, lazy: bool | None,
                                   "as zeros")
         extrasamples = tuple(getattr(page, "extrasamples", ()) or ())
         alpha = bands in (2, 4) and bool(extrasamples) and extrasamples[-1] in (1, 2)
-        nbytes = hw[0] * hw[1] * bands * dtype.itemsize
         if lazy is None:
             lazy = nbytes > LAZY_BYTES
         if not lazy:
+            _check_in_memory(path, "TIFF image", lay)
             try:
                 arr = series.asarray()
             except Exception as exc:  # noqa: BLE001
@@ -1312,6 +1468,9 @@ def _open_tiff(path: Path, max_pixels: int, lazy: bool | None,
 
             store = series.aszarr(level=0)
             z = zarr.open(store, mode="r")
+            kind = "tiles" if page.is_tiled else "strips"
+            _check_chunk_bytes(path, z.chunks, dtype, f"TIFF image stored in {kind}",
+                               f"rewrite it in tiles first: {convert_command(path)}")
             if len(z.shape) != len(ax):
                 z = _Squeezed(z, axes, shape)
             arr = _Guarded(LazyBands(z, channel_first=True) if channel_first else z, path)
@@ -1366,21 +1525,27 @@ def _read_zarr(path: Path, max_pixels: int, lazy: bool | None) -> Image:
             node = node[names[0]]
         else:
             raise _fail(path, f"zarr group holds {len(names)} arrays; expected one (or '0')")
-    _check_zarr_chunks(path, node)
+    stored = node
     shape = tuple(int(s) for s in node.shape)
     if len(shape) == 3 and shape[2] == 1:
         node = LazyBands(node, bands=(0,))
         shape = shape[:2]
     _check_shape(path, shape, max_pixels)
-    _check_dtype(path, np.dtype(node.dtype))
-    nbytes = int(np.prod(shape)) * np.dtype(node.dtype).itemsize
+    dtype = np.dtype(node.dtype)
+    _check_dtype(path, dtype)
+    lay = _Layout(shape[0], shape[1], int(np.prod(shape[2:], dtype=np.int64)), dtype.itemsize)
+    nbytes = _check_bytes(path, "zarr array", lay, max_pixels)
+    _check_zarr_chunks(path, stored)
     if lazy is None:
         lazy = nbytes > LAZY_BYTES
     nodata = _zarr_nodata(node)
     if lazy:
+        _check_chunk_bytes(path, node.chunks, dtype, "zarr array stored in chunks",
+                           "rechunk it to tiles of at most 4096 x 4096 pixels")
         arr = _Guarded(node, path)
         _check_first_window(path, arr)
         return _with_file_mask(Image(arr, path, "zarr"), nodata, False)
+    _check_in_memory(path, "zarr array", lay)
     try:
         arr = np.asarray(node[...])
     except MemoryError:
@@ -1456,11 +1621,16 @@ def open_image(
         PNG, JPEG, TIFF/BigTIFF/GeoTIFF (striped or tiled), a zarr array directory, or
         any other format imagecodecs decodes.  The format is recognised from the content.
     max_pixels : int or None
-        Refuse images with more than this many pixels (``height * width``); checked from
-        the header before decoding.  Default :data:`DEFAULT_MAX_PIXELS`; ``None`` = no limit.
+        Refuse images with more than this many pixels (``height * width``), or more than
+        :data:`BYTES_PER_PIXEL` times as many decoded bytes; checked from the header before
+        decoding.  Default :data:`DEFAULT_MAX_PIXELS`; ``None`` = no limit.
     lazy : bool, optional
-        Keep the pixels on disk (TIFF and zarr only).  Default: when they take more than
-        :data:`LAZY_BYTES`.  PNG and JPEG are always decoded into memory.
+        Keep the pixels on disk: TIFF and zarr read window by window; PNG (8/16-bit, not
+        interlaced, no palette or ``tRNS``) and JPEG (8-bit, 1 or 3 components) decoded
+        once, in strips, into a temporary zarr store (removed by :meth:`Image.close`, when
+        the image is garbage-collected or at exit; ``TMPDIR`` says where).  Default: when
+        the pixels take more than :data:`LAZY_BYTES`.  Other formats are decoded into
+        memory.
     check_values : bool
         Scan float images for NaN/Inf (streamed for lazy images).
     rescale : bool
@@ -1484,7 +1654,9 @@ def open_image(
     InputError
         One-line message naming the file and the problem: missing, unreadable, truncated,
         not an image, too small (< :data:`MIN_SIDE` px on a side), more than ``max_pixels``
-        pixels, unsupported layout or pixel type, NaN/Inf pixels.
+        pixels or their decoded bytes, too large to decode whole or in its chunks,
+        unsupported layout or pixel type, NaN/Inf pixels, no space left for a temporary
+        store.
     """
     p = Path(path)
     try:
@@ -1512,11 +1684,11 @@ def open_image(
         elif fmt == "zarr":
             img = _read_zarr(p, limit, lazy)
         elif fmt in ("png", "jpeg"):
-            img = _read_codec(p, fmt, limit)
+            img = _read_codec(p, fmt, limit, lazy)
         else:
             if p.stat().st_size > 256 * 2**20:
                 raise _fail(p, "unrecognised image format")
-            img = _read_codec(p, "other", limit)
+            img = _read_codec(p, "other", limit, lazy)
     except InputError:
         raise
     except MemoryError as exc:

@@ -20,7 +20,8 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from .align import OverviewCache, block_means, overview_matrix
+from .align import OverviewCache, block_means, overview_matrix, refine_alignment
+from .align.field import estimate_field
 from .decide import (
     DecisionParams,
     change_statistic,
@@ -31,10 +32,8 @@ from .decide import (
 from .decide.calibrate import calibrate_tolerance, marked_pixels, unchanged_pixels
 from .decide.photometry import with_model_error
 from .estimate import estimate_motion, intensity_scale
-from .field import estimate_field
 from .grid import GridParams, PoseGrid
 from .io import chunk_cached
-from .refine import refine_alignment
 from .result import ChangeResult, CropChoice
 from .robust import inlier_scale, robust_line
 from .rolling import RollingParams, RollingPoses, choose_shutter
@@ -547,8 +546,11 @@ def _calibrate_tolerance(p: DecisionParams, windows, load, photometry, shape):
                                min_threshold=floor), info
 
 
-def align_coarse(reference, observed, shakes=(8.0, 16.0, 32.0, 64.0)):
+def align_coarse(reference, observed, shakes=(8.0, 16.0, 32.0, 64.0), hint=None):
     """Coarse alignment, trying camera-shake extents from small to large.
+
+    ``hint`` is an optional rough reference -> observation homography in full-resolution
+    pixels (:func:`reblur.align.coarse_align`), passed to every extent.
 
     :func:`reblur.align.coarse_align` refines at the finest pyramid level where the shake
     spans a few pixels and verifies the result with blur kernels fitted region by region;
@@ -571,7 +573,7 @@ def align_coarse(reference, observed, shakes=(8.0, 16.0, 32.0, 64.0)):
 
     err: Exception | None = None
     reserve = None
-    for _, a in coarse_align_shakes(reference, observed, shakes):
+    for _, a in coarse_align_shakes(reference, observed, shakes, hint=hint):
         if isinstance(a, Exception):
             err = a
             continue
@@ -618,6 +620,7 @@ def _estimate_stage(
     large_side: int,
     select: SelectParams | None,
     boxes: list | None,
+    align_hint: np.ndarray | None = None,
     progress: Callable[[str, float], None] | None = None,
 ) -> Estimated:
     """Coarse alignment, photometric pre-match, window selection, motion estimate and
@@ -639,7 +642,7 @@ def _estimate_stage(
     t = time.perf_counter()
     report("align", 0.0)
     if align:
-        alignment = align_coarse(reference, observed)
+        alignment = align_coarse(reference, observed, hint=align_hint)
         H0 = alignment.H
         align_info = alignment.to_dict()
     else:
@@ -761,6 +764,7 @@ def detect_changes(
     align: bool = True,
     refine: bool = True,
     local_field: bool = True,
+    align_hint: np.ndarray | None = None,
     windows: int | None = None,
     large_side: int = 2500,
     select: SelectParams | None = None,
@@ -803,18 +807,26 @@ def detect_changes(
         Eq. 5's ``lambda`` (intensities in [0, 1]).
     align : bool
         Run the coarse alignment (needed when the viewpoint moved beyond the grid).
+        ``False`` when the images are already registered (the base homography is the
+        identity).
     refine : bool
         After the motion estimate, measure the residual misregistration of the reblurred
         reference on probe windows spread over the whole image and correct the base
-        homography (:func:`reblur.refine.refine_alignment`): the grid cannot represent a
+        homography (:func:`reblur.align.refine_alignment`): the grid cannot represent a
         residual scale / shear / perspective error of the coarse alignment, and the
         estimation windows do not see the rest of the image.
     local_field : bool
         After the refinement, measure tie points between the reblurred reference and the
         observation on a lattice over the whole image and fit a smooth displacement field
         to what the homography leaves (parallax, lens distortion;
-        :func:`reblur.field.estimate_field`), applied in the reblur when it predicts
+        :func:`reblur.align.field.estimate_field`), applied in the reblur when it predicts
         held-out tie points clearly better than the homography alone.
+    align_hint : (3, 3) array-like, optional
+        A rough reference -> observation homography in full-resolution pixels (a few
+        degrees and tens of pixels off is fine) that seeds the coarse alignment instead
+        of the features and rotation hypotheses (:func:`reblur.align.coarse_align`'s
+        ``hint``): it reaches pairs the alignment refuses on its own (large rotations,
+        captures years apart).  Needs ``align=True``.
     windows : int, optional
         Windows estimated jointly (1 = the paper's Algorithm 1, single growing crop).
         Default: 2 up to ``large_side``, 4 above, 5 above ``CENTRE_WINDOW_SIDE`` (16384
@@ -914,10 +926,12 @@ def detect_changes(
     Ho, Wo = observed.shape[:2]
     s_ref = intensity_scale(reference.dtype)
     s_obs = intensity_scale(observed.dtype)
+    if align_hint is not None and not align:
+        raise ValueError("align_hint needs align=True: the hint seeds the coarse alignment")
     options = dict(grid=grid, t_max=t_max, rz_max=rz_max, rz_step=rz_step, lam=lam,
                    align=align, refine=refine, local_field=local_field, windows=windows,
-                   large_side=large_side,
-                   select=select, boxes=boxes)
+                   large_side=large_side, select=select, boxes=boxes,
+                   align_hint=align_hint)
     if scheduler is not None:
         from .dask_backend import portable, run_once, scheduler_kind
 

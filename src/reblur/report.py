@@ -22,7 +22,7 @@
     The pose weights (a tx-ty image per rotation carrying weight) and the blur kernels they
     make at a 3x3 grid of image positions.
 ``field.png``
-    When a local displacement field was applied (:mod:`reblur.field`): its magnitude over
+    When a local displacement field was applied (:mod:`reblur.align.field`): its magnitude over
     the observation, with arrows, in pixels.
 ``rolling.png``
     When the rolling-shutter model was used (:mod:`reblur.rolling`): every row band's mean
@@ -378,7 +378,7 @@ def field_figure(fld: Any, shape: tuple[int, int], path: str | os.PathLike) -> P
 
     Parameters
     ----------
-    fld : reblur.field.DisplacementField
+    fld : reblur.align.field.DisplacementField
     shape : (int, int)
         Observation size (the plot's extent).
     path : path-like

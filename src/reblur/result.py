@@ -133,7 +133,7 @@ class ChangeResult:
         Seconds per stage.
     regions : list of dict
         Connected change regions: ``label``, ``area``, ``bbox`` (y0, x0, y1, x1), ``centroid``.
-    field : reblur.field.DisplacementField or None
+    field : reblur.align.field.DisplacementField or None
         Local residual displacement applied after ``alignment`` and the poses (parallax,
         lens distortion): the model of observation pixel ``p`` is the reblurred reference
         at ``p + field(p)``; None when the homography alone fits.

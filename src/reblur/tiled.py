@@ -35,7 +35,7 @@ class SparsePoses:
         Coarse alignment composed before every pose.
     rtol : float
         Weights below ``rtol * max(w)`` are dropped (0 keeps every non-zero pose).
-    field : reblur.field.DisplacementField, optional
+    field : reblur.align.field.DisplacementField, optional
         Local residual displacement applied after the poses: the reblurred image is
         resampled at ``p + field(p)`` (parallax, lens distortion).
     """
@@ -71,7 +71,7 @@ def reblur_tile(poses: SparsePoses, reference, box, *, dtype=np.float32):
     if fld is None:
         return _reblur_poses(poses, reference, box, dtype)
     # the local displacement: reblur a window grown by its reach, resample at p + d(p)
-    pad = int(np.ceil(fld.bound(box))) + 2
+    pad = int(np.ceil(fld.bound(box))) + 3
     img, ok = _reblur_poses(poses, reference, box.grow(pad, pad, pad, pad), dtype)
     return fld.resample(img, box, ok, pad)
 

@@ -4,7 +4,9 @@ The observation is a time average of BICUBIC perspective warps over a continuous
 path (sub-pixel translations, out-of-plane tilts, roll and depth, 64+ sub-poses) after a
 perspective viewpoint change, of real aerial imagery with pasted changes, through a
 Poisson-Gaussian sensor with 8/12/16-bit quantisation and optional JPEG; or real blur from
-consecutive high-speed GoPro frames.  This package imports nothing from reblur's model code
+consecutive high-speed GoPro frames.  Optionally the observation camera's lens distorts and a
+second scene plane shows parallax (:mod:`reblur.testbed.geometry`): geometry no single
+homography per pose represents.  This package imports nothing from reblur's model code
 (``reblur.grid``, ``reblur.warp``, ``reblur.operator``, ``reblur.simulate``, ``reblur.tiled``),
 so reblur can be measured on data that does not share its assumptions.
 """
@@ -20,14 +22,27 @@ from .camera import (
     random_camera_path,
     rotation_matrix,
     shake_for,
+    translation,
+    view_from_parts,
     viewpoint_homography,
+    viewpoint_parts,
 )
-from .cases import CASES, failure_pair, wedge_mask
+from .cases import CASES, GEOMETRY_CASES, failure_pair, wedge_mask
 from .edits import Occluder, Ramp, Vignette, thin_changes
+from .geometry import (
+    Lens,
+    Region,
+    SceneGeometry,
+    best_homography,
+    homography_residual,
+    region_homographies,
+    roof_polygon,
+)
 from .gopro import N_FRAMES, gopro_frame, gopro_frame_indices, gopro_pair
 from .pairs import PairPlan, RealismPair, make_pair, plan_pair, write_pair
 from .render import (
     Box,
+    as_mapping,
     iter_tiles,
     render_tiled,
     render_window,
@@ -54,19 +69,25 @@ from .sensor import apply_sensor, full_scale, jpeg, output_dtype, quantise
 
 __all__ = [
     "CASES",
+    "GEOMETRY_CASES",
     "N_FRAMES",
     "Box",
     "CameraPath",
     "ChangeObject",
     "ChangedScene",
     "CroppedScene",
+    "Lens",
     "Occluder",
     "PairPlan",
     "Ramp",
     "RealismPair",
+    "Region",
+    "SceneGeometry",
     "UpsampledScene",
     "Vignette",
     "apply_sensor",
+    "as_mapping",
+    "best_homography",
     "change_boxes",
     "compose",
     "default_focal",
@@ -75,6 +96,7 @@ __all__ = [
     "gopro_frame",
     "gopro_frame_indices",
     "gopro_pair",
+    "homography_residual",
     "intrinsics",
     "iter_tiles",
     "jpeg",
@@ -87,19 +109,24 @@ __all__ = [
     "pose_homography",
     "quantise",
     "random_camera_path",
+    "region_homographies",
     "render_tiled",
     "render_window",
+    "roof_polygon",
     "rotation_matrix",
     "scene_names",
     "shake_for",
     "shared_data_dir",
     "source_box",
     "thin_changes",
+    "translation",
     "true_centroid",
     "truth_window",
     "upsampled",
     "valid_window",
+    "view_from_parts",
     "viewpoint_homography",
+    "viewpoint_parts",
     "wedge_mask",
     "whu_image",
     "write_pair",

@@ -41,7 +41,10 @@ __all__ = [
     "random_camera_path",
     "rotation_matrix",
     "shake_for",
+    "translation",
+    "view_from_parts",
     "viewpoint_homography",
+    "viewpoint_parts",
 ]
 
 
@@ -275,6 +278,51 @@ def random_camera_path(
     return CameraPath(poses=poses, shape=(h, w), focal=f)
 
 
+def translation(tx: float, ty: float) -> np.ndarray:
+    """The image translation ``x -> x + (tx, ty)`` as a ``3 x 3`` homography."""
+    return np.array([[1.0, 0.0, float(tx)], [0.0, 1.0, float(ty)], [0.0, 0.0, 1.0]])
+
+
+def viewpoint_parts(
+    shape: tuple[int, ...],
+    rng: np.random.Generator,
+    shift_px: float = 20.0,
+    angle_deg: float = 1.0,
+    perspective: float = 2.0,
+    focal: float | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The two parts of :func:`viewpoint_homography`: the turn ``K R K^-1`` and the shift.
+
+    The view is ``translation(*shift) @ turn``.  Physically, the camera turns by ``R`` and
+    translates by ``T`` with ``T / d = (shift / f, 0)`` (in the observation camera), ``d``
+    the distance of the scene plane, whose normal in the reference camera is ``R^T e3``:
+    ``translation(*shift) @ K R K^-1 = K (R + (T / d) (R^T e3)^T) K^-1``, the
+    plane-induced homography.  A plane parallel to it at distance ``d / s`` is therefore
+    seen through ``translation(*(s * shift)) @ turn``
+    (:func:`reblur.testbed.geometry.region_homographies`).  Parameters and random draws
+    are those of :func:`viewpoint_homography`.
+
+    Returns
+    -------
+    turn : numpy.ndarray
+        ``3 x 3`` rotation homography about the camera centre, ``H[2, 2] == 1``.
+    shift : numpy.ndarray
+        ``(2,)`` image shift in pixels: the centre's own ``(tx, ty)`` plus the undoing of
+        the shift the turn gives the centre.
+    """
+    h, w = _check_shape(shape)
+    lims = np.array([shift_px, angle_deg, perspective], dtype=np.float64)
+    if np.any(lims < 0) or not np.all(np.isfinite(lims)):
+        raise ValueError("shift_px, angle_deg and perspective must be finite and >= 0")
+    tx, ty = rng.uniform(-shift_px, shift_px, size=2)
+    rx, ry = rng.uniform(-perspective, perspective, size=2)
+    rz = rng.uniform(-angle_deg, angle_deg)
+    turn = pose_homography(shape, (0.0, 0.0, 0.0, rx, ry, rz), focal)
+    c = np.array([(w - 1) / 2.0, (h - 1) / 2.0, 1.0])
+    moved = turn @ c
+    return turn, c[:2] - moved[:2] / moved[2] + [tx, ty]
+
+
 def viewpoint_homography(
     shape: tuple[int, ...],
     rng: np.random.Generator,
@@ -289,7 +337,8 @@ def viewpoint_homography(
     (``|rz| <= angle_deg``) about its centre, ``K R K^-1``; the image shift this turn gives
     the image centre (``f tan(angle)``, hundreds of pixels on large images) is then replaced
     by a random shift ``|tx|, |ty| <= shift_px``.  So the image centre moves by exactly
-    ``(tx, ty)``, while the corners move differently (rotation and keystone).
+    ``(tx, ty)``, while the corners move differently (rotation and keystone).  The parts
+    are :func:`viewpoint_parts`.
 
     Parameters
     ----------
@@ -312,16 +361,11 @@ def viewpoint_homography(
     numpy.ndarray
         ``3 x 3`` float64 homography.
     """
-    h, w = _check_shape(shape)
-    lims = np.array([shift_px, angle_deg, perspective], dtype=np.float64)
-    if np.any(lims < 0) or not np.all(np.isfinite(lims)):
-        raise ValueError("shift_px, angle_deg and perspective must be finite and >= 0")
-    tx, ty = rng.uniform(-shift_px, shift_px, size=2)
-    rx, ry = rng.uniform(-perspective, perspective, size=2)
-    rz = rng.uniform(-angle_deg, angle_deg)
-    turn = pose_homography(shape, (0.0, 0.0, 0.0, rx, ry, rz), focal)
-    c = np.array([(w - 1) / 2.0, (h - 1) / 2.0, 1.0])
-    moved = turn @ c
-    shift = c[:2] - moved[:2] / moved[2] + [tx, ty]
-    view = np.array([[1.0, 0.0, shift[0]], [0.0, 1.0, shift[1]], [0.0, 0.0, 1.0]]) @ turn
+    turn, shift = viewpoint_parts(shape, rng, shift_px, angle_deg, perspective, focal)
+    return view_from_parts(turn, shift)
+
+
+def view_from_parts(turn: np.ndarray, shift: np.ndarray) -> np.ndarray:
+    """``translation(*shift) @ turn``, normalised to ``H[2, 2] == 1``."""
+    view = translation(*shift) @ turn
     return view / view[2, 2]

@@ -15,6 +15,13 @@ change and sensor, edited by :mod:`reblur.testbed.edits`:
 ``vignette``        radial vignetting (35 % at the corners), 8 pasted changes
 ``thin``            four thin long changes (10-14 px wide, 250-400 px long, straight and L)
 ``identical``       observation = reference, byte for byte
+``lens3``           barrel lens distortion of the observation camera moving the corners by
+                    3 px (:mod:`reblur.testbed.geometry`), no change
+``pincushion3``     the same with pincushion distortion (corners 3 px inwards)
+``lens3_changes``   ``lens3`` with 8 pasted changes
+``parallax``        a second scene plane (a "roof" over 12-20 % of the scene) 4 px of
+                    viewpoint parallax from the ground, no change
+``parallax_changes`` ``parallax`` with 8 pasted changes
 ==================  =========================================================================
 
 Nodata (a reference GeoTIFF with ``nodata=0`` and a missing wedge) is a file-format case:
@@ -32,11 +39,21 @@ from .edits import Occluder, Ramp, Vignette, thin_changes
 from .pairs import RealismPair, make_pair, plan_pair
 from .scenes import CroppedScene, levir_image, whu_image
 
-__all__ = ["CASES", "failure_pair", "wedge_mask"]
+__all__ = ["CASES", "GEOMETRY_CASES", "failure_pair", "wedge_mask"]
 
 #: Case names, in the order of the issue's table.
 CASES = ("hole25", "hole50", "occluder25", "occluder45", "occluder60", "plain", "ramp",
-         "vignette", "thin", "identical")
+         "vignette", "thin", "identical", "lens3", "pincushion3", "lens3_changes", "parallax",
+         "parallax_changes")
+
+#: The geometry cases: ``plan_pair`` keywords and number of pasted changes.
+GEOMETRY_CASES = {
+    "lens3": ({"lens": {"corner_px": 3.0}}, 0),
+    "pincushion3": ({"lens": {"corner_px": -3.0}}, 0),
+    "lens3_changes": ({"lens": {"corner_px": 3.0}}, 8),
+    "parallax": ({"parallax": {"parallax_px": 4.0}}, 0),
+    "parallax_changes": ({"parallax": {"parallax_px": 4.0}}, 8),
+}
 
 
 def _scene(name: str) -> np.ndarray:
@@ -74,7 +91,9 @@ def failure_pair(name: str, *, scene: str = "test_7", seed: int = 0, bits: int =
     Returns
     -------
     RealismPair
-        For ``identical``, the observation is the reference and the truth is empty.
+        For ``identical``, the observation is the reference and the truth is empty.  The
+        geometry cases carry their ``geometry`` (the truth of where each observation pixel
+        comes from) and ``occlusion`` (the second plane's occlusion edges).
     """
     if name not in CASES:
         raise ValueError(f"unknown case {name!r}; choose from {', '.join(CASES)}")
@@ -100,6 +119,9 @@ def failure_pair(name: str, *, scene: str = "test_7", seed: int = 0, bits: int =
                  "vignette": Vignette(shape, 0.35)}[name]
         return make_pair(base, n_changes=8, motion=shake_for(base.shape), illumination=light,
                          **common)
+    if name in GEOMETRY_CASES:
+        extra, n = GEOMETRY_CASES[name]
+        return make_pair(base, n_changes=n, motion=shake_for(base.shape), **extra, **common)
     if name == "thin":
         objs = thin_changes(base, np.random.default_rng([seed, 27]), n=4)
         return make_pair(base, n_changes=0, motion=shake_for(base.shape), objects=objs,

@@ -5,7 +5,7 @@ geotransform, then reprojected with GDAL's warper (``rasterio.warp.reproject``, 
 another CRS and pixel size: Web Mercator, a neighbouring UTM zone, or longitude/latitude.  The
 two files show the same ground in two pixel grids related by a change of map projection, which
 is what a user's GeoTIFFs from two providers look like.  The geometry comes from PROJ and GDAL
-only; nothing here uses reblur's own georeferencing code (:mod:`reblur.georef`), so the pairs
+only; nothing here uses reblur's own georeferencing code (:mod:`reblur.align.georef`), so the pairs
 can test it.
 
 Pixel values: the image in ``[0, 1]`` is stored as float32 ``(v * 255 + 1) / 256`` (so in

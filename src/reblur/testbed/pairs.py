@@ -21,7 +21,8 @@ from typing import Any
 import numpy as np
 import tifffile
 
-from .camera import CameraPath, compose, random_camera_path, viewpoint_homography
+from .camera import CameraPath, compose, random_camera_path, view_from_parts, viewpoint_parts
+from .geometry import Lens, Region, SceneGeometry, region_homographies, roof_polygon
 from .render import Box, iter_tiles, render_window, valid_window
 from .scenes import ChangedScene, CroppedScene, change_boxes, paste_changes, truth_window
 from .sensor import apply_sensor, output_dtype
@@ -47,11 +48,20 @@ class RealismPair:
     valid : numpy.ndarray
         Boolean mask of observation pixels whose every sub-pose samples inside the reference.
     homographies : numpy.ndarray
-        ``(n_sub, 3, 3)`` reference -> observation mappings ``H_k @ H_view``.
+        ``(n_sub, 3, 3)`` reference -> observation mappings ``H_k @ H_view`` (of the
+        ground plane, without the lens, when there is a ``geometry``).
     view : numpy.ndarray
         ``3 x 3`` viewpoint homography.
     info : dict
         JSON-able description (seed, bit depth, noise, sizes, poses, change objects).
+    occlusion : numpy.ndarray, optional
+        Boolean mask of the observation pixels at a second plane's occlusion edges
+        (:meth:`~reblur.testbed.geometry.SceneGeometry.occlusion_window`; all False
+        without one).
+    geometry : SceneGeometry, optional
+        The truth of a pair with lens distortion or a second plane: its
+        :meth:`~reblur.testbed.geometry.SceneGeometry.centroid` is where an observation
+        pixel comes from; None when ``homographies`` say it all.
     """
 
     reference: np.ndarray
@@ -61,6 +71,8 @@ class RealismPair:
     homographies: np.ndarray
     view: np.ndarray
     info: dict = field(default_factory=dict)
+    occlusion: np.ndarray | None = None
+    geometry: Any = None
 
 
 @dataclass(frozen=True)
@@ -90,6 +102,9 @@ class PairPlan:
     illumination : callable, optional
         ``illumination(box) -> gain`` multiplied into the rendered observation in its own
         frame (:class:`~reblur.testbed.edits.Ramp`, :class:`~reblur.testbed.edits.Vignette`).
+    geometry : SceneGeometry, optional
+        Lens distortion and / or a second scene plane; the observation, its truth and
+        validity then follow it instead of ``homographies``.
     """
 
     scene: Any
@@ -102,6 +117,12 @@ class PairPlan:
     info: dict
     boxes: list[Box]
     illumination: Any = None
+    geometry: SceneGeometry | None = None
+
+    @property
+    def mapping(self) -> Any:
+        """What the renderer follows: the geometry, or else the homographies."""
+        return self.homographies if self.geometry is None else self.geometry
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -123,7 +144,7 @@ class PairPlan:
     def render_tile(self, box: Box) -> np.ndarray:
         """The noise-free rendered observation of a box (float64 in [0, 1]), before the
         sensor: plans that differ only in their sensor share it."""
-        image, _ = render_window(self.changed, self.homographies, box)
+        image, _ = render_window(self.changed, self.mapping, box)
         if self.illumination is not None:
             g = self.illumination(box)
             image = np.clip(image * (g[:, :, None] if image.ndim == 3 else g), 0.0, 1.0)
@@ -136,11 +157,22 @@ class PairPlan:
 
     def truth_tile(self, box: Box) -> np.ndarray:
         """Change mask of a box (boolean)."""
+        if self.geometry is not None:
+            return self.geometry.truth_window(self.changed.objects, box, self.boxes)
         return truth_window(self.changed, self.homographies, box, self.boxes)
 
     def valid_tile(self, box: Box) -> np.ndarray:
         """Validity mask of a box (boolean)."""
+        if self.geometry is not None:
+            return self.geometry.valid_window(box, self.shape)
         return valid_window(self.homographies, box, self.shape)
+
+    def occlusion_tile(self, box: Box, band_px: float = 0.0) -> np.ndarray:
+        """Occlusion edges of a second plane in a box, grown by ``band_px`` (boolean; all
+        False without one)."""
+        if self.geometry is None:
+            return np.zeros((box[1] - box[0], box[3] - box[2]), dtype=bool)
+        return self.geometry.occlusion_window(box, band_px)
 
 
 def _crop(scene: Any, size: tuple[int, int] | None) -> Any:
@@ -178,6 +210,8 @@ def plan_pair(
     changes: dict | None = None,
     objects: Sequence[Any] = (),
     illumination: Any = None,
+    lens: dict | None = None,
+    parallax: dict | None = None,
 ) -> PairPlan:
     """Draw a pair's changes, camera path and viewpoint (no pixels are computed).
 
@@ -209,6 +243,16 @@ def plan_pair(
         or place these away from them.
     illumination : callable, optional
         ``illumination(box) -> gain`` of the observation (see :class:`PairPlan`).
+    lens : dict, optional
+        Lens distortion of the observation camera: keywords of
+        :meth:`~reblur.testbed.geometry.Lens.from_corner_px` (``corner_px``, ``k2``), e.g.
+        ``{"corner_px": 3.0}`` for corners moved 3 px outwards (barrel).
+    parallax : dict, optional
+        A second scene plane: ``parallax_px`` (the displacement between the planes the
+        viewpoint change gives, > 0 a nearer roof, < 0 a farther pit), optionally
+        ``polygon`` (its ``(n, 2)`` outline in reference pixels; default a random
+        rectangle of 12-20 % of the image, :func:`~reblur.testbed.geometry.roof_polygon`,
+        drawn from its own stream so the rest of the pair is the same as without it).
 
     Returns
     -------
@@ -225,19 +269,60 @@ def plan_pair(
     if objects:
         changed = ChangedScene(base, changed.objects + tuple(objects))
     path = random_camera_path(base.shape, rng, **(motion or {}))
-    view = viewpoint_homography(base.shape, rng, focal=path.focal, **(viewpoint or {}))
+    turn, shift = viewpoint_parts(base.shape, rng, focal=path.focal, **(viewpoint or {}))
+    view = view_from_parts(turn, shift)
     total = compose(view, path.homographies())
+    geometry = _geometry(base.shape, int(seed), path, turn, shift, total, lens, parallax)
     info = {"seed": int(seed), "bits": bits, "noise_dn": float(noise_dn),
             "full_well": float(full_well), "jpeg_quality": jpeg_quality,
             "shape": list(base.shape), "tile": TILE, "focal": path.focal,
             "n_sub": len(path.poses), "poses": path.poses.tolist(), "view": view.tolist(),
             "homographies": total.tolist(), "objects": _object_info(changed),
-            "convention": "homographies map reference (x, y) to observation; H_k @ H_view"}
+            "convention": "homographies map reference (x, y) to observation; H_k @ H_view",
+            "view_shift": shift.tolist()}
+    if geometry is not None:
+        info["geometry"] = geometry.to_dict()
     if illumination is not None:
         info["illumination"] = (illumination.to_dict() if hasattr(illumination, "to_dict")
                                 else repr(illumination))
-    return PairPlan(base, changed, path, view, total, sensor, int(seed), info,
-                    change_boxes(changed, total), illumination)
+    boxes = (change_boxes(changed, total) if geometry is None
+             else geometry.change_boxes(changed.objects))
+    return PairPlan(base, changed, path, view, total, sensor, int(seed), info, boxes,
+                    illumination, geometry)
+
+
+def _geometry(shape: tuple[int, ...], seed: int, path: CameraPath, turn: np.ndarray,
+              shift: np.ndarray, total: np.ndarray, lens: dict | None,
+              parallax: dict | None) -> SceneGeometry | None:
+    """The pair's :class:`~reblur.testbed.geometry.SceneGeometry` (None without a lens or a
+    second plane)."""
+    if lens is None and parallax is None:
+        return None
+    lens_model = None
+    if lens is not None:
+        if set(lens) - {"corner_px", "k2"}:
+            raise ValueError(f"lens takes corner_px and k2, got {sorted(lens)}")
+        lens_model = Lens.from_corner_px(shape, focal=path.focal, **lens)
+    if parallax is None:
+        return SceneGeometry(total, lens=lens_model)
+    if set(parallax) - {"parallax_px", "polygon"} or "parallax_px" not in parallax:
+        raise ValueError(f"parallax takes parallax_px and optionally polygon, got "
+                         f"{sorted(parallax)}")
+    reach = float(np.hypot(*shift))
+    px = float(parallax["parallax_px"])
+    if reach < 1e-6 and px != 0:
+        raise ValueError("the viewpoint change has no translation, so nothing shows "
+                         "parallax: give viewpoint shift_px > 0")
+    scale = 1.0 + (px / reach if px else 0.0)
+    if scale <= 0:
+        raise ValueError(f"parallax_px {px} puts the plane behind the camera: keep it above "
+                         f"-{reach:.1f} px for this viewpoint")
+    poly = parallax.get("polygon")
+    if poly is None:
+        poly = roof_polygon(shape, np.random.default_rng([seed, 29]))
+    region = Region(polygon=np.asarray(poly, dtype=np.float64), scale=scale, parallax_px=px)
+    return SceneGeometry(total, lens=lens_model, region=region,
+                         region_homographies=region_homographies(path, turn, shift, scale))
 
 
 def make_pair(
@@ -274,11 +359,14 @@ def make_pair(
     obs = np.zeros(plan.shape, dtype=dt)
     truth = np.zeros((h, w), dtype=bool)
     valid = np.zeros((h, w), dtype=bool)
+    occlusion = np.zeros((h, w), dtype=bool)
     for b in iter_tiles(plan.shape, TILE):
         win = np.s_[b[0]:b[1], b[2]:b[3]]
         ref[win], obs[win] = plan.reference_tile(b), plan.observed_tile(b)
         truth[win], valid[win] = plan.truth_tile(b), plan.valid_tile(b)
-    return RealismPair(ref, obs, truth, valid, plan.homographies, plan.view, plan.info)
+        occlusion[win] = plan.occlusion_tile(b)
+    return RealismPair(ref, obs, truth, valid, plan.homographies, plan.view, plan.info,
+                       occlusion, plan.geometry)
 
 
 def _write_tiff(path: Path, tiles, shape: tuple[int, ...], dtype, compress: bool) -> None:
@@ -291,7 +379,8 @@ def write_pair(out_dir: str | Path, scene: Any, **kwargs: Any) -> dict:
     """Write a pair of any size tile by tile as tiled BigTIFFs plus ``pair.json``.
 
     Files: ``reference.tif`` and ``observed.tif`` (uint8/uint16, 512 px tiles),
-    ``truth.tif`` and ``valid.tif`` (uint8 0/255, zlib), ``pair.json`` (the plan's info).
+    ``truth.tif`` and ``valid.tif`` (uint8 0/255, zlib), with a lens or a second plane also
+    ``occlusion.tif`` (:meth:`PairPlan.occlusion_tile`), ``pair.json`` (the plan's info).
     Only a few tiles are in memory at any time.  Pixels equal :func:`make_pair`'s with the
     same arguments.
 
@@ -317,9 +406,12 @@ def write_pair(out_dir: str | Path, scene: Any, **kwargs: Any) -> dict:
     _write_tiff(out / "reference.tif", (plan.reference_tile(b) for b in boxes), shape, dt, False)
     _write_tiff(out / "observed.tif", (plan.observed_tile(b) for b in boxes), shape, dt, False)
     masks = {"truth": plan.truth_tile, "valid": plan.valid_tile}
+    if plan.geometry is not None:
+        masks["occlusion"] = plan.occlusion_tile
     for name, fn in masks.items():
         tiles = (fn(b).astype(np.uint8) * 255 for b in boxes)
         _write_tiff(out / f"{name}.tif", tiles, shape[:2], np.uint8, True)
-    info = plan.info | {"files": ["reference.tif", "observed.tif", "truth.tif", "valid.tif"]}
+    info = plan.info | {"files": ["reference.tif", "observed.tif"]
+                        + [f"{name}.tif" for name in masks]}
     (out / "pair.json").write_text(json.dumps(info, indent=1))
     return info

@@ -27,6 +27,7 @@ import numpy as np
 
 __all__ = [
     "Box",
+    "as_mapping",
     "iter_tiles",
     "render_tiled",
     "render_window",
@@ -183,6 +184,28 @@ def valid_window(
     return _pixel_valid(inv, (y0, y1, x0, x1), ref_shape, shrink)
 
 
+def _scaled_positions(inv: np.ndarray, xs: np.ndarray, ys: np.ndarray
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """``H^{-1} (x, y)`` times ``COORD_STEPS`` in float64 (``xs``, ``ys`` broadcast)."""
+    scale = COORD_STEPS / (inv[2, 0] * xs + (inv[2, 1] * ys + inv[2, 2]))
+    qx = (inv[0, 0] * xs + (inv[0, 1] * ys + inv[0, 2])) * scale
+    qy = (inv[1, 0] * xs + (inv[1, 1] * ys + inv[1, 2])) * scale
+    return qx, qy
+
+
+def _quantised_maps(qx: np.ndarray, qy: np.ndarray, sbox: Box) -> tuple[np.ndarray, np.ndarray]:
+    """Remap maps from positions scaled by ``COORD_STEPS`` (:func:`_scaled_positions`),
+    rounded to ``1 / COORD_STEPS`` px and made relative to the source box's origin."""
+    maps = []
+    for q, origin in ((qx, sbox[2]), (qy, sbox[0])):
+        q = np.rint(q)
+        q -= origin * COORD_STEPS
+        m = q.astype(np.float32)
+        m *= np.float32(1.0 / COORD_STEPS)
+        maps.append(m)
+    return maps[0], maps[1]
+
+
 def _sample_maps(inv: np.ndarray, box: Box, sbox: Box) -> tuple[np.ndarray, np.ndarray]:
     """Sampling maps of one sub-pose, relative to the source box, exact across windows.
 
@@ -193,16 +216,36 @@ def _sample_maps(inv: np.ndarray, box: Box, sbox: Box) -> tuple[np.ndarray, np.n
     y0, y1, x0, x1 = box
     xs = np.arange(x0, x1, dtype=np.float64)[None, :]
     ys = np.arange(y0, y1, dtype=np.float64)[:, None]
-    scale = COORD_STEPS / (inv[2, 0] * xs + (inv[2, 1] * ys + inv[2, 2]))
-    maps = []
-    for row, origin in ((0, sbox[2]), (1, sbox[0])):
-        q = (inv[row, 0] * xs + (inv[row, 1] * ys + inv[row, 2])) * scale
-        np.rint(q, out=q)
-        q -= origin * COORD_STEPS
-        m = q.astype(np.float32)
-        m *= np.float32(1.0 / COORD_STEPS)
-        maps.append(m)
-    return maps[0], maps[1]
+    return _quantised_maps(*_scaled_positions(inv, xs, ys), sbox)
+
+
+class _Homographies:
+    """The sub-pose mappings of plain homographies, in the interface of
+    :class:`reblur.testbed.geometry.SceneGeometry` (``n``, ``source_box``, ``valid_window``,
+    ``sample_maps``)."""
+
+    def __init__(self, homographies: np.ndarray) -> None:
+        self.homographies = _check_homographies(homographies)
+        self.inv = _inverses(self.homographies)
+        self.n = len(self.homographies)
+
+    def source_box(self, box: Box, ref_shape: tuple[int, ...]) -> Box | None:
+        return source_box(self.homographies, box, ref_shape)
+
+    def valid_window(self, box: Box, ref_shape: tuple[int, ...], shrink: float) -> np.ndarray:
+        return valid_window(self.homographies, box, ref_shape, shrink)
+
+    def sample_maps(self, k: int, box: Box, sbox: Box) -> tuple[np.ndarray, np.ndarray]:
+        return _sample_maps(self.inv[k], box, sbox)
+
+
+def as_mapping(mapping: Any) -> Any:
+    """``mapping`` as an object with ``n``, ``source_box``, ``valid_window`` and
+    ``sample_maps``: a geometry (:class:`reblur.testbed.geometry.SceneGeometry`) as it is,
+    an ``(n, 3, 3)`` stack of homographies wrapped."""
+    if hasattr(mapping, "sample_maps"):
+        return mapping
+    return _Homographies(mapping)
 
 
 def _read(source: Any, sbox: Box) -> np.ndarray:
@@ -211,7 +254,7 @@ def _read(source: Any, sbox: Box) -> np.ndarray:
 
 
 def render_window(
-    source: Any, homographies: np.ndarray, box: Box, *, shrink: float = 2.0
+    source: Any, homographies: Any, box: Box, *, shrink: float = 2.0
 ) -> tuple[np.ndarray, np.ndarray]:
     """Render one window of the blurred observation and its validity mask.
 
@@ -220,15 +263,19 @@ def render_window(
     and OpenCV's bicubic (``cv2.remap`` with ``INTER_CUBIC``, the kernel
     ``cv2.warpPerspective`` uses) interpolates the reference region the window needs; the
     terms are accumulated in float64.  Samples outside the reference use a replicated
-    border; such pixels are flagged invalid.
+    border; such pixels are flagged invalid.  With a
+    :class:`~reblur.testbed.geometry.SceneGeometry` instead of homographies, the sample
+    positions are the geometry's (lens distortion, a second scene plane), the rest is the
+    same.
 
     Parameters
     ----------
     source : array-like
         Reference, ``(H, W)`` or ``(H, W, C)``, float values; read only inside the window's
         :func:`source_box`.
-    homographies : numpy.ndarray
-        ``(n, 3, 3)`` reference -> observation homographies (equal exposure weights).
+    homographies : numpy.ndarray or SceneGeometry
+        ``(n, 3, 3)`` reference -> observation homographies (equal exposure weights), or a
+        geometry giving each sub-pose's sample positions.
     box : Box
         Observation window ``(y0, y1, x0, x1)``.
     shrink : float
@@ -241,26 +288,26 @@ def render_window(
     valid : numpy.ndarray
         Boolean ``(y1 - y0, x1 - x0)`` (see :func:`valid_window`).
     """
-    hs = _check_homographies(homographies)
+    mapping = as_mapping(homographies)
     y0, y1, x0, x1 = _check_box(box)
     ref_shape = tuple(source.shape)
     out_shape = (y1 - y0, x1 - x0) + ref_shape[2:]
-    valid = valid_window(hs, box, ref_shape, shrink)
-    sbox = source_box(hs, box, ref_shape)
+    valid = mapping.valid_window(box, ref_shape, shrink)
+    sbox = mapping.source_box(box, ref_shape)
     if sbox is None:
         return np.zeros(out_shape), valid
     if max(sbox[1] - sbox[0], sbox[3] - sbox[2], y1 - y0, x1 - x0) > MAX_WINDOW:
         raise ValueError(f"window {box!r} is too large for one remap: render it in tiles")
     src = _read(source, sbox)
     acc = np.zeros(out_shape, dtype=np.float64)
-    for inv in _inverses(hs):
-        map_x, map_y = _sample_maps(inv, box, sbox)
+    for k in range(mapping.n):
+        map_x, map_y = mapping.sample_maps(k, box, sbox)
         acc += cv2.remap(src, map_x, map_y, cv2.INTER_CUBIC, borderMode=cv2.BORDER_REPLICATE)
-    return acc / len(hs), valid
+    return acc / mapping.n, valid
 
 
 def render_tiled(
-    source: Any, homographies: np.ndarray, out_shape: tuple[int, int] | None = None,
+    source: Any, homographies: Any, out_shape: tuple[int, int] | None = None,
     tile: int = 512,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Render a whole (in-memory) observation tile by tile.
@@ -269,8 +316,8 @@ def render_tiled(
     ----------
     source : array-like
         Reference.
-    homographies : numpy.ndarray
-        ``(n, 3, 3)`` reference -> observation homographies.
+    homographies : numpy.ndarray or SceneGeometry
+        ``(n, 3, 3)`` reference -> observation homographies, or a geometry.
     out_shape : tuple of int, optional
         Observation ``(H, W)``; default the reference's.
     tile : int

@@ -31,7 +31,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-__all__ = ["GeoPrior", "geo_homography"]
+__all__ = ["GeoPrior", "geo_homography", "image_prior"]
 
 #: Points per edge of the densified footprint outlines used for the overlap.
 _OUTLINE_PTS = 64
@@ -342,3 +342,30 @@ def _disjoint(ref_crs, ref_a, ref_hw, obs_crs, obs_a, obs_hw) -> ValueError:
         f"{obs_crs.to_string()}; check that both files show the same area and carry the right "
         "CRS, or drop the georeferencing to align from pixels alone"
     )
+
+
+def image_prior(reference: Any, observed: Any, *, n: int = 21) -> GeoPrior | None:
+    """The georeferenced prior of two opened images, or None unless both are georeferenced.
+
+    Parameters
+    ----------
+    reference, observed : reblur.io.Image
+        Opened inputs; their ``geo`` (CRS and transform of a GeoTIFF) and ``shape``.
+    n : int
+        Fit points per side (:func:`geo_homography`).
+
+    Returns
+    -------
+    GeoPrior or None
+        None when either image has no CRS or no transform (pixels alone decide then).
+
+    Raises
+    ------
+    ValueError
+        Both are georeferenced but their footprints do not overlap, or the mapping is
+        degenerate (the message says which, with the bounds).
+    """
+    geos = [getattr(im, "geo", None) or {} for im in (reference, observed)]
+    if not all(g.get("crs") is not None and g.get("transform") is not None for g in geos):
+        return None
+    return geo_homography(geos[0], tuple(reference.shape), geos[1], tuple(observed.shape), n=n)

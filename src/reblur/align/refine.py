@@ -17,21 +17,31 @@ correction before the poses instead of after them differs by the commutator of t
 near-identity transforms (second order: ~0.005 px for a 0.2 px correction and a 3 degree
 roll over 2000 px).  The residual displacement before and after is reported; a correction
 that does not reduce it is not applied.
+
+Nothing here stops the run: a probe that cannot be measured (its window maps beyond the
+horizon of a pose, ECC fails, values are not finite) is skipped with the reason, and a
+correction that is degenerate (singular, folding the image) or implausible (moving the
+corners by more than a few probe sizes) is rejected with the reason
+(``Refinement.info["rejected"]``), the base left as it was.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
 import cv2
 import numpy as np
 
-from .grid import PoseGrid, map_points
-from .tiled import SparsePoses, reblur_tile
-from .warp import Box, read_window
+from ..grid import PoseGrid, map_points
+from ..tiled import SparsePoses, reblur_tile
+from ..warp import Box, read_window
+from .result import AlignmentError
+from .verify import check_plausible, max_corner_shift
 
-__all__ = ["ProbeShift", "measure_shifts", "probe_boxes", "refine_alignment", "Refinement"]
+__all__ = ["ProbeShift", "RefineParams", "Refinement", "measure_shifts", "probe_boxes",
+           "refine_alignment"]
 
 
 @dataclass(frozen=True)
@@ -90,6 +100,57 @@ class Refinement:
     before: list[ProbeShift] = field(default_factory=list)
     after: list[ProbeShift] = field(default_factory=list)
     info: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class RefineParams:
+    """Options of :func:`refine_alignment`, validated once.
+
+    Attributes
+    ----------
+    probe_size : int, optional
+        Probe side; default a third of the short side, within [128, 256] px (large enough
+        for a sub-pixel ECC estimate, small enough for several probes per side).
+    n_probes : int
+        Probes per side (at most).
+    min_cc : float
+        Smallest ECC correlation of a probe used in the fit (changes, occlusions and
+        photometric differences lower it).
+    ransac_px : float
+        RANSAC inlier distance of the fit.
+    min_gain_px : float
+        The correction is applied only when it lowers the RMS probe displacement by at
+        least this much.
+    max_correction : float
+        Largest corner displacement of an accepted correction, in probe sizes: the probes
+        measure shifts of a fraction of their size, so a correction moving the image's
+        corners farther extrapolates noise.
+    """
+
+    probe_size: int | None = None
+    n_probes: int = 5
+    min_cc: float = 0.9
+    ransac_px: float = 0.3
+    min_gain_px: float = 0.02
+    max_correction: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.probe_size is not None and not (
+                isinstance(self.probe_size, int) and self.probe_size >= 16):
+            raise ValueError(f"RefineParams.probe_size must be None or an integer >= 16, got "
+                             f"{self.probe_size!r}")
+        if not (isinstance(self.n_probes, int) and self.n_probes >= 1):
+            raise ValueError(f"RefineParams.n_probes must be an integer >= 1, got "
+                             f"{self.n_probes!r}")
+        if not 0.0 <= self.min_cc <= 1.0:
+            raise ValueError(f"RefineParams.min_cc must lie in [0, 1], got {self.min_cc!r}")
+        for name in ("ransac_px", "max_correction"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v > 0):
+                raise ValueError(f"RefineParams.{name} must be a finite number > 0, got {v!r}")
+        if not (math.isfinite(self.min_gain_px) and self.min_gain_px >= 0):
+            raise ValueError(f"RefineParams.min_gain_px must be a finite number >= 0, got "
+                             f"{self.min_gain_px!r}")
 
 
 def probe_boxes(shape: tuple[int, int], *, size: int = 256, n: int = 5) -> list[Box]:
@@ -163,8 +224,9 @@ def _measure_one(reference, observed, poses: SparsePoses, b: Box, ref_scale: flo
 
     try:
         reb, valid = reblur_tile(poses, reference, b)
-    except ValueError as e:  # a pose maps part of the window beyond the horizon
-        return failed(f"cannot be reblurred: {e}")
+    except (ValueError, np.linalg.LinAlgError, cv2.error) as e:
+        # a pose maps part of the window beyond the horizon, or is singular
+        return failed(f"cannot be reblurred: {' '.join(str(e).split())}")
     cover = float(valid.mean())
     if cover < min_valid:
         return failed(f"the reference covers {100 * cover:.0f} % of it "
@@ -238,11 +300,7 @@ def refine_alignment(
     ref_scale: float = 1.0,
     obs_scale: float = 1.0,
     probes: list[Box] | None = None,
-    probe_size: int | None = None,
-    n_probes: int = 5,
-    min_cc: float = 0.9,
-    ransac_px: float = 0.3,
-    min_gain_px: float = 0.02,
+    params: RefineParams | None = None,
 ) -> Refinement:
     """Check the geometry of the estimate over the whole image and correct the base homography.
 
@@ -259,53 +317,79 @@ def refine_alignment(
     ref_scale, obs_scale : float
         Intensity scales of the reference and the observation.
     probes : list of Box, optional
-        Probe windows (default :func:`probe_boxes` with ``probe_size`` and ``n_probes``).
-    probe_size : int, optional
-        Probe side; default a third of the short side, within [128, 256] px (large enough
-        for a sub-pixel ECC estimate, small enough for several probes per side).
-    n_probes : int
-        Probes per side (at most).
-    min_cc : float
-        Smallest ECC correlation of a probe used in the fit (changes, occlusions and
-        photometric differences lower it).
-    ransac_px : float
-        RANSAC inlier distance of the fit.
-    min_gain_px : float
-        The correction is applied only when it lowers the RMS probe displacement by at
-        least this much.
+        Probe windows (default :func:`probe_boxes` with ``params.probe_size`` and
+        ``params.n_probes``).
+    params : RefineParams, optional
+        The options (default ``RefineParams()``).
 
     Returns
     -------
     Refinement
+        Never raises on what it measures: probes that cannot be measured carry their
+        reason, and a correction that is rejected leaves the base unchanged with
+        ``info["rejected"]`` saying why.
     """
+    p = RefineParams() if params is None else params
     base = np.asarray(base, np.float64)
-    if probe_size is None:
-        probe_size = int(np.clip(min(grid.image_shape[:2]) // 3, 128, 256))
-    boxes = probes if probes is not None else probe_boxes(
-        grid.image_shape, size=probe_size, n=n_probes)
+    size = p.probe_size
+    if size is None:
+        size = int(np.clip(min(grid.image_shape[:2]) // 3, 128, 256))
+    boxes = probes if probes is not None else probe_boxes(grid.image_shape, size=size,
+                                                          n=p.n_probes)
     kw = dict(ref_scale=ref_scale, obs_scale=obs_scale)
     before = measure_shifts(reference, observed, SparsePoses(weights, grid, base), boxes, **kw)
-    s0 = _stats(before, min_cc)
-    good = [s for s in before if s.measured and s.cc >= min_cc]
-    G, model, n_in = _fit(good, ransac_px)
+    s0 = _stats(before, p.min_cc)
+    good = [s for s in before if s.measured and s.cc >= p.min_cc]
+    G, model, n_in = _fit(good, p.ransac_px)
     info: dict[str, Any] = {"probes": len(boxes), "before": s0, "model": model,
-                            "inliers": n_in, "probe_shifts": _records(before, min_cc)}
+                            "inliers": n_in, "probe_shifts": _records(before, p.min_cc)}
     if G is None:
         return Refinement(base, False, "none", before, before, info)
-    new = np.linalg.inv(G) @ base
-    new /= new[2, 2]
+    shape = tuple(int(s) for s in grid.image_shape[:2])
+    new, why = _corrected(G, base, shape, tuple(int(s) for s in reference.shape[:2]),
+                          p.max_correction * max(max(b.h, b.w) for b in boxes))
+    if new is None:
+        info["rejected"], info["applied"] = why, False
+        return Refinement(base, False, model, before, before, info)
     after = measure_shifts(reference, observed, SparsePoses(weights, grid, new), boxes, **kw)
-    s1 = _stats(after, min_cc)
+    s1 = _stats(after, p.min_cc)
     info["after"] = s1
-    info["probe_shifts_after"] = _records(after, min_cc)
-    corners = np.array([[0.0, 0.0], [grid.image_shape[1] - 1.0, 0.0],
-                        [grid.image_shape[1] - 1.0, grid.image_shape[0] - 1.0],
-                        [0.0, grid.image_shape[0] - 1.0]])
-    info["correction_at_corners_px"] = float(
-        np.abs(map_points(G, corners) - corners).max())
-    ok = (s0["n"] > 0 and s1["n"] > 0
-          and s1["rms_px"] <= s0["rms_px"] - min_gain_px)
+    info["probe_shifts_after"] = _records(after, p.min_cc)
+    corners = np.array([[0.0, 0.0], [shape[1] - 1.0, 0.0], [shape[1] - 1.0, shape[0] - 1.0],
+                        [0.0, shape[0] - 1.0]])
+    info["correction_at_corners_px"] = float(np.abs(map_points(G, corners) - corners).max())
+    ok = s0["n"] > 0 and s1["n"] > 0 and s1["rms_px"] <= s0["rms_px"] - p.min_gain_px
     info["applied"] = bool(ok)
     if not ok:
         return Refinement(base, False, model, before, after, info)
     return Refinement(new, True, model, before, after, info)
+
+
+def _corrected(G: np.ndarray, base: np.ndarray, obs_shape: tuple[int, int],
+               ref_shape: tuple[int, int], max_px: float) -> tuple[np.ndarray | None, str]:
+    """The corrected base ``G^-1 @ base``, or None and why the correction ``G`` (observation
+    frame) is rejected: singular or not finite, folding the observation or the corrected
+    reference, or moving the observation's corners by more than ``max_px``."""
+    if not np.all(np.isfinite(G)) or abs(np.linalg.det(G)) < 1e-12 or G[2, 2] == 0:
+        return None, "degenerate correction: singular or non-finite"
+    G = G / G[2, 2]
+    # a correction is near the identity: the loosest plausible viewpoint change is far more
+    # than any correction the probes can support; what it catches is folding and horizons
+    limits = dict(max_zoom=2.0, max_anisotropy=2.0, min_overlap=0.2)
+    try:
+        check_plausible(G, obs_shape, obs_shape, **limits)
+    except AlignmentError as err:
+        return None, f"degenerate correction: {str(err).split(': ', 1)[-1]}"
+    moved = max_corner_shift(G, np.eye(3), obs_shape)
+    if not moved <= max_px:
+        return None, (f"implausible correction: it moves the image corners by {moved:.0f} px "
+                      f"(> {max_px:.0f} px, max_correction probe sizes)")
+    new = np.linalg.inv(G) @ base
+    if not np.all(np.isfinite(new)) or abs(new[2, 2]) < 1e-12:
+        return None, "degenerate corrected base: non-finite or at infinity"
+    new = new / new[2, 2]
+    try:
+        check_plausible(new, ref_shape, obs_shape, **limits)
+    except AlignmentError as err:
+        return None, f"degenerate corrected base: {str(err).split(': ', 1)[-1]}"
+    return new, ""

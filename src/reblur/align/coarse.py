@@ -1,0 +1,611 @@
+"""The coarse alignment: :func:`coarse_align` and :func:`coarse_align_shakes` run the stages.
+
+The stages live in their own modules (:mod:`.features`, :mod:`.ecc`, :mod:`.blocks`,
+:mod:`.polish`, :mod:`.verify`); this module prepares the pyramid of a pair once
+(:class:`Prepared`, which also memoises the stages that do not depend on the shake
+extent) and decides between their results, for one shake extent at a time
+(:func:`_align`):
+
+1. ``auto``: the SIFT estimate (refined by ECC), if it holds, seeds the gradient blocks
+   (:func:`_features_seed`); ``auto`` and ``gradient``: the gradient blocks, from that
+   seed or from rotation hypotheses -- or from the caller's hint instead of both --
+   decide and verify (:func:`_gradient_blocks`), and the kernel polish is kept where its
+   blur model fits (:func:`_polish_and_keep`).
+2. ``features`` (or ``auto`` when the blocks failed): the SIFT estimate, polished and
+   verified by its regions (:func:`_features_fallback`); with a hint it must lie near it.
+3. ``ecc`` (or ``auto`` when both failed): phase correlation (or the hint), ECC coarse to
+   fine, the polish and a correlation check (:func:`_phase_fallback`).
+4. The checks and diagnostics of the result (:func:`_result`).
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import math
+from collections.abc import Callable, Hashable, Iterator, Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from ..grid import map_points
+from .blocks import Blocks, gradient_align, rotation_hypotheses
+from .ecc import ecc_refine, phase_init
+from .features import Features, match_features
+from .overviews import Level, block_factor, image_shape, overview_k, pyramid
+from .params import AlignParams
+from .polish import REGION_PX, polish_and_verify
+from .result import Alignment, AlignmentError
+from .verify import (
+    check_near_hint,
+    check_plausible,
+    check_textured,
+    correlation,
+    max_corner_shift,
+    refusal,
+)
+
+log = logging.getLogger(__name__)
+
+
+# ---------------------------------------------------------------------- entry points
+def coarse_align(
+    reference,
+    observed,
+    params: AlignParams | None = None,
+    *,
+    shake_px: float = 16.0,
+    hint: np.ndarray | None = None,
+) -> Alignment:
+    """Estimate the global reference -> observation homography at low resolution.
+
+    Parameters
+    ----------
+    reference, observed : array-like, (H, W) or (H, W, C)
+        Sharp reference and blurred observation (numpy, zarr, ... any dtype; sizes and band
+        counts may differ).  Each is read once, strip by strip, into an overview.
+    params : AlignParams, optional
+        The options (default ``AlignParams()``): method, pyramid sizes, thresholds of the
+        features, blocks, polish and checks.
+    shake_px : float
+        Largest camera-shake displacement expected during the exposure, in full-resolution
+        pixels, anywhere in the image (an in-plane roll moves the corners by radius x
+        angle: 1 degree is 17 px per 1000 px of radius).  It picks the working level of the
+        refinement (the finest level where it spans at most 4 pixels) and the kernel size of
+        the polish; a blur much larger than this fails verification.
+    hint : (3, 3) array-like, optional
+        A rough reference -> observation homography in full-resolution pixels (a few
+        degrees and tens of pixels off is fine), e.g. from georeferencing or picked by
+        hand.  It replaces the SIFT seed and the rotation hypotheses of the gradient blocks
+        and the phase-correlation start of the fallback, so it reaches pairs neither
+        finds (large rotations, captures years apart); every estimate must then stay
+        within ``params.hint_reach`` of it.  The result's ``method`` starts with ``hint``.
+
+    Returns
+    -------
+    Alignment
+        ``H`` (reference -> observation, full-resolution pixels) plus diagnostics.
+
+    Raises
+    ------
+    AlignmentError
+        Textureless images; too few or inconsistent feature matches together with a failed
+        fallback (ECC divergence, too low a correlation); a result the kernel polish cannot
+        verify; or an implausible homography (folded, extreme zoom or stretch, too little
+        overlap).  The message gives the reason on one line.
+    ValueError
+        Bad arguments (shapes, dtypes, ``shake_px``, a hint that is not an invertible 3x3
+        homography or is implausible for these images).
+
+    See Also
+    --------
+    coarse_align_shakes : the same for several shake extents, sharing the overviews and
+        the stages that do not depend on the extent.
+
+    Notes
+    -----
+    A correlation optimum between a sharp and a motion-blurred image lies near a *mode* of
+    the blur, not at its mean: with 8 px of shake the corners of ECC and feature estimates
+    are typically 4-16 px off the mean camera pose.  The polish fits, in a grid of regions,
+    a non-negative blur kernel between the warped reference and the observation; the
+    kernel's centroid is the mean displacement there, and a homography through the moved
+    region centres brings the corners to within about a pixel of the mean pose, which is
+    the pose the fine pose grid is centred on.  The same fit verifies the result: enough
+    regions, spread over the image, must agree.  It assumes the observation is the blurred
+    one (``observation = reference * kernel``); with ``polish=False`` only the feature
+    checks guard against a wrong answer.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from reblur.grid import map_points, pose_homography
+    >>> from reblur.warp import warp_window
+    >>> rng = np.random.default_rng(0)
+    >>> import cv2
+    >>> ref = cv2.GaussianBlur(rng.random((400, 400)).astype(np.float32), (0, 0), 2)
+    >>> H = pose_homography(12, -7, rz=2.0, center=(199.5, 199.5))
+    >>> obs, _ = warp_window(ref, H, (0, 0, 400, 400))
+    >>> a = coarse_align(ref, obs[..., 0], AlignParams(min_side=64))
+    >>> corners = np.array([[0, 0], [399, 0], [399, 399], [0, 399]])
+    >>> err = np.abs(map_points(a.H, corners) - map_points(H, corners)).max()
+    >>> bool(err < 1.0), a.method.split("+")[0]
+    (True, 'features')
+    """
+    params = _checked(params, (shake_px,))
+    prep = _prepare(reference, observed, params, hint)
+    return _align(prep, params, shake_px)
+
+
+def coarse_align_shakes(
+    reference,
+    observed,
+    shakes: Sequence[float] = (8.0, 16.0, 32.0, 64.0),
+    params: AlignParams | None = None,
+    *,
+    hint: np.ndarray | None = None,
+) -> Iterator[tuple[float, Alignment | AlignmentError]]:
+    """:func:`coarse_align` for several camera-shake extents, sharing what does not depend
+    on the extent.
+
+    The overviews and the pyramid are built once, and the SIFT matches, their ECC
+    refinement, the gradient blocks and the phase-correlation start are computed once for
+    each set of inputs they read (the shake extent only picks the working level, which
+    these stages may share); the kernel polish and the checks run for each extent.  Each
+    result is exactly the one a separate ``coarse_align(reference, observed, params,
+    shake_px=s, hint=hint)`` gives.
+
+    Parameters
+    ----------
+    reference, observed : array-like, (H, W) or (H, W, C)
+        As for :func:`coarse_align`; each is read once.
+    shakes : sequence of float
+        Shake extents (``shake_px`` of :func:`coarse_align`), tried in this order.
+    params : AlignParams, optional
+        The options, as for :func:`coarse_align`.
+    hint : (3, 3) array-like, optional
+        A rough reference -> observation homography, as for :func:`coarse_align`.
+
+    Yields
+    ------
+    shake_px : float
+        The extent tried.
+    result : Alignment or AlignmentError
+        Its alignment, or the error :func:`coarse_align` would raise.  Results are computed
+        lazily: stopping the iteration skips the remaining extents.
+
+    Raises
+    ------
+    ValueError
+        Bad arguments, as :func:`coarse_align` (raised on the first ``next``).
+
+    Examples
+    --------
+    >>> import numpy as np, cv2
+    >>> from reblur.grid import pose_homography
+    >>> from reblur.warp import warp_window
+    >>> rng = np.random.default_rng(0)
+    >>> ref = cv2.GaussianBlur(rng.random((400, 400)).astype(np.float32), (0, 0), 2)
+    >>> H = pose_homography(12, -7, rz=2.0, center=(199.5, 199.5))
+    >>> obs, _ = warp_window(ref, H, (0, 0, 400, 400))
+    >>> for s, a in coarse_align_shakes(ref, obs[..., 0], (8.0, 16.0), AlignParams(min_side=64)):
+    ...     print(s, a.method.split("+")[0])
+    8.0 features
+    16.0 features
+    """
+    shakes = tuple(shakes)
+    params = _checked(params, shakes)
+    try:
+        prep = _prepare(reference, observed, params, hint)
+    except AlignmentError as err:
+        for sp in shakes:
+            yield sp, AlignmentError(str(err))
+        return
+    for sp in shakes:
+        try:
+            yield sp, _align(prep, params, sp)
+        except AlignmentError as err:
+            yield sp, err
+
+
+def _checked(params: AlignParams | None, shakes: tuple[float, ...]) -> AlignParams:
+    """``params`` (default ``AlignParams()``); ValueError on a bad shake extent."""
+    if params is None:
+        params = AlignParams()
+    elif not isinstance(params, AlignParams):
+        raise TypeError(f"params must be an AlignParams, got {type(params).__name__}")
+    for shake_px in shakes:
+        if not (isinstance(shake_px, (int, float, np.number)) and 0 <= shake_px < math.inf):
+            raise ValueError(f"shake_px must be a finite number >= 0, got {shake_px!r}")
+    return params
+
+
+# ---------------------------------------------------------------------- the prepared pair
+@dataclass
+class Prepared:
+    """The overviews' pyramid of one pair and the memo of the stages that do not depend
+    on the shake extent (see :func:`_align`)."""
+
+    ref_shape: tuple[int, int]
+    obs_shape: tuple[int, int]
+    scale0: float
+    levels: list[Level]
+    hint: np.ndarray | None = None
+    memo: dict = field(default_factory=dict)
+
+    def cached(self, key: Hashable, compute: Callable[[], Any]) -> Any:
+        """``compute()`` once per ``key``; an AlignmentError it raises is re-raised (a new
+        one with the same message) on every later call."""
+        if key not in self.memo:
+            try:
+                self.memo[key] = (True, compute())
+            except AlignmentError as err:
+                self.memo[key] = (False, str(err))
+        ok, got = self.memo[key]
+        if not ok:
+            raise AlignmentError(got)
+        return got
+
+
+def _prepare(reference, observed, params: AlignParams, hint) -> Prepared:
+    """Overviews of both images (each read once), their pyramid, and the checked hint.
+
+    Raises ValueError when they are too small or the hint is bad, AlignmentError when one
+    is textureless."""
+    ref_shape, obs_shape = image_shape(reference), image_shape(observed)
+    hint = None if hint is None else _checked_hint(hint, ref_shape, obs_shape, params)
+    k = block_factor(max(ref_shape + obs_shape), params.max_side)
+    scale0 = 1.0 / k
+    ref0, obs0 = overview_k(reference, k), overview_k(observed, k)
+    if min(ref0.shape + obs0.shape) < 16:
+        raise ValueError(
+            f"images {ref_shape} and {obs_shape} are too small or elongated to align at "
+            f"max_side={params.max_side}; raise max_side, or use --no-align (align=False) "
+            "if the images are already registered"
+        )
+    try:
+        check_textured("reference", ref0)
+        check_textured("observation", obs0)
+    except AlignmentError as err:
+        raise AlignmentError(f"alignment (overviews): {err}: nothing to align or compare; "
+                             "check the input (blank, saturated or all nodata?)") from None
+    levels = pyramid(ref0, obs0, scale0, params.min_side, params.nodata)
+    return Prepared(ref_shape, obs_shape, scale0, levels, hint)
+
+
+def _checked_hint(hint, ref_shape: tuple[int, int], obs_shape: tuple[int, int],
+                  params: AlignParams) -> np.ndarray:
+    """``hint`` as a normalised float64 homography; ValueError saying what is wrong."""
+    how = "give the reference -> observation homography in full-resolution pixels"
+    try:
+        H = np.array(hint, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"alignment hint is not a 3x3 array of numbers; {how}") from None
+    if H.shape != (3, 3) or not np.all(np.isfinite(H)):
+        raise ValueError(f"alignment hint must be 3x3 finite numbers, got shape {H.shape}; "
+                         f"{how}")
+    if H[2, 2] == 0 or abs(np.linalg.det(H / H[2, 2])) < 1e-12:
+        raise ValueError(f"alignment hint is singular (not invertible); {how}")
+    H = H / H[2, 2]
+    try:
+        check_plausible(H, ref_shape, obs_shape, max_zoom=params.max_zoom,
+                        max_anisotropy=params.max_anisotropy, min_overlap=params.min_overlap)
+    except AlignmentError as err:
+        why = str(err).split(": ", 1)[-1]
+        raise ValueError(f"alignment hint is implausible for these images ({why}); {how}, "
+                         "or relax AlignParams' max_zoom, max_anisotropy, min_overlap") from None
+    return H
+
+
+# ---------------------------------------------------------------------- one shake extent
+@dataclass
+class _Shake:
+    """One shake extent on a prepared pair: what every stage reads.
+
+    ``work`` is the working level of ECC and the polish: the finest where the shake spans
+    at most 4 pixels, but large enough for a grid of polish regions.  ``errors`` collects
+    the stages that failed and why, for the refusal."""
+
+    prep: Prepared
+    params: AlignParams
+    shake_px: float
+    work: int = 0
+    errors: list[tuple[str, str]] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        levels, top = self.prep.levels, len(self.prep.levels) - 1
+        work = next((i for i, lv in enumerate(levels)
+                     if math.ceil(self.shake_px * lv.scale) <= 4), top)
+        while work > 0 and max(levels[work].obs.shape) < 5 * REGION_PX:
+            work -= 1
+        self.work = work
+
+    @property
+    def levels(self) -> list[Level]:
+        return self.prep.levels
+
+    @property
+    def top(self) -> int:
+        return len(self.prep.levels) - 1
+
+    @property
+    def hint(self) -> np.ndarray | None:
+        return self.prep.hint
+
+    @property
+    def key(self) -> Hashable:
+        """What every memoised stage reads besides its level indices and seed."""
+        return self.params, None if self.hint is None else self.hint.tobytes()
+
+    def first_at_most(self, side: int) -> int:
+        """The finest level whose longest side is at most ``side`` (else the coarsest)."""
+        return next((i for i, lv in enumerate(self.levels) if lv.side <= side), self.top)
+
+    def feature_levels(self) -> list[int]:
+        i = self.first_at_most(self.params.feature_side)
+        return list(dict.fromkeys((i, min(i + 1, self.top))))
+
+    def plausible(self, H: np.ndarray) -> float:
+        """Raise AlignmentError unless ``H`` is plausible; return the overlap."""
+        p = self.params
+        overlap = check_plausible(H, self.prep.ref_shape, self.prep.obs_shape,
+                                  max_zoom=p.max_zoom, max_anisotropy=p.max_anisotropy,
+                                  min_overlap=p.min_overlap)
+        if self.hint is not None:
+            check_near_hint(H, self.hint, self.prep.ref_shape, p.hint_reach)
+        return overlap
+
+    def polish(self, H: np.ndarray):
+        """:func:`~reblur.align.polish.polish_and_verify` of ``H`` on the working level."""
+        return polish_and_verify(self.levels[self.work], H, self.shake_px,
+                                 self.prep.ref_shape, self.params, self.plausible)
+
+    def failed(self, stage: str, err: Exception) -> None:
+        """Record why ``stage`` failed."""
+        self.errors.append((stage, str(err)))
+
+    def refused(self) -> AlignmentError:
+        """The refusal: every stage's reason and what would let the user go on."""
+        return refusal(self.errors, self.shake_px, hinted=self.hint is not None)
+
+
+@dataclass
+class _Estimate:
+    """An estimate and how it was made: ``stages`` (joined into :attr:`Alignment.method`),
+    the feature matches it came from, the polish regions and gradient blocks that agree."""
+
+    H: np.ndarray
+    stages: list[str]
+    feats: Features | None = None
+    n_regions: int = 0
+    n_blocks: int = 0
+
+
+def _align(prep: Prepared, params: AlignParams, shake_px: float) -> Alignment:
+    """:func:`coarse_align` with the shake extent ``shake_px`` on a prepared pair.
+
+    The stages that read the shake extent only through the working level are memoised in
+    ``prep`` under the level indices and initial homography they read, and under the
+    options (so a memo entry is reused only where a fresh computation would give the same
+    result).  Results handed out are copies: a caller that edits an :attr:`Alignment.H`
+    in place cannot reach the memo.
+    """
+    ctx = _Shake(prep, params, shake_px)
+    est = None
+    if params.method in ("auto", "gradient"):
+        seed = _features_seed(ctx) if params.method == "auto" and ctx.hint is None else None
+        est = _gradient_blocks(ctx, seed)
+        if est is None and params.method == "gradient":
+            raise ctx.refused()
+        if est is not None and params.polish:
+            _polish_and_keep(ctx, est)
+    if est is None and params.method in ("auto", "features"):
+        est = _features_fallback(ctx)
+    if est is None and params.method in ("auto", "ecc"):
+        est = _phase_fallback(ctx)
+    if est is None:
+        raise ctx.refused()
+    try:
+        return _result(ctx, est)
+    except AlignmentError as err:
+        ctx.failed("checks", err)
+        raise ctx.refused() from None
+
+
+# ---------------------------------------------------------------------- the stages
+def _features_estimate(ctx: _Shake, i: int) -> _Estimate:
+    """SIFT estimate on level ``i``, refined by ECC when that stays with the matches;
+    raises its AlignmentError.  Both are memoised: they read the shake extent only
+    through the working level."""
+    f = ctx.prep.cached(("features", i, ctx.key), functools.partial(_matched_features, ctx, i))
+    est = _Estimate(f.H.copy(), ["features"], feats=f)
+    if not ctx.params.refine:
+        return est
+    try:
+        He, res_f, res_e = ctx.prep.cached(("features-ecc", i, ctx.work, ctx.key),
+                                           functools.partial(_feature_ecc, ctx, f))
+        # ECC must not leave the feature matches: smoothing can wash out fine texture and
+        # let it drift
+        log.debug("feature residual %.2f px, after ECC %.2f px", res_f, res_e)
+        if res_e > max(2.0 * res_f, 0.25 * ctx.shake_px, 1.0 / ctx.levels[i].scale):
+            raise AlignmentError(
+                f"ECC moved away from the feature matches ({res_e:.1f} px vs {res_f:.1f} px)"
+            )
+        est.H = He.copy()
+        est.stages.append("ecc")
+    except AlignmentError as err:
+        log.debug("ECC refinement rejected (%s); keeping the feature estimate", err)
+    return est
+
+
+def _matched_features(ctx: _Shake, i: int) -> Features:
+    """SIFT estimate on level ``i``; AlignmentError when it fails or is implausible."""
+    f = match_features(ctx.levels[i], ctx.params)
+    ctx.plausible(f.H)
+    return f
+
+
+def _feature_ecc(ctx: _Shake, f: Features) -> tuple[np.ndarray, float, float]:
+    """ECC refinement of ``f.H`` on the working level, its residual to the matches before
+    and after; AlignmentError when it fails, is implausible or correlates too little."""
+    He, rho, _ = ecc_refine(ctx.levels, f.H, min(ctx.work + 1, ctx.top), ctx.work,
+                            ctx.prep.ref_shape, ctx.params, max_jump=0.05, tolerant=True)
+    ctx.plausible(He)
+    if rho < ctx.params.min_ecc:
+        raise AlignmentError(f"ECC correlation {rho:.2f} < {ctx.params.min_ecc:g}")
+    res_f = float(np.median(np.hypot(*(map_points(f.H, f.src) - f.dst).T)))
+    res_e = float(np.median(np.hypot(*(map_points(He, f.src) - f.dst).T)))
+    return He, res_f, res_e
+
+
+def _features_seed(ctx: _Shake) -> _Estimate | None:
+    """The first feature level's estimate that holds, to seed the gradient blocks."""
+    for i in ctx.feature_levels():
+        try:
+            return _features_estimate(ctx, i)
+        except AlignmentError as err:
+            log.debug("feature alignment failed at level %d: %s", i, err)
+            ctx.failed("features", err)
+    return None
+
+
+def _gradient_blocks(ctx: _Shake, seed: _Estimate | None) -> _Estimate | None:
+    """Gradient blocks from ``seed`` (if any, and if that fails) from the rotation
+    hypotheses, or from the hint alone; None when none verifies (the reasons go to
+    ``ctx.errors``)."""
+    fine = min(ctx.first_at_most(ctx.params.gradient_side), ctx.work)
+    hypotheses = None
+    if ctx.hint is not None:  # the rotation hypotheses about the hint instead of the identity
+        hypotheses = [ctx.hint @ R for R in rotation_hypotheses(ctx.prep.ref_shape,
+                                                                 ctx.params.rotations)]
+    first = ["gradient"] if ctx.hint is None else ["hint", "gradient"]
+    for s in ([seed, None] if seed is not None else [None]):
+        H0 = None if s is None else s.H
+        try:
+            # memoised: reads the shake extent only through ``fine`` and the seed
+            blocks: Blocks = ctx.prep.cached(
+                ("gradient", fine, None if H0 is None else H0.tobytes(), ctx.key),
+                functools.partial(gradient_align, ctx.levels, ctx.prep.ref_shape, fine,
+                                  ctx.params, ctx.plausible, seed=H0, hypotheses=hypotheses),
+            )
+        except AlignmentError as err:
+            log.debug("gradient alignment failed (seed %s): %s", s is not None, err)
+            ctx.failed("gradient blocks", err)
+            continue
+        blocks = replace(blocks, H=blocks.H.copy())
+        if s is None:
+            return _Estimate(blocks.H, first, n_blocks=blocks.n_agree)
+        return _Estimate(blocks.H, s.stages + ["gradient"], feats=s.feats,
+                         n_blocks=blocks.n_agree)
+    return None
+
+
+def _polish_and_keep(ctx: _Shake, est: _Estimate) -> None:
+    """The kernel polish of a gradient-block estimate, kept (``est`` updated) only when it
+    verifies, its blur model fits at least half the regions, and it stays within the
+    blur's reach of the blocks' estimate.
+
+    The polish reaches the mean camera pose on a same-scene pair, where a correlation
+    optimum sits near a mode of the blur; between captures years apart its blur model
+    does not hold and it can wander."""
+    try:
+        p = ctx.polish(est.H)
+    except AlignmentError as err:
+        log.debug("kernel polish not kept: %s", err)
+        return
+    fine = min(ctx.first_at_most(ctx.params.gradient_side), ctx.work)
+    reach = max(2.0 / ctx.levels[fine].scale, ctx.shake_px)
+    moved = max_corner_shift(p.H, est.H, ctx.prep.ref_shape)
+    if p.n_fit < 0.5 * p.n_total:
+        log.debug("kernel polish not kept: the blur model fits in %d of %d regions only",
+                  p.n_fit, p.n_total)
+    elif moved > reach:
+        log.debug("kernel polish moved %.1f px (> %.1f): not kept", moved, reach)
+    else:
+        est.H, est.n_regions = p.H, p.n_agree
+        est.stages.append("kernel")
+
+
+def _features_fallback(ctx: _Shake) -> _Estimate | None:
+    """The first feature level's estimate that the polish verifies (any, without the
+    polish); None when there is none."""
+    for i in ctx.feature_levels():
+        try:
+            est = _features_estimate(ctx, i)
+        except AlignmentError as err:
+            if ctx.params.method == "features" or ctx.hint is not None:
+                # (``auto`` without a hint recorded it as a seed)
+                ctx.failed("features", err)
+            continue
+        if ctx.params.polish:
+            try:
+                _polish_verified(ctx, est)
+            except AlignmentError as err:
+                log.debug("feature estimate at level %d rejected: %s", i, err)
+                ctx.failed("kernel polish", err)
+                continue
+        return est
+    return None
+
+
+def _polish_verified(ctx: _Shake, est: _Estimate) -> None:
+    """Polish ``est`` in place; raise AlignmentError unless its regions verify it."""
+    p = ctx.polish(est.H)
+    est.H, est.n_regions = p.H, p.n_agree
+    if est.stages[-1] != "kernel":
+        est.stages.append("kernel")
+
+
+def _phase_fallback(ctx: _Shake) -> _Estimate:
+    """Phase correlation for the translation (or the hint), ECC coarse to fine, the
+    polish, and a correlation check; raises the refusal with every stage's reason when it
+    fails."""
+    start = "phase" if ctx.hint is None else "hint"
+    stage = f"{start} + ECC"
+    try:
+        # memoised: reads the shake extent only through the working level
+        H = ctx.prep.cached(("phase-ecc", ctx.work, ctx.key),
+                            functools.partial(_phase_ecc, ctx)).copy()
+        est = _Estimate(H, [start, "ecc"])
+        if ctx.params.polish:
+            stage = "kernel polish"
+            _polish_verified(ctx, est)
+        stage = "correlation"
+        lv = ctx.levels[ctx.work]
+        rho = correlation(lv, est.H, max(1.0, ctx.params.blur_px * lv.scale))
+        if not rho >= ctx.params.min_ecc:
+            raise AlignmentError(
+                f"{rho:.2f} < {ctx.params.min_ecc:g} after alignment: images look unrelated"
+            )
+    except AlignmentError as err:
+        ctx.failed(stage, err)
+        raise ctx.refused() from None
+    return est
+
+
+def _phase_ecc(ctx: _Shake) -> np.ndarray:
+    """Phase correlation on the coarsest level (or the hint), then ECC down to the working
+    level."""
+    H = phase_init(ctx.levels[ctx.top]) if ctx.hint is None else ctx.hint
+    ctx.plausible(H)
+    H, _, _ = ecc_refine(ctx.levels, H, ctx.top, ctx.work, ctx.prep.ref_shape, ctx.params,
+                         max_jump=0.25)
+    ctx.plausible(H)
+    return H
+
+
+def _result(ctx: _Shake, est: _Estimate) -> Alignment:
+    """The final checks and diagnostics of an estimate."""
+    overlap = ctx.plausible(est.H)
+    lv = ctx.levels[ctx.work]
+    rho = correlation(lv, est.H, max(1.0, ctx.params.blur_px * lv.scale))
+    f = est.feats
+    residual = None
+    if f is not None:
+        residual = float(np.median(np.hypot(*(map_points(est.H, f.src) - f.dst).T)))
+    return Alignment(
+        H=est.H, method="+".join(est.stages),
+        n_matches=f.n_matches if f else 0, n_inliers=f.n_inliers if f else 0,
+        scale=ctx.prep.scale0, residual_px=residual, ecc=rho if np.isfinite(rho) else None,
+        overlap=overlap, n_regions=est.n_regions, n_blocks=est.n_blocks,
+    )

@@ -1,0 +1,215 @@
+"""Blur-aware polish: local blur-kernel centroids move the estimate to the mean camera pose.
+
+A correlation optimum between a sharp and a motion-blurred image lies near a *mode* of
+the blur; the centroid of a non-negative kernel fitted between the warped reference and
+the observation is the mean camera displacement (:func:`kernel_polish`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import nnls
+
+from .overviews import Level, to_full, to_level
+from .params import AlignParams
+from .result import AlignmentError
+from .verify import check_regions, max_corner_shift
+
+log = logging.getLogger(__name__)
+
+#: Side, in pixels of the working level, of the kernel-polish regions.
+REGION_PX = 32
+
+
+@dataclass
+class Polished:
+    """A polished and verified estimate: ``H`` (full resolution), the regions that agree
+    with it, those where the blur model fits, and all regions."""
+
+    H: np.ndarray
+    n_agree: int
+    n_fit: int
+    n_total: int
+
+
+def region_grid(level: Level, shake_px: float) -> tuple[int, int]:
+    """``(ny, nx)`` polish regions on ``level``: about :data:`REGION_PX` level pixels, and
+    at least 6 pixels per kernel tap for a shake of ``shake_px`` full-resolution pixels."""
+    shake = int(math.ceil(shake_px * level.scale))
+    region_px = max(REGION_PX, math.sqrt(6.0) * (2 * max(shake + 2, 2) + 1))
+    ny, nx = (int(np.clip(round(n / region_px), 3, 8)) for n in level.obs.shape)
+    return ny, nx
+
+
+def polish_and_verify(
+    level: Level,
+    H: np.ndarray,
+    shake_px: float,
+    ref_shape: tuple[int, int],
+    params: AlignParams,
+    plausible: Callable[[np.ndarray], object],
+) -> Polished:
+    """Kernel polish of ``H`` on the working ``level``, verified by its regions.
+
+    The polish runs with kernels of radius ``shake + 2``, then ``shake + 1`` level pixels
+    (``shake`` the extent ``shake_px`` on the level); a polish that moves the corners by
+    more than twice the radius or that ``plausible`` refuses is not used.  Raises
+    AlignmentError unless enough regions agree with the result
+    (:func:`~reblur.align.verify.check_regions`).
+    """
+    shake = int(math.ceil(shake_px * level.scale))
+    n_regions = region_grid(level, shake_px)
+    n_agree, n_fit, spread, accepted = 0, 0, 0.0, None
+    for R in (shake + 2, shake + 1):
+        R = max(R, 2)
+        Hp, n_agree, n_fit, spread = kernel_polish(
+            level, H, R, n_regions=n_regions, min_r2=params.min_r2, max_pixels=8192,
+            max_sd=max(1.0, shake_px * level.scale),
+        )
+        if n_agree < 8:
+            break
+        jump = max_corner_shift(Hp, H, ref_shape) * level.scale
+        if jump > 2 * R:
+            log.debug("kernel polish rejected: corners moved by %.1f level px", jump)
+            n_agree = 0
+            break
+        try:
+            plausible(Hp)
+        except AlignmentError as err:
+            log.debug("kernel polish rejected: %s", err)
+            n_agree = 0
+            break
+        H, accepted = Hp, (n_agree, n_fit, spread)
+    if accepted is not None:
+        n_agree, n_fit, spread = accepted
+    log.debug("polish: %d regions agree, %d fit, spread %.2f", n_agree, n_fit, spread)
+    n_total = n_regions[0] * n_regions[1]
+    check_regions(n_agree, n_fit, spread, n_total, params, shake_px)
+    return Polished(H, n_agree, n_fit, n_total)
+
+
+def kernel_polish(
+    level: Level,
+    H: np.ndarray,
+    R: int,
+    *,
+    n_regions: tuple[int, int],
+    min_r2: float,
+    max_sd: float,
+    max_pixels: int,
+) -> tuple[np.ndarray, int, int, float]:
+    """Blur-aware correction of ``H`` (full resolution) from local blur-kernel centroids.
+
+    The reference is warped by ``H`` into the observation frame and, in each of
+    ``n_regions = (ny, nx)`` regions, a non-negative ``(2R+1)^2`` kernel ``k`` is fitted so
+    that ``warped * k ~ observation`` (zero-mean patches, so gain and offset do not matter).
+    The centroid of ``k`` is the mean camera displacement there -- unlike the optimum of a
+    correlation, it is not pulled by an asymmetric blur.  A homography fitted robustly to the
+    region centres moved by their centroids corrects ``H``.  Returns
+    ``(H, n_agree, n_fit, spread)``: the regions that agree with the corrected homography,
+    the regions whose kernel fits, and the area of the convex hull of the agreeing region
+    centres relative to the region grid (``n_agree = 0`` and ``H`` unchanged when no
+    homography could be fitted).
+    """
+    Hs = to_level(H, level.scale)
+    h, w = level.obs.shape
+    ny, nx = n_regions
+    if h < 2 * R + 8 * ny or w < 2 * R + 8 * nx:
+        return H, 0, 0, 0.0
+    ref, valid = _warped(level, Hs, R)
+    ys = np.linspace(R, h - R, ny + 1).astype(int)
+    xs = np.linspace(R, w - R, nx + 1).astype(int)
+    src, dst = [], []
+    for i in range(ny):
+        for j in range(nx):
+            y0, y1, x0, x1 = ys[i], ys[i + 1], xs[j], xs[j + 1]
+            d = _kernel_centroid(level.obs, ref, valid, (y0, y1, x0, x1), R, min_r2=min_r2,
+                                 max_sd=max_sd, max_pixels=max_pixels)
+            if d is None:
+                continue
+            p = np.array([(x0 + x1 - 1) / 2.0, (y0 + y1 - 1) / 2.0])
+            src.append(p)
+            dst.append(p + d)
+    if len(src) < 8:
+        return H, 0, len(src), 0.0
+    # correction C maps the warped-reference frame to the observation: H' = C @ H
+    C, mask = cv2.findHomography(np.float64(src), np.float64(dst), cv2.RANSAC, 1.0)
+    if C is None or mask is None or int(mask.sum()) < 8:
+        return H, 0, len(src), 0.0
+    Hn = to_full(C @ Hs, level.scale)
+    inl = np.float32(src)[mask.ravel().astype(bool)]
+    spread = cv2.contourArea(cv2.convexHull(inl)) / float((xs[-1] - xs[0]) * (ys[-1] - ys[0]))
+    return Hn, int(mask.sum()), len(src), float(spread)
+
+
+def _warped(level: Level, Hs: np.ndarray, R: int) -> tuple[np.ndarray, np.ndarray]:
+    """The reference warped by the level homography ``Hs`` into the observation frame, and
+    the pixels where a ``(2R+1)^2`` kernel's whole footprint holds data in both images."""
+    h, w = level.obs.shape
+    ref = cv2.warpPerspective(
+        level.ref, Hs, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
+    )
+    cover = cv2.warpPerspective(
+        level.ref_mask.astype(np.float32), Hs, (w, h), flags=cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+    )
+    valid = ((cover > 0.999) & level.obs_mask.astype(bool)).astype(np.uint8)
+    # a core pixel is usable when the kernel's whole footprint is valid
+    valid = cv2.erode(valid, np.ones((2 * R + 1, 2 * R + 1), np.uint8), borderValue=0)
+    return ref, valid
+
+
+def _kernel_centroid(
+    obs: np.ndarray,
+    ref: np.ndarray,
+    valid: np.ndarray,
+    region: tuple[int, int, int, int],
+    R: int,
+    *,
+    min_r2: float,
+    max_sd: float,
+    max_pixels: int,
+) -> tuple[float, float] | None:
+    """Centroid ``(dx, dy)`` of the non-negative ``(2R+1)^2`` kernel that blurs the warped
+    reference ``ref`` into ``obs`` on ``region = (y0, y1, x0, x1)`` (at most ``max_pixels``
+    of its ``valid`` pixels); None when too little is valid, the kernel explains less than
+    ``min_r2`` of the variance, or it spreads beyond ``max_sd`` (no camera shake)."""
+    y0, y1, x0, x1 = region
+    core = valid[y0:y1, x0:x1].astype(bool)
+    n = int(core.sum())
+    if n < 0.5 * core.size or n < 4 * (2 * R + 1) ** 2:
+        return None
+    step = max(1, int(math.ceil(math.sqrt(n / max_pixels))))
+    sel = np.zeros_like(core)
+    sel[::step, ::step] = core[::step, ::step]
+    b = obs[y0:y1, x0:x1][sel].astype(np.float64)
+    ext = ref[y0 - R : y1 + R, x0 - R : x1 + R]
+    win = np.lib.stride_tricks.sliding_window_view(ext, (y1 - y0, x1 - x0))
+    # column (a, c) holds the reference shifted by (R - c, R - a)
+    A = win[:, :, sel].reshape((2 * R + 1) ** 2, -1).T.astype(np.float64)
+    A -= A.mean(axis=0)
+    b -= b.mean()
+    bb = float(b @ b)
+    if bb <= 1e-12 * b.size:
+        return None
+    k, rnorm = nnls(A, b, maxiter=50 * A.shape[1])
+    mass = float(k.sum())
+    if mass <= 0 or 1.0 - rnorm**2 / bb < min_r2:
+        return None
+    K = k.reshape(2 * R + 1, 2 * R + 1) / mass
+    taps = np.arange(-R, R + 1, dtype=float)
+    dy = -float(K.sum(axis=1) @ taps)  # g(x) = sum_d k_d ref(x - d), d = (R - c, R - a)
+    dx = -float(K.sum(axis=0) @ taps)
+    # a camera-shake kernel is compact; one fitted where the scene changed spreads
+    sd = math.sqrt(
+        float(K.sum(axis=1) @ (taps + dy) ** 2) + float(K.sum(axis=0) @ (taps + dx) ** 2)
+    )
+    if sd > max_sd:
+        return None
+    return dx, dy
