@@ -12,7 +12,8 @@ Per pair, :func:`reblur.detect_changes` runs with ``shutter="global"`` (before) 
 ``"auto"`` (and ``"rolling"`` with ``--all``): ``FAR`` is the flagged share of the
 unchanged known pixels farther than 3 px from a change, ``recall`` the flagged share of
 the changed known pixels; ``model`` is what auto kept, ``r est`` the estimated readout,
-``s`` the run's seconds.  Rows go to ``docs/rolling_runs.json``.
+``s`` the run's wall seconds and ``cpu s`` its process CPU seconds (the machine is shared:
+compare the two models' times within one run).  Rows go to ``docs/rolling_runs.json``.
 """
 
 from __future__ import annotations
@@ -52,29 +53,36 @@ def scores(change: np.ndarray, truth: np.ndarray, known: np.ndarray) -> dict:
                        if pos.any() else None)}
 
 
-def run(pair, shutter: str) -> dict:
-    """``detect_changes`` with a shutter model, scored."""
+def run(pair, shutter: str, bands: int | None = None) -> dict:
+    """``detect_changes`` with a shutter model (``bands`` row bands, default
+    :class:`~reblur.rolling.RollingParams`'), scored."""
     import reblur
+    from reblur.rolling import RollingParams
 
-    t = time.perf_counter()
-    res = reblur.detect_changes(pair.reference, pair.observed, shutter=shutter)
-    seconds = time.perf_counter() - t
+    params = RollingParams() if bands is None else RollingParams(n_bands=bands)
+    t, c = time.perf_counter(), time.process_time()
+    res = reblur.detect_changes(pair.reference, pair.observed, shutter=shutter,
+                                rolling=params)
+    seconds, cpu = time.perf_counter() - t, time.process_time() - c
     known = pair.valid & ~np.asarray(res.unknown, bool)
     out = scores(np.asarray(res.change, bool), pair.truth, known)
     sh = res.decision.get("shutter", {})
-    out.update(seconds=seconds, model=sh.get("model", "global"), readout=sh.get("readout"),
+    out.update(seconds=seconds, cpu_seconds=cpu,
+               shutter_seconds=res.timings.get("shutter", 0.0),
+               model=sh.get("model", "global"), readout=sh.get("readout"),
                drop=sh.get("criterion", {}).get("drop"))
     return out
 
 
-def matrix(size: int, readouts, shutters) -> list[dict]:
+def matrix(size: int, readouts, shutters, bands: int | None = None,
+           changes=(False, True)) -> list[dict]:
     rows = []
-    for changes in (False, True):
+    for ch in changes:
         for r in readouts:
-            pair = make(r, changes, size)
-            row = {"size": size, "readout": r, "changes": changes}
+            pair = make(r, ch, size)
+            row = {"size": size, "readout": r, "changes": ch, "bands": bands}
             for sh in shutters:
-                row[sh] = run(pair, sh)
+                row[sh] = run(pair, sh, bands)
             print(json.dumps(row), flush=True)
             rows.append(row)
     return rows
@@ -83,12 +91,13 @@ def matrix(size: int, readouts, shutters) -> list[dict]:
 def _cell(d: dict) -> list[str]:
     rec = "-" if d["recall"] is None else f"{d['recall']:.3f}"
     r = "-" if d.get("readout") is None else f"{d['readout']:.2f}"
-    return [f"{100 * d['far']:.3f} %", rec, d["model"], r, f"{d['seconds']:.0f}"]
+    return [f"{100 * d['far']:.3f} %", rec, d["model"], r,
+            f"{d['seconds']:.0f} ({d.get('cpu_seconds', float('nan')):.0f})"]
 
 
 def table(rows: list[dict], shutters) -> str:
     head = "| readout | changes | " + " | ".join(
-        f"{s} FAR | recall | model | r est | s" for s in shutters) + " |"
+        f"{s} FAR | recall | model | r est | s (cpu s)" for s in shutters) + " |"
     lines = [head, "|" + "---|" * (2 + 5 * len(shutters))]
     for row in rows:
         cells = [f"{row['readout']:g}", "yes" if row["changes"] else "no"]
@@ -103,8 +112,15 @@ if __name__ == "__main__":
     ap.add_argument("--size", type=int, default=768, help="side of the pairs (px)")
     ap.add_argument("--readouts", default="0,0.25,0.5,1", help="comma-separated fractions")
     ap.add_argument("--all", action="store_true", help="also shutter='rolling'")
+    ap.add_argument("--bands", type=int, default=None,
+                    help="row bands of the rolling model (default RollingParams')")
+    ap.add_argument("--no-change-only", action="store_true", help="only the pairs without "
+                    "changes")
+    ap.add_argument("--no-save", action="store_true", help=f"do not write {RUNS.name}")
     a = ap.parse_args()
     shutters = ["global", "auto"] + (["rolling"] if a.all else [])
-    rows = matrix(a.size, [float(v) for v in a.readouts.split(",")], shutters)
-    RUNS.write_text(json.dumps(rows, indent=1))
+    rows = matrix(a.size, [float(v) for v in a.readouts.split(",")], shutters, a.bands,
+                  (False,) if a.no_change_only else (False, True))
+    if not a.no_save:
+        RUNS.write_text(json.dumps(rows, indent=1))
     print(table(rows, shutters))

@@ -44,8 +44,10 @@ def test_shutter_rolling_is_used_and_reported(tmp_path, rolling_pair):
     assert sh["asked"] == "rolling" and sh["model"] == "rolling"
     assert 0.0 <= sh["readout"] <= 1.0
     bands = sh["rolling"]["bands"]
-    assert len(bands) == 4 and all(abs(b["weight_sum"] - 1) < 0.1 for b in bands)
+    assert len(bands) == 6 and all(abs(b["weight_sum"] - 1) < 0.1 for b in bands)
     assert sh["criterion"]["rule"].startswith("rolling when BIC")
+    assert report["files"]["rolling.png"] == "rolling.png"
+    assert (tmp_path / "out" / "rolling.png").stat().st_size > 0
 
 
 def test_shutter_flag_refuses_other_values(tmp_path, rolling_pair):
@@ -53,3 +55,19 @@ def test_shutter_flag_refuses_other_values(tmp_path, rolling_pair):
     assert res.returncode != 0 and "Traceback" not in res.stderr
     assert "--shutter" in res.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_rolling_figure_lists_the_bands(tmp_path):
+    """rolling.png is drawn from the record of the band model, one point per band."""
+    from matplotlib.image import imread
+
+    from reblur.report import rolling_figure
+
+    bands = [dict(centre_row=c, weight_sum=1.0, n_poses=5,
+                  mean_pose=dict(tx=0.5 * i, ty=-0.2 * i, tz=0.0, rx=0.0, ry=0.0, rz=0.1))
+             for i, c in enumerate((31.5, 95.5, 159.5, 223.5))]
+    rec = dict(model="rolling", readout=0.4, criterion=dict(drop=0.6),
+               rolling=dict(n_bands=4, bands=bands))
+    path = rolling_figure(rec, tmp_path / "rolling.png")
+    img = imread(path)
+    assert img.shape[0] > 100 and img.shape[1] > 300 and img.std() > 0

@@ -77,3 +77,20 @@ def test_pair_without_readout_is_a_global_pair_of_the_path_start():
     pair = tr.make_rolling_pair(scene, readout=0.5, **kw)
     assert pair.observed.dtype == np.uint8 and pair.truth.any()
     assert pair.info["readout"] == 0.5
+
+
+def test_auto_leaves_a_global_shutter_pair_unchanged():
+    """A realism test-bed pair with no readout (6-D shake path, perspective viewpoint
+    change, 8-bit sensor with read noise, LEVIR test_7): auto keeps the global model, and
+    the change mask is then the global run's, pixel for pixel."""
+    import reblur
+
+    scene = tb.levir_image("test_7")
+    pair = tr.make_rolling_pair(scene, readout=0.0, size=(320, 320), bits=8, noise_dn=1.0,
+                                n_changes=0, seed=3, viewpoint={"shift_px": 10.0})
+    glob = reblur.detect_changes(pair.reference, pair.observed)
+    auto = reblur.detect_changes(pair.reference, pair.observed, shutter="auto")
+    sh = auto.decision["shutter"]
+    assert sh["asked"] == "auto" and sh["model"] == "global", sh["criterion"]
+    np.testing.assert_array_equal(auto.change, glob.change)
+    np.testing.assert_array_equal(auto.unknown, glob.unknown)

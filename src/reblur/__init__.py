@@ -9,7 +9,7 @@ change.  See ``METHOD.md`` in the project's shared notes and the README.
 from __future__ import annotations
 
 from .estimate import estimate_motion
-from .grid import PoseGrid
+from .grid import GridParams, PoseGrid
 from .result import ChangeResult, CropChoice, MotionEstimate
 from .tiled import reblur
 
@@ -18,6 +18,7 @@ __version__ = "0.1.0"
 __all__ = [
     "ChangeResult",
     "CropChoice",
+    "GridParams",
     "MotionEstimate",
     "PoseGrid",
     "__version__",

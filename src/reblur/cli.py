@@ -465,6 +465,23 @@ def main() -> None:
               help="Shutter model: global, rolling (row bands with their own motion, for "
                    "CMOS cameras) or chosen from the data (rolling only when it explains "
                    "the estimation windows clearly better).")
+@click.option("--grid", "grid_kind", type=click.Choice(["3d", "6d"]), default="3d",
+              show_default=True,
+              help="Pose grid: 3d (tx, ty, rz: the paper's) or 6d (also the scale change tz "
+                   "and the tilt and pan rx, ry, about a camera of focal length --focal).")
+@click.option("--focal", type=_Finite(min=0, min_open=True), default=None, metavar="PX",
+              help="--grid 6d: focal length in pixels.  Default: from OBSERVED's EXIF "
+                   "FocalLengthIn35mmFilm (f35 x diagonal / 43.27 mm), else 1.2 x its "
+                   "long side.")
+@click.option("--tz-max", type=_Finite(min=0, max=0.5), default=None,
+              help="--grid 6d: largest relative scale change (default 0.002).")
+@click.option("--tz-step", type=_Finite(min=0, min_open=True, max=0.5), default=None,
+              help="--grid 6d: scale step (default: one pixel at the farthest pixel).")
+@click.option("--tilt-max", type=_Finite(min=0, max=10), default=None,
+              help="--grid 6d: largest tilt / pan |rx|, |ry| (degrees; default 0.15).")
+@click.option("--tilt-step", type=_Finite(min=0, min_open=True, max=10), default=None,
+              help="--grid 6d: tilt / pan step (degrees; default: one pixel at the "
+                   "farthest pixel beyond the shift of the centre).")
 @click.option("--no-align", is_flag=True,
               help="Skip the coarse alignment: the images are already registered (same "
                    "frame, up to the pose grid's --t-max / --rz-max).")
@@ -495,6 +512,8 @@ def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float
            rz_step: float | None, lam: float, tile_size: int, threshold: float | None,
            truth: Path | None, illumination: str, nodata: float | None, shutter: str,
            no_align: bool, align_hint: Any, no_refine: bool, no_field: bool,
+           grid_kind: str, focal: float | None, tz_max: float | None, tz_step: float | None,
+           tilt_max: float | None, tilt_step: float | None,
            max_pixels: int, workers: int, scheduler: str | None, overwrite: bool,
            quiet: bool) -> None:
     """Find what changed between REFERENCE (sharp) and OBSERVED (later, blurred).
@@ -514,6 +533,8 @@ def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float
     if no_align and align_hint is not None:
         raise click.UsageError("--align-hint seeds the alignment that --no-align skips: "
                                "give one of them", ctx=click.get_current_context())
+    six = _six_d_options(grid_kind, rz_max, dict(focal=focal, tz_max=tz_max, tz_step=tz_step,
+                                                 tilt_max=tilt_max, tilt_step=tilt_step))
     inputs = [reference, observed] + ([truth] if truth is not None else [])
     out_dir = _check_output_dir(out, inputs, OUTPUT_NAMES, overwrite)
     with output_set(out_dir, OUTPUT_NAMES, overwrite=overwrite, last=REPORT_NAMES,
@@ -524,17 +545,51 @@ def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float
                                scheduler=scheduler, illumination=illumination,
                                shutter=shutter, align=not no_align,
                                refine=not no_refine, local_field=not no_field,
-                               align_hint=align_hint), nodata)
+                               align_hint=align_hint), nodata, six)
     click.echo(display_path(summary_line(summary, out)))
+
+
+def _six_d_options(kind: str, rz_max: float, given: dict[str, Any]) -> dict[str, Any] | None:
+    """The 6-D grid's options (None for --grid 3d); its flags without --grid 6d refused."""
+    named = [f"--{k.replace('_', '-')}" for k, v in given.items() if v is not None]
+    if kind == "3d":
+        if named:
+            raise click.UsageError(f"{', '.join(named)} apply to the 6-D grid: add --grid 6d")
+        return None
+    src = click.get_current_context().get_parameter_source("rz_max")
+    explicit = src is not None and src.name != "DEFAULT"
+    return dict({k: v for k, v in given.items() if v is not None},
+                rz_max=rz_max if explicit else None)
+
+
+def _grid_params(six: dict[str, Any], observed: Path, t_max: int, rz_step: float | None):
+    """The 6-D :class:`~reblur.grid.GridParams` (the focal length from --focal, else from
+    OBSERVED's EXIF, else the default) and how the focal length was found."""
+    from .grid import GridParams
+    from .io import exif_focal_px
+
+    six = dict(six)
+    source = "--focal"
+    if six.get("focal") is None:
+        six["focal"] = exif_focal_px(observed)
+        source = "EXIF FocalLengthIn35mmFilm" if six["focal"] is not None else "default"
+    gp = GridParams(kind="6d", t_max=t_max, rz_step=rz_step, **six)
+    return gp, source
 
 
 def _detect(stage: Path, out_dir: Path, reference: Path, observed: Path, truth: Path | None,
             max_pixels: int, quiet: bool, t0: float, options: dict[str, Any],
-            nodata: float | None = None) -> dict[str, Any]:
+            nodata: float | None = None, six: dict[str, Any] | None = None) -> dict[str, Any]:
     """The work of ``reblur detect``: every output is written into ``stage``, the temporary
     directory that becomes ``out_dir``."""
     from .report import write_report
 
+    grid_opts: dict[str, Any] = {}
+    recorded: dict[str, Any] = dict(grid="3d")
+    if six is not None:
+        gp, source = _grid_params(six, observed, options["t_max"], options["rz_step"])
+        grid_opts = dict(grid=gp)
+        recorded = dict(grid="6d", grid_params=vars(gp).copy(), focal_source=source)
     ref, obs = _open_pair(reference, observed, max_pixels, nodata)
     truth_mask = (read_mask(truth, obs.shape[:2], max_pixels=max_pixels, what="truth mask")
                   if truth is not None else None)
@@ -569,14 +624,15 @@ def _detect(stage: Path, out_dir: Path, reference: Path, observed: Path, truth: 
         try:
             result = reblur.detect_changes(ref.for_detection(), obs.for_detection(),
                                            progress=progress, work_dir=work, **masks,
-                                           **options)
+                                           **options, **grid_opts)
         finally:
             if progress is not None:
                 progress.close()
         with _writing(out_dir):
             _, summary = write_report(
                 result, stage, reference=ref, observed=obs, truth=truth_mask,
-                options=dict(options, max_pixels=max_pixels, command="detect", nodata=nodata,
+                options=dict(options, **recorded, max_pixels=max_pixels, command="detect",
+                             nodata=nodata,
                              truth=str(truth) if truth is not None else None,
                              align_hint=None if options.get("align_hint") is None
                              else options["align_hint"].tolist(),

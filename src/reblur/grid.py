@@ -38,6 +38,8 @@ __all__ = [
     "map_points",
     "mean_source_points",
     "MAX_POSES",
+    "MAX_BASES_6D",
+    "GridParams",
     "grid_size_for",
 ]
 
@@ -48,6 +50,15 @@ __all__ = [
 MAX_POSES = 2**25
 
 _AXES = ("tx", "ty", "tz", "rx", "ry", "rz")
+
+#: Base poses (``tz x rx x ry x rz``) a 6-D :class:`GridParams` grid may hold: the estimate
+#: warps and transforms every window once per base (no coarse-to-fine on the 6-D axes),
+#: about 0.3 MB of float32 per base for a 250 px window.
+MAX_BASES_6D = 2048
+
+#: Focal length of a 6-D grid when none is given: this many times the long side (a normal
+#: lens, about 45 degrees across the long side; the test bed's camera).
+DEFAULT_FOCAL_FACTOR = 1.2
 
 
 def translation(tx: float, ty: float) -> np.ndarray:
@@ -383,6 +394,117 @@ class PoseGrid:
             f"PoseGrid({self.size} poses, image {self.image_shape[0]}x{self.image_shape[1]}, "
             f"center=({self.center[0]:g}, {self.center[1]:g}), " + ", ".join(parts) + ")"
         )
+
+
+def _symmetric(v_max: float, step: float) -> np.ndarray:
+    """``step * [-n..n]`` with ``n`` the nearest whole number of steps to ``v_max``, at
+    least one (``[0]`` for ``v_max = 0``): each value multiplies the bases."""
+    n = max(1, round(v_max / step)) if v_max > 0 else 0
+    return step * np.arange(-n, n + 1) if n else np.array([0.0])
+
+
+@dataclass(frozen=True)
+class GridParams:
+    """Ranges of the pose grid :func:`reblur.detect_changes` builds on the observation.
+
+    ``kind="3d"``: integer ``|tx|, |ty| <= t_max`` and ``|rz| <= rz_max`` degrees (the
+    paper's axes).  ``kind="6d"``: also the scale change ``tz`` (relative) and the tilt
+    and pan ``rx``, ``ry`` (degrees) of a camera of focal length ``focal`` pixels, each
+    over the whole number of steps nearest to ``tz_max`` / ``tilt_max`` either side (one
+    at least).  A step left None moves no pixel by more than about one pixel (``R`` the
+    distance from the principal point to the farthest pixel): ``rz`` by ``1 / R`` rad,
+    ``tz`` by ``1 / R``, and ``rx``/``ry`` by ``f / R^2`` rad -- a tilt by ``a`` shifts
+    the image centre by ``f tan a``, which the translations take, and a pixel ``(x, y)``
+    from the centre by about ``a |y| r / f`` beyond it (``|x|`` for a pan, ``r`` its
+    distance from the centre), at most ``a R^2 / f``.
+
+    Attributes
+    ----------
+    kind : {"3d", "6d"}
+    t_max : int
+        Largest translation (pixels).
+    rz_max : float, optional
+        Largest roll (degrees); default 3 for "3d", 1 for "6d" (after the coarse alignment
+        the roll of a blur is small, and every roll value multiplies the 6-D bases).
+    rz_step, tz_step, tilt_step : float, optional
+        Steps (degrees, relative scale, degrees); default: one pixel at the farthest pixel.
+    tz_max : float
+        Largest relative scale change ("6d").
+    tilt_max : float
+        Largest tilt / pan (degrees, "6d").
+    focal : float, optional
+        Focal length in pixels ("6d"); default :data:`DEFAULT_FOCAL_FACTOR` x the long side.
+    """
+
+    kind: str = "3d"
+    t_max: int = 12
+    rz_max: float | None = None
+    rz_step: float | None = None
+    tz_max: float = 0.002
+    tz_step: float | None = None
+    tilt_max: float = 0.15
+    tilt_step: float | None = None
+    focal: float | None = None
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("3d", "6d"):
+            raise ValueError(f"grid kind must be '3d' or '6d', got {self.kind!r}")
+        for name in ("rz_max", "tz_max", "tilt_max"):
+            v = getattr(self, name)
+            if v is not None and not (math.isfinite(float(v)) and float(v) >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
+        for name in ("rz_step", "tz_step", "tilt_step", "focal"):
+            v = getattr(self, name)
+            if v is not None and not (math.isfinite(float(v)) and float(v) > 0):
+                raise ValueError(f"{name} must be a finite number > 0, got {v!r}")
+        if self.kind == "3d":
+            moved = [n for n in ("tz_step", "tilt_step", "focal") if getattr(self, n) is not None]
+            if moved:
+                raise ValueError(f"{', '.join(moved)} apply to the 6-D grid: use kind='6d'")
+
+    @property
+    def roll_max(self) -> float:
+        """``rz_max``, or its default for the kind."""
+        return float(self.rz_max) if self.rz_max is not None else (
+            3.0 if self.kind == "3d" else 1.0)
+
+    def focal_for(self, image_shape: tuple[int, int]) -> float:
+        """The focal length (pixels) of the 6-D grid on an image of this shape."""
+        if self.focal is not None:
+            return float(self.focal)
+        return DEFAULT_FOCAL_FACTOR * float(max(image_shape[:2]))
+
+    def build(self, image_shape: tuple[int, int]) -> PoseGrid:
+        """The grid on an observation of ``image_shape`` (``(height, width)``).
+
+        Raises
+        ------
+        ValueError
+            A range the budget refuses (:data:`MAX_POSES`; for "6d" also
+            :data:`MAX_BASES_6D` base poses), with the counts and what to narrow.
+        """
+        shape = tuple(int(s) for s in image_shape[:2])
+        step = dict(rz_step=self.rz_step) if self.rz_step is not None else dict(corner_px=1.0)
+        n_t, n_rz, _ = _range_counts(shape, self.t_max, self.roll_max,
+                                     self.rz_step if self.rz_step is not None else 0.5,
+                                     step.get("corner_px"), None)
+        if self.kind == "3d":
+            return PoseGrid.from_ranges(shape, t_max=self.t_max, rz_max=self.roll_max, **step)
+        f = self.focal_for(shape)
+        R = PoseGrid(shape, tx=[0], ty=[0]).radius
+        tz = _symmetric(float(self.tz_max), self.tz_step or 1.0 / max(R, 1.0))
+        tilt = _symmetric(float(self.tilt_max),
+                          self.tilt_step or float(np.rad2deg(f / max(R, 1.0) ** 2)))
+        n_bases = n_rz * len(tz) * len(tilt) ** 2
+        if n_bases > MAX_BASES_6D or n_bases * n_t * n_t > MAX_POSES:
+            raise ValueError(
+                f"the 6-D grid would hold {n_bases:,} base poses ({n_rz} rz x {len(tz)} tz x "
+                f"{len(tilt)} rx x {len(tilt)} ry) and {n_bases * n_t * n_t:,} poses, more "
+                f"than the budget of {MAX_BASES_6D:,} bases / {MAX_POSES:,} poses: narrow "
+                "rz_max, tz_max or tilt_max, or coarsen their steps")
+        rz = PoseGrid.from_ranges(shape, t_max=0, rz_max=self.roll_max, **step).rz
+        t = np.arange(-int(self.t_max), int(self.t_max) + 1)
+        return PoseGrid(shape, tx=t, ty=t, rz=rz, tz=tz, rx=tilt, ry=tilt, focal=f)
 
 
 def _range_counts(

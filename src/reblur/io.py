@@ -2143,3 +2143,40 @@ def write_json(path: str | os.PathLike, obj: Any, *, indent: int = 2) -> Path:
     with atomic_path(path) as tmp:
         tmp.write_text(text, encoding="utf-8")
     return path
+
+
+#: Diagonal of the 36 x 24 mm frame that 35 mm-equivalent focal lengths refer to (mm).
+FRAME_35MM_DIAGONAL = 43.27
+
+
+def exif_focal_px(path: str | os.PathLike) -> float | None:
+    """Focal length in pixels from a file's EXIF ``FocalLengthIn35mmFilm`` (tag 0xA405).
+
+    ``f_px = f35 * diagonal_px / 43.27`` (the 36 x 24 mm frame's diagonal), with the
+    diagonal of the image as stored.  None when the file has no such tag (or 0, EXIF's
+    "unknown"), or Pillow cannot read its header (zarr stores, unusual TIFFs).
+    """
+    from PIL import Image as PILImage
+    from PIL import UnidentifiedImageError
+
+    p = Path(path)
+    if p.is_dir():
+        return None
+    old = PILImage.MAX_IMAGE_PIXELS
+    PILImage.MAX_IMAGE_PIXELS = None  # only the header is read
+    try:
+        with PILImage.open(p) as im:
+            exif = im.getexif()
+            f35 = exif.get_ifd(0x8769).get(0xA405) or exif.get(0xA405)
+            w, h = im.size
+    except (OSError, UnidentifiedImageError, ValueError, SyntaxError):
+        return None
+    finally:
+        PILImage.MAX_IMAGE_PIXELS = old
+    try:
+        f35 = float(f35)
+    except (TypeError, ValueError):
+        return None
+    if not (math.isfinite(f35) and f35 > 0):
+        return None
+    return f35 * math.hypot(w, h) / FRAME_35MM_DIAGONAL

@@ -32,7 +32,7 @@ from .decide import (
 from .decide.calibrate import calibrate_tolerance, marked_pixels, unchanged_pixels
 from .decide.photometry import with_model_error
 from .estimate import estimate_motion, intensity_scale
-from .grid import PoseGrid
+from .grid import GridParams, PoseGrid
 from .io import chunk_cached
 from .result import ChangeResult, CropChoice
 from .robust import inlier_scale, robust_line
@@ -608,7 +608,7 @@ def _estimate_stage(
     reference,
     observed,
     *,
-    grid: PoseGrid | None,
+    grid: PoseGrid | GridParams | None,
     t_max: int,
     rz_max: float,
     rz_step: float | None,
@@ -665,6 +665,8 @@ def _estimate_stage(
     large = max(Ho, Wo) > large_side
     if windows is None:
         windows = (5 if max(Ho, Wo) > CENTRE_WINDOW_SIDE else 4) if large else 2
+    if isinstance(grid, GridParams):
+        grid = grid.build((Ho, Wo))
     if grid is None:
         if rz_step is None:
             grid = PoseGrid.from_ranges((Ho, Wo), t_max=t_max, rz_max=rz_max, corner_px=1.0)
@@ -766,7 +768,7 @@ def detect_changes(
     reference,
     observed,
     *,
-    grid: PoseGrid | None = None,
+    grid: PoseGrid | GridParams | None = None,
     t_max: int = 12,
     rz_max: float = 3.0,
     rz_step: float | None = None,
@@ -801,8 +803,10 @@ def detect_changes(
         Sharp reference (numpy, zarr, tifffile's zarr store: read window by window).
     observed : array-like, (H', W') or (H', W', C)
         Later, motion-blurred observation with the same bands; may differ in size.
-    grid : PoseGrid, optional
-        Pose grid on the observation geometry.  Default: integer ``|tx|, |ty| <= t_max``
+    grid : PoseGrid or GridParams, optional
+        Pose grid on the observation geometry, or the ranges to build it from
+        (:class:`reblur.grid.GridParams`, e.g. ``GridParams(kind="6d", focal=...)`` for
+        the scale change, tilt and pan as well).  Default: integer ``|tx|, |ty| <= t_max``
         and ``|rz| <= rz_max`` in steps of ``rz_step`` degrees (the paper's grid with
         ``rz_step=0.5``).
     t_max, rz_max, rz_step : int, float, float

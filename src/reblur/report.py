@@ -24,6 +24,9 @@
 ``field.png``
     When a local displacement field was applied (:mod:`reblur.align.field`): its magnitude over
     the observation, with arrows, in pixels.
+``rolling.png``
+    When the rolling-shutter model was used (:mod:`reblur.rolling`): every row band's mean
+    pose against its centre row, and the estimated readout fraction.
 ``report.json``, ``report.html``
     Inputs, alignment, chosen windows, non-zero poses, threshold, changed area, regions,
     timings, peak memory, options, version and (given a truth mask) scores; the HTML page
@@ -77,6 +80,7 @@ OUTPUT_NAMES = (
     "overlay.png",
     "motion.png",
     "field.png",
+    "rolling.png",
     "report.json",
     "report.html",
     "changes.geojson",
@@ -406,6 +410,43 @@ def field_figure(fld: Any, shape: tuple[int, int], path: str | os.PathLike) -> P
     ax.set_ylabel("y (px)")
     fig.colorbar(im, ax=ax, shrink=0.85, label="|displacement| (px)")
     ax.set_title(f"local displacement after the homography: max {float(mag.max()):.2f} px",
+                 fontsize=10)
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, format="png", metadata={"Software": None})
+    return path
+
+
+def rolling_figure(shutter: dict[str, Any], path: str | os.PathLike) -> Path:
+    """Plot the band model's motion (``result.decision["shutter"]`` when the rolling model
+    was used) into a PNG (atomically): each band's mean pose against its centre row --
+    the translations (px) and the roll (degrees) -- and the estimated readout fraction.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    from .io import atomic_path
+
+    bands = shutter["rolling"]["bands"]
+    rows = [b["centre_row"] for b in bands]
+    pose = {k: [b["mean_pose"][k] for b in bands] for k in ("tx", "ty", "rz")}
+    fig = Figure(figsize=(9.0, 3.6), dpi=100, layout="constrained")
+    FigureCanvasAgg(fig)
+    ax_t, ax_r = fig.subplots(1, 2)
+    for k, mark in (("tx", "o-"), ("ty", "s-")):
+        ax_t.plot(rows, pose[k], mark, label=k)
+    ax_t.set_ylabel("mean translation (px)")
+    ax_t.legend(fontsize=8)
+    ax_r.plot(rows, pose["rz"], "d-", color="C2")
+    ax_r.set_ylabel("mean roll rz (deg)")
+    for ax in (ax_t, ax_r):
+        ax.set_xlabel("band centre row")
+        ax.grid(alpha=0.3)
+    r = shutter.get("readout")
+    crit = shutter.get("criterion", {})
+    fig.suptitle(f"rolling shutter, {len(bands)} bands: estimated readout "
+                 f"{'-' if r is None else f'{r:.2f}'} of an exposure; inlier RSS "
+                 f"{100 * crit.get('drop', float('nan')):.0f} % below the global model's",
                  fontsize=10)
     path = Path(path)
     with atomic_path(path) as tmp:
@@ -750,7 +791,8 @@ def write_html(path: str | os.PathLike, summary: dict[str, Any], files: dict[str
     for name, caption in (("overlay.png", "Changes (red, outlined) and unknown (dark)"),
                           ("motion.png", "Estimated camera motion"),
                           ("field.png", "Local displacement after the homography "
-                                        "(parallax, lens distortion)")):
+                                        "(parallax, lens distortion)"),
+                          ("rolling.png", "Rolling shutter: the motion of each row band")):
         if name in files and (out_dir / files[name]).exists():
             figs.append(
                 f'<figure><img alt="{name}" src="{_data_uri(out_dir / files[name])}">'
@@ -943,6 +985,10 @@ def write_report(
     if getattr(result, "field", None) is not None:
         field_figure(result.field, result.change.shape[:2], out / "field.png")
         files["field.png"] = "field.png"
+    shutter = result.decision.get("shutter", {})
+    if shutter.get("model") == "rolling" and "rolling" in shutter:
+        rolling_figure(shutter, out / "rolling.png")
+        files["rolling.png"] = "rolling.png"
 
     timings = dict(timings or {})
     timings["report"] = time.perf_counter() - t0

@@ -188,6 +188,12 @@ class _Window:
         :data:`_TRI_GROUP` of them over the rows up to that group's end: the new-by-new
         block is symmetric, so only its upper triangle (and the groups' diagonal blocks)
         is computed, and the rest of it is left zero (:func:`_gram_add` mirrors it).
+
+        An operator whose columns vanish outside row ranges (the band model of
+        :class:`reblur.rolling.RollingOperator`) may say so with ``row_breaks`` (rows at
+        which the blocks are cut) and ``column_rows(k)`` (the rows ``[r0, r1)`` where
+        column ``k`` may be non-zero): a block then copies and multiplies only the columns
+        that reach it, and the products of the others stay zero, which they are.
         """
         h, w = self.op.box.h, self.op.box.w
         C = self.op.dimsd[2]
@@ -203,43 +209,76 @@ class _Window:
         # pages fault in on first touch (slow on this kind of VM)
         buf = self.scratch.take(n_all * rows * w * C, self.slot).reshape(n_all, rows * w * C)
         views = [self.op.column(k) for k in cols_all]
-        for r0 in range(0, h, rows):
-            r1 = min(r0 + rows, h)
+        spans = None
+        cuts = set(range(0, h, rows)) | {h}
+        if hasattr(self.op, "column_rows"):
+            spans = np.array([self.op.column_rows(k) for k in cols_all]).reshape(-1, 2)
+            cuts |= {int(c) for c in self.op.row_breaks if 0 < c < h}
+        cuts = sorted(cuts)
+        for r0, r1 in zip(cuts[:-1], cuts[1:], strict=True):
             mk = self.m[r0:r1]
             if not mk.any():
                 continue
-            if mk.all():
-                n_pix = (r1 - r0) * w * C
-                At = buf[:, :n_pix]
-                for j, v in enumerate(views):
-                    np.copyto(At[j].reshape(r1 - r0, w, C), v[r0:r1])
-                gb = self.g[r0:r1].reshape(-1)
-                ib = self.inl[r0:r1].reshape(-1)
-                sb = self.sgn[r0:r1].reshape(-1)
-            else:
-                n_pix = int(mk.sum()) * C
-                At = buf[:, :n_pix]
-                for j, v in enumerate(views):
-                    At[j] = v[r0:r1][mk].ravel()
-                gb = self.g[r0:r1][mk].ravel()
-                ib = self.inl[r0:r1][mk].ravel()
-                sb = self.sgn[r0:r1][mk].ravel()
-            Atn = At[n_all - n_new :]
-            if sb.any():
-                d += Atn @ sb.astype(float)
-            if not ib.all():
-                # zero the new columns' outlier pixels in place (the block is a fresh copy):
-                # D A_new, and D^2 = D makes the new-by-new part A_new^T D A_new as well
-                Atn[:, ~ib] = 0.0
-            if n_new <= 2 * _TRI_GROUP:
-                G += At @ Atn.T
-            else:
-                n_old = n_all - n_new
-                for s0 in range(0, n_new, _TRI_GROUP):
-                    s1 = min(s0 + _TRI_GROUP, n_new)
-                    G[: n_old + s1, s0:s1] += At[: n_old + s1] @ Atn[s0:s1].T
-            b += Atn @ gb
+            live = None
+            if spans is not None:
+                reach = (spans[:, 0] < r1) & (spans[:, 1] > r0)
+                if not reach[n_all - n_new:].any():
+                    continue
+                if not reach.all():
+                    live = np.flatnonzero(reach)
+            if live is None:
+                self._block(views, n_new, r0, r1, mk, buf, G, b, d)
+                continue
+            # the columns that reach the block: a full product on them, added in place
+            # (its new-by-new part is symmetric, so its upper triangle is what
+            # _gram_add keeps of the triangular products)
+            lv_new = live[live >= n_all - n_new]
+            Gs = np.zeros((live.size, lv_new.size))
+            bs, ds = np.zeros(lv_new.size), np.zeros(lv_new.size)
+            self._block([views[j] for j in live], lv_new.size, r0, r1, mk, buf, Gs, bs, ds,
+                        triangular=False)
+            G[np.ix_(live, lv_new - (n_all - n_new))] += Gs
+            b[lv_new - (n_all - n_new)] += bs
+            d[lv_new - (n_all - n_new)] += ds
         return G, b, d
+
+    def _block(self, views, n_new: int, r0: int, r1: int, mk: np.ndarray, buf: np.ndarray,
+               G: np.ndarray, b: np.ndarray, d: np.ndarray, triangular: bool = True) -> None:
+        """Add one row block's products of ``views`` (the last ``n_new`` of them new) to
+        ``G``, ``b`` and ``d`` (see :meth:`block_products`)."""
+        w, C = self.op.box.w, self.op.dimsd[2]
+        n_all = len(views)
+        if mk.all():
+            n_pix = (r1 - r0) * w * C
+            At = buf[:n_all, :n_pix]
+            for j, v in enumerate(views):
+                np.copyto(At[j].reshape(r1 - r0, w, C), v[r0:r1])
+            gb = self.g[r0:r1].reshape(-1)
+            ib = self.inl[r0:r1].reshape(-1)
+            sb = self.sgn[r0:r1].reshape(-1)
+        else:
+            n_pix = int(mk.sum()) * C
+            At = buf[:n_all, :n_pix]
+            for j, v in enumerate(views):
+                At[j] = v[r0:r1][mk].ravel()
+            gb = self.g[r0:r1][mk].ravel()
+            ib = self.inl[r0:r1][mk].ravel()
+            sb = self.sgn[r0:r1][mk].ravel()
+        Atn = At[n_all - n_new :]
+        if sb.any():
+            d += Atn @ sb.astype(float)
+        if not ib.all():
+            # zero the new columns' outlier pixels in place (the block is a fresh copy):
+            # D A_new, and D^2 = D makes the new-by-new part A_new^T D A_new as well
+            Atn[:, ~ib] = 0.0
+        if n_new <= 2 * _TRI_GROUP or not triangular:
+            G += At @ Atn.T
+        else:
+            n_old = n_all - n_new
+            for s0 in range(0, n_new, _TRI_GROUP):
+                s1 = min(s0 + _TRI_GROUP, n_new)
+                G[: n_old + s1, s0:s1] += At[: n_old + s1] @ Atn[s0:s1].T
+        b += Atn @ gb
 
     def repartition(self, r: np.ndarray, active: list[int]):
         """Move to the partition of ``r``.  Returns the number of pixels that change and
