@@ -69,9 +69,9 @@ class FieldParams:
     ----------
     probe_px : int or None
         Side of a tie-point window; default a sixteenth of the short side, within
-        [64, 128] px (on the test bed's two-plane parallax pair at 1 MP, 64 px windows
-        leave 1.0 % false alarms where 128 px ones leave 2.1 %: the smooth field's
-        transition across a roof's edge is about one window wide).
+        [64, 128] px (the smooth field's transition across a roof's edge is about one
+        window wide: ``benchmarks/alignment.py``'s parallax rows, 128 px windows at
+        main@554729b against 64 px at f18626f).
     max_probes : int
         Most tie points per side of the lattice (the cost grows with its square).
     min_cc : float
@@ -83,9 +83,9 @@ class FieldParams:
     min_rms_px : float
         No field below this RMS tie-point residual: a blur kernel that is not exactly the
         true one moves an ECC optimum by about a tenth of a pixel where the geometry is
-        right (on the test bed's planar pairs the tie points disagree by 0.09 px RMS
-        while the model's geometry is within 0.02 px of the truth), and fitting that
-        would move the geometry away from the truth.
+        right, and fitting that would move the geometry away from the truth (the planar
+        pairs of ``benchmarks/realism.py`` keep their geometry residual, 0.04-0.06 px RMS,
+        because no field is fitted there).
     median_test : float
         Threshold of the normalised median test.
     noise_px : float
