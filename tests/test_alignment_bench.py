@@ -26,7 +26,11 @@ def test_gopro_sweep_holds_every_window_that_fits():
     assert len(set(pairs)) == len(pairs)
     assert bench.gopro_set("quick") == [(12, 9, 8), (12, 17, 8)]  # the two
     assert bench.gopro_set("none") == []
-    with pytest.raises(ValueError, match="quick, all or none"):
+    sample = bench.gopro_set("sample")  # k = 4, 8, 12, 16 at every fourth centre
+    assert set(sample) <= set(pairs) and {k for *_, k in sample} == {4, 8, 12, 16}
+    assert len(sample) == sum(len(range(1 + k // 2, 24 - (k - 1) // 2 + 1, 4))
+                              for k in (4, 8, 12, 16)) == 18
+    with pytest.raises(ValueError, match="quick, sample, all or none"):
         bench.gopro_set("some")
 
 
