@@ -48,6 +48,7 @@ from .render import (
     _inverses,
     _quantised_maps,
     _scaled_positions,
+    source_extent,
 )
 
 __all__ = [
@@ -372,13 +373,7 @@ class SceneGeometry:
         ux, uy = self._ideal(bx, by)
         pts = [np.stack(_apply(h, ux, uy)) for h in self._all_inverses()]
         xs, ys = np.concatenate([p[0] for p in pts]), np.concatenate([p[1] for p in pts])
-        sx0 = max(int(np.floor(xs.min())) - margin, 0)
-        sx1 = min(int(np.ceil(xs.max())) + margin + 1, int(ref_shape[1]))
-        sy0 = max(int(np.floor(ys.min())) - margin, 0)
-        sy1 = min(int(np.ceil(ys.max())) + margin + 1, int(ref_shape[0]))
-        if sx1 <= sx0 or sy1 <= sy0:
-            return None
-        return sy0, sy1, sx0, sx1
+        return source_extent(xs, ys, margin, ref_shape)
 
     def _masks(self, box: Box, ref_shape: tuple[int, ...] | None, shrink: float,
                ground: bool = False) -> tuple[np.ndarray, np.ndarray]:

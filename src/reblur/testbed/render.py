@@ -127,7 +127,13 @@ def source_box(
     cx = np.array([x0, x1 - 1, x0, x1 - 1], dtype=np.float64)
     cy = np.array([y0, y0, y1 - 1, y1 - 1], dtype=np.float64)
     xs, ys = zip(*(_apply(h, cx, cy) for h in _inverses(hs)), strict=True)
-    xs, ys = np.concatenate(xs), np.concatenate(ys)
+    return source_extent(np.concatenate(xs), np.concatenate(ys), margin, ref_shape)
+
+
+def source_extent(xs: np.ndarray, ys: np.ndarray, margin: int,
+                  ref_shape: tuple[int, ...]) -> Box | None:
+    """The reference window ``(y0, y1, x0, x1)`` holding the points ``(xs, ys)`` grown by
+    ``margin`` pixels, clipped to the reference; None when it is empty."""
     sx0 = max(int(np.floor(xs.min())) - margin, 0)
     sx1 = min(int(np.ceil(xs.max())) + margin + 1, int(ref_shape[1]))
     sy0 = max(int(np.floor(ys.min())) - margin, 0)
