@@ -429,15 +429,18 @@ def _spy_detect(monkeypatch) -> dict:
 
 
 def test_detect_no_align_no_refine(tmp_path, good_pair, monkeypatch):
-    """--no-align and --no-refine reach the library as align=False, refine=False."""
+    """--no-align, --no-refine and --no-field reach the library as align=False,
+    refine=False, local_field=False."""
     seen = _spy_detect(monkeypatch)
     res = _invoke("detect", *good_pair, "--out", tmp_path / "res", "-q")
     assert res.exit_code == 1 and "_Called" in res.output, res.output
     assert seen["align"] is True and seen["refine"] is True and seen["align_hint"] is None
+    assert seen["local_field"] is True
     res = _invoke("detect", *good_pair, "--out", tmp_path / "res", "--no-align", "--no-refine",
-                  "-q")
+                  "--no-field", "-q")
     assert res.exit_code == 1 and "_Called" in res.output, res.output
     assert seen["align"] is False and seen["refine"] is False and seen["align_hint"] is None
+    assert seen["local_field"] is False
 
 
 @pytest.mark.parametrize("text", [
@@ -512,7 +515,7 @@ def test_help_lists_commands():
     assert res.exit_code == 0
     for opt in ("--t-max", "--rz-max", "--rz-step", "--lam", "--tile-size", "--threshold",
                 "--truth", "--max-pixels", "--workers", "--overwrite", "--quiet", "--verbose",
-                "--no-align", "--no-refine", "--align-hint"):
+                "--no-align", "--no-refine", "--align-hint", "--no-field"):
         assert opt in res.output
     assert runner.invoke(main, ["--version"]).output.startswith("reblur, version")
     res = runner.invoke(main, ["evaluate", "a.png"])
