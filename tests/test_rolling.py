@@ -205,6 +205,17 @@ def test_tiled_reblur_equals_the_operator(scene):
     a, _ = reblur_rolling_tile(RollingPoses(same), scene, box)
     b, _ = reblur_tile(SparsePoses(W[2], grid), scene, box)
     np.testing.assert_allclose(a, b, atol=1e-6)
+    # a local displacement field: the rolling model applies it like the global one
+    from reblur.align.field import DisplacementField
+
+    yy, xx = np.mgrid[0:9, 0:9] * 32.0
+    fld = DisplacementField(0.0, 0.0, 32.0, np.stack([0.8 + xx / 300, -0.5 + yy / 400], -1))
+    a, ok_a = RollingPoses(same, field=fld).reblur_tile(scene, box)
+    b, ok_b = reblur_tile(SparsePoses(W[2], grid, field=fld), scene, box)
+    np.testing.assert_array_equal(ok_a, ok_b)
+    np.testing.assert_allclose(a, b, atol=1e-5)
+    plain, _ = reblur_tile(SparsePoses(W[2], grid), scene, box)
+    assert np.abs(a - plain)[ok_a].max() > 1e-3  # the field moved it
 
 
 @pytest.mark.parametrize("n_new", [5, 120])

@@ -759,7 +759,7 @@ def _shutter_stage(reference, view, grid, H0, weights, shutter, params, lam, pos
                 readout=choice.rolling.info["readout"], rolling=choice.rolling.to_dict())
     if model == "rolling":
         m = choice.rolling
-        poses = RollingPoses(m, H0)
+        poses = RollingPoses(m, H0, field=getattr(poses, "field", None))
         calibration = [(tuple(b), c, None) for b, c in zip(m.boxes, m.chi, strict=True)]
     return poses, calibration, info
 
@@ -972,9 +972,6 @@ def detect_changes(
             reference, ScaledView(observed, s_obs, gain, offset), grid, H0, motion.weights,
             shutter, rolling, lam, poses, calibration)
         timings["shutter"] = time.perf_counter() - t_sh
-        if shutter_info["model"] == "rolling" and est.field is not None:
-            shutter_info["note"] = ("the rolling model's reblur does not apply the local "
-                                    "displacement field")
         t = time.perf_counter()
     keep = (Ho * Wo <= 64_000_000) if keep_reblurred is None else keep_reblurred
     dec = reblur_and_decide(

@@ -590,12 +590,15 @@ def readout_fraction(motion: RollingMotion) -> tuple[float, dict]:
 
 # ---------------------------------------------------------------------------- reblur
 class RollingPoses:
-    """The non-zero poses of every band (:class:`~reblur.tiled.SparsePoses` each)."""
+    """The non-zero poses of every band (:class:`~reblur.tiled.SparsePoses` each), and the
+    local displacement field applied after them (``field``, as
+    :class:`~reblur.tiled.SparsePoses`; None: none)."""
 
     def __init__(self, motion: RollingMotion, base: np.ndarray | None = None,
-                 rtol: float = 0.0):
+                 rtol: float = 0.0, field=None):
         self.bands = motion.bands
         self.grid = motion.grid
+        self.field = field
         self.per_band = [SparsePoses(motion.weights[b], motion.grid, base, rtol)
                          for b in range(motion.bands.n_bands)]
 
@@ -604,8 +607,12 @@ class RollingPoses:
         return sum(p.n_poses for p in self.per_band)
 
     def reblur_tile(self, reference, box, *, dtype=np.float32):
-        """Same as :func:`reblur_rolling_tile` (lets tile jobs call it as a method)."""
-        return reblur_rolling_tile(self, reference, box, dtype=dtype)
+        """:func:`reblur_rolling_tile` with the field applied (lets tile jobs call it as a
+        method)."""
+        if self.field is None:
+            return reblur_rolling_tile(self, reference, box, dtype=dtype)
+        return self.field.displaced(
+            lambda b: reblur_rolling_tile(self, reference, b, dtype=dtype), box)
 
 
 def reblur_rolling_tile(poses: RollingPoses, reference, box, *, dtype=np.float32):

@@ -71,9 +71,7 @@ def reblur_tile(poses: SparsePoses, reference, box, *, dtype=np.float32):
     if fld is None:
         return _reblur_poses(poses, reference, box, dtype)
     # the local displacement: reblur a window grown by its reach, resample at p + d(p)
-    pad = int(np.ceil(fld.bound(box))) + 3
-    img, ok = _reblur_poses(poses, reference, box.grow(pad, pad, pad, pad), dtype)
-    return fld.resample(img, box, ok, pad)
+    return fld.displaced(lambda b: _reblur_poses(poses, reference, b, dtype), box)
 
 
 def _reblur_poses(poses: SparsePoses, reference, box: Box, dtype) -> tuple[np.ndarray,

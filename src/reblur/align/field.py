@@ -267,6 +267,15 @@ class DisplacementField:
                 "rms_px": round(float(np.sqrt(np.mean(mag * mag))), 4),
                 "max_reach_px": self.max_reach()}
 
+    def displaced(self, reblur: Any, box) -> tuple[np.ndarray, np.ndarray]:
+        """A tile reblur with the field applied: ``reblur(window) -> (image, valid)`` on
+        the window grown by the field's reach, resampled at ``p + d(p)``
+        (:meth:`resample`)."""
+        b = as_box(box)
+        pad = int(np.ceil(self.bound(b))) + 3
+        img, ok = reblur(b.grow(pad, pad, pad, pad))
+        return self.resample(img, b, ok, pad)
+
     def resample(self, image: np.ndarray, box, valid: np.ndarray, pad: int
                  ) -> tuple[np.ndarray, np.ndarray]:
         """Resample a window reblurred on ``box`` grown by ``pad`` pixels at ``p + d(p)``.
