@@ -63,7 +63,8 @@ __all__ = [
 
 @dataclass(frozen=True)
 class FieldParams:
-    """Options of the local displacement field (:func:`reblur.pipeline.detect_changes`).
+    """Options of the local displacement field (:func:`estimate_field`; the pipeline,
+    ``detect_changes(local_field=True)``, uses the defaults).
 
     Attributes
     ----------
@@ -297,7 +298,7 @@ class DisplacementField:
         -------
         out : (h, w, C) ndarray
         valid : (h, w) bool ndarray
-            True where the whole bilinear footprint is valid.
+            True where the whole bicubic footprint (4 x 4 pixels) is valid.
         """
         b = as_box(box)
         dx, dy = self.maps(b)
