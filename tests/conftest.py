@@ -54,3 +54,24 @@ def levir_rgb() -> np.ndarray:
 @pytest.fixture(scope="session")
 def levir_gray(levir_rgb) -> np.ndarray:
     return levir_rgb.mean(axis=2)
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 160 KB tmpfs, a real full disk for the results or a decoded store (both larger):
+    skipped where mounting is not permitted; unmounted afterwards."""
+    import shutil
+    import subprocess
+
+    where = tmp_path / "disk"
+    where.mkdir()
+    if shutil.which("mount") is None or os.geteuid() != 0:
+        pytest.skip("mounting a tmpfs needs root and mount(8)")
+    res = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=160k", "tmpfs", str(where)],
+                         capture_output=True, text=True)
+    if res.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {res.stderr.strip()}")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", "-l", str(where)], check=False)

@@ -399,11 +399,11 @@ def test_store_removed_on_close_on_collection_and_after_a_killed_run(tmp_path, m
     assert not stale.exists() and img.array.root.exists()
 
 
-def test_no_space_for_the_store_is_one_line(tmp_path, monkeypatch):
+def test_no_space_for_the_store_is_one_line(tmp_path, monkeypatch, small_disk):
     """The store fills its disk: one line naming where, what to do; nothing left there."""
     import tempfile
 
-    where = _small_tmpfs(tmp_path)
+    where = small_disk
     monkeypatch.setattr(tempfile, "tempdir", str(where))
     noise = (np.random.default_rng(7).random((600, 600, 3)) * 255).astype(np.uint8)
     (tmp_path / "n.png").write_bytes(imagecodecs.png_encode(noise, level=1))
@@ -411,23 +411,6 @@ def test_no_space_for_the_store_is_one_line(tmp_path, monkeypatch):
                                          r"decoded image \(up to 1,080,000 bytes\); set TMPDIR"):
         open_image(tmp_path / "n.png", lazy=True)
     assert list(where.iterdir()) == []
-
-
-def _small_tmpfs(tmp_path: Path) -> Path:
-    import shutil
-
-    where = tmp_path / "disk"
-    where.mkdir()
-    if shutil.which("mount") is None or os.geteuid() != 0:
-        pytest.skip("mounting a tmpfs needs root and mount(8)")
-    res = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=160k", "tmpfs", str(where)],
-                         capture_output=True, text=True)
-    if res.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {res.stderr.strip()}")
-    import atexit
-
-    atexit.register(subprocess.run, ["umount", "-l", str(where)], check=False)
-    return where
 
 
 def test_dask_workers_get_a_copy_where_they_can_see_it(tmp_path):

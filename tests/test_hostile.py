@@ -764,26 +764,6 @@ def test_large_run_work_store_never_in_the_output_folder(tmp_path, pair):
 
 
 # ---------------------------------------------------------------------------- a real full disk
-@pytest.fixture
-def small_disk(tmp_path):
-    """A 160 KB tmpfs (the test pair's results take about 260 KB): skipped where mounting
-    is not permitted."""
-    import shutil
-
-    where = tmp_path / "disk"
-    where.mkdir()
-    if shutil.which("mount") is None or os.geteuid() != 0:
-        pytest.skip("mounting a tmpfs needs root and mount(8)")
-    res = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=160k", "tmpfs", str(where)],
-                         capture_output=True, text=True)
-    if res.returncode != 0:
-        pytest.skip(f"cannot mount a tmpfs here: {res.stderr.strip()}")
-    try:
-        yield where
-    finally:
-        subprocess.run(["umount", "-l", str(where)], check=False)
-
-
 def test_real_disk_full_leaves_no_output(small_disk, pair):
     """The disk fills while the results are written (no writer patched): one line, no
     output folder, no temporary or lock left on the disk.  (With --overwrite an earlier set
