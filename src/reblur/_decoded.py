@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import InputError
+from .io import InputError, _Sized
 
 #: Prefix of the temporary directories holding decoded images.
 PREFIX = "reblur-decoded-"
@@ -56,7 +56,7 @@ GDAL_CACHE_MB = 64
 Fail = Callable[[Path, str], InputError]
 
 
-class DecodedImage:
+class DecodedImage(_Sized):
     """Window reader of an image decoded into a temporary zarr array.
 
     Slicing returns numpy arrays.  ``temporary`` tells :func:`reblur.dask_backend.portable`
@@ -85,17 +85,6 @@ class DecodedImage:
         self.dtype = np.dtype(array.dtype)
         self.ndim = len(self.shape)
         self.chunks = tuple(int(c) for c in array.chunks)
-
-    @property
-    def size(self) -> int:
-        return int(np.prod(self.shape))
-
-    @property
-    def nbytes(self) -> int:
-        return self.size * self.dtype.itemsize
-
-    def __len__(self) -> int:
-        return self.shape[0]
 
     def __repr__(self) -> str:
         return f"DecodedImage({self.source}, shape={self.shape}, dtype={self.dtype})"

@@ -129,7 +129,23 @@ class InputError(ValueError):
 
 
 # ---------------------------------------------------------------------------- lazy arrays
-class LazyBands:
+class _Sized:
+    """``size``, ``nbytes`` and ``len()`` of an array-like window reader from its ``shape``
+    and ``dtype``."""
+
+    @property
+    def size(self) -> int:
+        return int(np.prod(self.shape))
+
+    @property
+    def nbytes(self) -> int:
+        return self.size * self.dtype.itemsize
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+
+class LazyBands(_Sized):
     """Lazy channel-last view of an on-disk array, with band selection or luminance.
 
     Slicing returns numpy arrays and reads only the window asked for.
@@ -186,23 +202,12 @@ class LazyBands:
         return len(self._shape)
 
     @property
-    def size(self) -> int:
-        return int(np.prod(self._shape))
-
-    @property
-    def nbytes(self) -> int:
-        return self.size * self.dtype.itemsize
-
-    @property
     def chunks(self) -> tuple[int, ...] | None:
         ch = getattr(self.source, "chunks", None)
         if ch is None:
             return None
         ch = tuple(int(c) for c in ch)
         return ch[1:3] if self.channel_first else ch[:2]
-
-    def __len__(self) -> int:
-        return self._shape[0]
 
     def __repr__(self) -> str:
         return f"LazyBands(shape={self._shape}, dtype={self.dtype}, source={type(self.source)})"
@@ -543,7 +548,7 @@ def chunk_cached(image, tile_size: int, halo: int):
     return ChunkCache(image, max_bytes=budget, chunks=(ch, cw))
 
 
-class _Guarded:
+class _Guarded(_Sized):
     """Window reader of a lazily read file whose read and decode failures become one
     :class:`InputError` naming the file and the window.
 
@@ -571,19 +576,8 @@ class _Guarded:
         return len(self.shape)
 
     @property
-    def size(self) -> int:
-        return int(np.prod(self.shape))
-
-    @property
-    def nbytes(self) -> int:
-        return self.size * self.dtype.itemsize
-
-    @property
     def chunks(self):
         return getattr(self.source, "chunks", None)
-
-    def __len__(self) -> int:
-        return self.shape[0]
 
     def __repr__(self) -> str:
         return f"_Guarded({self.path}, shape={self.shape}, dtype={self.dtype})"
