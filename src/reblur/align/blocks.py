@@ -65,15 +65,8 @@ def _block_match(
     Returns ``(src, dst, ncc)``: ``src`` the matched points of the warped reference,
     ``dst`` the block centres of the observation (level pixels), and the correlation peak.
     """
-    Hs = to_level(H, level.scale)
     h, w = level.obs.shape
-    warped = cv2.warpPerspective(
-        level.ref, Hs, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
-    )
-    cover = cv2.warpPerspective(
-        level.ref_mask.astype(np.float32), Hs, (w, h), flags=cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_CONSTANT,
-    ) > 0.999
+    warped, cover = level.warped_reference(to_level(H, level.scale))
     fr = _grad_field(warped, cover, sigma)
     fo = _grad_field(level.obs, level.obs_mask, sigma)
     has_r = np.any(fr != 0, axis=2)

@@ -268,6 +268,16 @@ class Level:
     def side(self) -> int:
         return max(self.ref.shape + self.obs.shape)
 
+    def warped_reference(self, Hs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The reference warped by the level homography ``Hs`` into the observation frame
+        (bilinear, 0 outside), and where its whole footprint holds reference data."""
+        h, w = self.obs.shape
+        ref = cv2.warpPerspective(self.ref, Hs, (w, h), flags=cv2.INTER_LINEAR,
+                                  borderMode=cv2.BORDER_CONSTANT)
+        cover = cv2.warpPerspective(self.ref_mask.astype(np.float32), Hs, (w, h),
+                                    flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        return ref, cover > 0.999
+
 
 def _data_mask(a: np.ndarray, nodata: float | None) -> np.ndarray:
     """1 where ``a`` holds data: ``nodata`` pixels count as missing only in 7x7 patches

@@ -151,15 +151,8 @@ def kernel_polish(
 def _warped(level: Level, Hs: np.ndarray, R: int) -> tuple[np.ndarray, np.ndarray]:
     """The reference warped by the level homography ``Hs`` into the observation frame, and
     the pixels where a ``(2R+1)^2`` kernel's whole footprint holds data in both images."""
-    h, w = level.obs.shape
-    ref = cv2.warpPerspective(
-        level.ref, Hs, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
-    )
-    cover = cv2.warpPerspective(
-        level.ref_mask.astype(np.float32), Hs, (w, h), flags=cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_CONSTANT,
-    )
-    valid = ((cover > 0.999) & level.obs_mask.astype(bool)).astype(np.uint8)
+    ref, cover = level.warped_reference(Hs)
+    valid = (cover & level.obs_mask.astype(bool)).astype(np.uint8)
     # a core pixel is usable when the kernel's whole footprint is valid
     valid = cv2.erode(valid, np.ones((2 * R + 1, 2 * R + 1), np.uint8), borderValue=0)
     return ref, valid
