@@ -41,6 +41,7 @@ References
 from __future__ import annotations
 
 import copy
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Any
@@ -215,9 +216,11 @@ class DisplacementField:
         i1 = int(np.clip(math.ceil((b.y1 - 1 - self.y0) / self.step), 0, ny - 1))
         return float(np.abs(self.d[i0:i1 + 1, j0:j1 + 1]).max())
 
+    @functools.cached_property
     def _node_variation(self) -> np.ndarray:
         """At each node, the largest change of the field (vector norm) to any node within
-        two steps (one tie-point spacing): how far a smooth fit may miss a sharp step."""
+        two steps (one tie-point spacing): how far a smooth fit may miss a sharp step.
+        Computed once per field (every tile asks)."""
         d = self.d.astype(np.float64)
         ny, nx = d.shape[:2]
         p = np.pad(d, ((2, 2), (2, 2), (0, 0)), mode="edge")
@@ -230,7 +233,7 @@ class DisplacementField:
 
     def max_reach(self, cap: int = MAX_REACH) -> int:
         """Largest value :meth:`reach_map` takes anywhere (the decision's halo needs it)."""
-        return int(min(cap, np.floor(self._node_variation().max() + 0.5)))
+        return int(min(cap, np.floor(self._node_variation.max() + 0.5)))
 
     def reach_map(self, box, cap: int = MAX_REACH) -> np.ndarray:
         """Per-pixel geometric uncertainty (whole pixels) of the field on a window.
@@ -247,7 +250,7 @@ class DisplacementField:
         """
         b = as_box(box)
         ny, nx = self.d.shape[:2]
-        r = np.minimum(np.floor(self._node_variation() + 0.5), cap).astype(np.uint8)
+        r = np.minimum(np.floor(self._node_variation + 0.5), cap).astype(np.uint8)
         r = cv2.dilate(r, np.ones((3, 3), np.uint8))  # the nodes around a cell
         iy = np.clip(np.floor((np.arange(b.y0, b.y1) - self.y0) / self.step).astype(int),
                      0, ny - 1)
