@@ -259,15 +259,17 @@ def test_a_pair_in_two_crss_aligns_from_its_georeferencing(scene, tmp_path):
     rep = json.loads((out / "report.json").read_text())
     prior = rep["options"]["georef_prior"]
     assert prior is not None and prior["residual_max_px"] < 0.1
-    ref, obs = open_image(pair.reference), open_image(pair.observation)
-    truth = geo_homography(ref.geo, ref.shape, obs.geo, obs.shape).H  # computed afresh
+    # where PROJ puts the reference's corner pixel centres in the observation (centre of
+    # pixel (c, r) at transform * (c + 0.5, r + 0.5)), independently of reblur's prior
+    with rasterio.open(pair.reference) as a, rasterio.open(pair.observation) as b:
+        h, w = a.height, a.width
+        cols = np.array([0, w - 1, w - 1, 0], float) + 0.5
+        rows = np.array([0, 0, h - 1, h - 1], float) + 0.5
+        xs, ys = a.transform * (cols, rows)
+        xo, yo = proj_transform(a.crs, b.crs, list(xs), list(ys))
+        co, ro = ~b.transform * (np.asarray(xo), np.asarray(yo))
+    truth = np.stack([co - 0.5, ro - 0.5], axis=1)
     H = np.asarray(rep["alignment"]["H"])
-    h, w = ref.shape[:2]
-    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], float).T
-
-    def mapped(M):
-        p = M @ corners
-        return (p[:2] / p[2]).T
-
-    assert np.abs(mapped(H) - mapped(truth)).max() < 1.0
+    p = H @ np.stack([cols - 0.5, rows - 0.5, np.ones(4)])
+    assert np.abs((p[:2] / p[2]).T - truth).max() < 1.0
     assert rep["changes"]["changed_fraction_of_known"] < 0.005
