@@ -439,9 +439,31 @@ def record(rows: list[dict], path: Path = RUNS) -> list[dict]:
     return runs
 
 
+def _gopro_rows(pairs: list[tuple[int, int, int]], src: Path | None, stamp: dict,
+                jobs: int, save: bool) -> list[dict]:
+    """The GoPro rows of ``pairs``, ``jobs`` workers at a time; each row is printed and
+    (with ``save``) recorded as soon as it is done, so a sweep that is stopped keeps what it
+    measured and ``--resume`` goes on from there."""
+    from concurrent.futures import ThreadPoolExecutor, as_completed
+
+    rows = []
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
+        futures = [pool.submit(gopro_row, c, first, k, src) for c, first, k in pairs]
+        for f in as_completed(futures):
+            rows.append(f.result() | stamp)
+            print(json.dumps(rows[-1]), flush=True)
+            if save:
+                record([rows[-1]])
+    return rows
+
+
 def main(gopro: str = "quick", cases: tuple[str, ...] = QUICK_CASES, src: Path | None = None,
-         label: str | None = None, cache: Path | None = None, save: bool = True) -> str:
-    """Run the selected rows; record them; return the two tables (all saved labels)."""
+         label: str | None = None, cache: Path | None = None, save: bool = True,
+         jobs: int = 1, resume: bool = False) -> str:
+    """Run the selected rows; record them; return the two tables (all saved labels).
+
+    ``jobs`` GoPro pairs run at once (each in its own process); with ``resume`` the GoPro
+    pairs already recorded under ``label`` are not run again."""
     cache = cache or Path(tempfile.gettempdir()) / "reblur-alignment-cases"
     label = label or (str(src) if src is not None else commit())
     stamp = dict(label=label, date=datetime.date.today().isoformat())
@@ -449,13 +471,15 @@ def main(gopro: str = "quick", cases: tuple[str, ...] = QUICK_CASES, src: Path |
     for name in cases:
         rows.append(testbed_row(name, src, cache) | stamp)
         print(json.dumps(rows[-1]), flush=True)
-    for c, first, k in gopro_set(gopro):
-        rows.append(gopro_row(c, first, k, src) | stamp)
-        print(json.dumps(rows[-1]), flush=True)
-    runs = record(rows) if save else rows
-    pairs = {(c, first, k) for c, first, k in gopro_set(gopro)}
+    pairs = gopro_set(gopro)
+    done = {(r["centre"], r["frames"][0], r["k"]) for r in load_runs(RUNS)
+            if resume and r["kind"] == "gopro" and r["label"] == label}
+    gopro_rows = _gopro_rows([p for p in pairs if p not in done], src, stamp, jobs, save)
+    runs = record(rows) if save and rows else (load_runs(RUNS) if save else rows + gopro_rows)
+    shown_pairs = set(pairs)
     shown = [r for r in runs if (r["kind"] == "testbed" and r["case"] in cases) or (
-        r["kind"] == "gopro" and (r["centre"], r["frames"][0], r["k"]) in pairs)]
+        r["kind"] == "gopro" and (r["centre"], r["frames"][0], r["k"]) in shown_pairs
+        and (r["label"] == label or not resume))]
     return ("### Test-bed geometry\n\n" + testbed_table(
         sorted([r for r in shown if r["kind"] == "testbed"], key=lambda r: (r["case"],)))
             + "\n\n### GoPro k-frame averages\n\n" + gopro_table(
@@ -551,6 +575,9 @@ if __name__ == "__main__":
     ap.add_argument("--label", default=None, help="name of the rows (default: the commit)")
     ap.add_argument("--cache", type=Path, default=None, help="folder of the made pairs")
     ap.add_argument("--no-save", action="store_true", help="do not record the rows")
+    ap.add_argument("--jobs", type=int, default=1, help="GoPro pairs run at once")
+    ap.add_argument("--resume", action="store_true",
+                    help="skip the GoPro pairs already recorded under --label")
     ap.add_argument("--coarse", action="store_true",
                     help="the coarse alignment on the development pairs instead")
     ap.add_argument("--cross", action="store_true", help="with --coarse: unrelated pairs too")
@@ -558,4 +585,4 @@ if __name__ == "__main__":
     if a.coarse:
         print("\n".join(alignment_table(cross=a.cross)))
     else:
-        print(main(a.gopro, a.cases, a.src, a.label, a.cache, not a.no_save))
+        print(main(a.gopro, a.cases, a.src, a.label, a.cache, not a.no_save, a.jobs, a.resume))
