@@ -615,8 +615,12 @@ def test_detect_end_to_end(detected):
     assert m, line
     assert Path(m.group(3)) == out / "overlay.png"
     names = {p.name for p in out.iterdir()}
+    from reblur.gis import geopackage_available
+
     assert names == {"changes.png", "changes.tif", "changes.geojson", "unknown.png",
-                     "reblurred.tif", "overlay.png", "motion.png", "report.json", "report.html"}
+                     "unknown.tif", "reblurred.tif", "overlay.png", "motion.png",
+                     "report.json", "report.html"} | ({"changes.gpkg"} if geopackage_available()
+                                                      else set())
     ch = read_png(out / "changes.png")
     assert ch.shape == (256, 256) and set(np.unique(ch)) <= {0, 255}
     unk = read_png(out / "unknown.png")
@@ -648,15 +652,16 @@ def test_detect_rerun_is_byte_identical_and_overwrite(detected):
     first = (out / "changes.png").read_bytes()
     res = run(*args, "--out", out)
     assert_one_line_error(res, "already holds results")
-    # an older, larger run's set: its report lists an unknown.tif this run does not write
-    (out / "unknown.tif").write_text("stale result of an older, larger run")
+    # an older run's set: its report lists a rolling.png this (global shutter) run does
+    # not write
+    (out / "rolling.png").write_text("stale result of an older, rolling-shutter run")
     rep = json.loads((out / "report.json").read_text())
-    rep["files"]["unknown.tif"] = "unknown.tif"
+    rep["files"]["rolling.png"] = "rolling.png"
     (out / "report.json").write_text(json.dumps(rep))
     res = run(*args, "--out", out, "--overwrite", "-q")
     assert res.returncode == 0, res.stderr
     assert (out / "changes.png").read_bytes() == first
-    assert not (out / "unknown.tif").exists()  # stale output removed
+    assert not (out / "rolling.png").exists()  # stale output removed
     assert not [p for p in out.iterdir() if p.name not in OUTPUT_NAMES]
 
 

@@ -134,7 +134,7 @@ elif mode == "slow":
             time.sleep(0.4)
             return f(*args, **kwargs)
         return wrapped
-    R.write_png, R.write_tiff, R.write_json = map(slow, (R.write_png, R.write_tiff, R.write_json))
+    R.write_png, R.write_cog, R.write_json = map(slow, (R.write_png, R.write_cog, R.write_json))
 elif mode == "codec-warns":  # imagecodecs logs a warning before its decoder fails
     import logging
     import imagecodecs

@@ -621,6 +621,11 @@ def _detect(stage: Path, out_dir: Path, reference: Path, observed: Path, truth: 
         if large:
             masks = dict(zip(("change_out", "unknown_out"),
                              zarr_masks(work, obs.shape[:2], options["tile_size"]), strict=True))
+            # the reblurred reference, too large to keep in memory, streamed to disk
+            from .gis import ReblurredStore
+
+            masks["reblurred_out"] = ReblurredStore(work / "reblurred", obs.shape, obs.dtype,
+                                                    options["tile_size"])
         try:
             result = reblur.detect_changes(ref.for_detection(), obs.for_detection(),
                                            progress=progress, work_dir=work, **masks,

@@ -236,6 +236,10 @@ class Decided:
     regions: list[dict[str, Any]] = field(default_factory=list)
 
 
+#: Up to this many observation pixels :func:`detect_changes` keeps the reblurred reference
+#: in memory by default (above: none, unless ``reblurred_out`` is given).
+KEEP_REBLURRED_PIXELS = 64_000_000
+
 #: Long side (px) above which the default spread windows add one near the centre.
 CENTRE_WINDOW_SIDE = 16384
 
@@ -288,6 +292,7 @@ def reblur_and_decide(
     keep_reblurred: bool = True,
     change_out=None,
     unknown_out=None,
+    reblurred_out=None,
     max_region: int | None = None,
     n_sample_tiles: int = 64,
     edge_error: bool = True,
@@ -309,7 +314,10 @@ def reblur_and_decide(
     larger halo on the edges they reach, up to three times (:func:`reblur.tilejob.run_tile`).
     On-disk images are read through a chunk cache (:func:`reblur.io.chunk_cached`):
     neighbouring windows share chunks.  Nothing full-size is held but the output masks (and
-    the reblurred image if ``keep_reblurred``).
+    the reblurred image if ``keep_reblurred``); outputs given as arrays on disk
+    (``change_out``, ``unknown_out``, ``reblurred_out``: zarr arrays,
+    :class:`reblur.gis.ReblurredStore`) are written tile by tile, at any size (a given
+    ``reblurred_out`` is written whatever ``keep_reblurred`` says).
 
     With ``calibration`` (the estimation windows ``(y0, x0, h, w)``, the estimate's
     change term on each and the pixels it left out as a known change, or None), the
@@ -427,8 +435,10 @@ def reblur_and_decide(
         out = decide_tiles(
             reference, observed, poses, scheduler=scheduler, s_ref=s_ref, s_obs=s_obs,
             gain=gain, offset=offset, threshold=threshold, photometry=photometry, params=p,
-            halo=halo, tile_size=tile_size, workers=workers, keep_reblurred=keep_reblurred,
-            change_out=change_out, unknown_out=unknown_out, store=work_dir,
+            halo=halo, tile_size=tile_size, workers=workers,
+            keep_reblurred=keep_reblurred or reblurred_out is not None,
+            change_out=change_out, unknown_out=unknown_out, reblurred_out=reblurred_out,
+            store=work_dir,
             progress=progress,
         )
         change, unknown, reblurred = out.change, out.unknown, out.reblurred
@@ -437,8 +447,8 @@ def reblur_and_decide(
     else:
         change = np.zeros((H, W), bool) if change_out is None else change_out
         unknown = np.zeros((H, W), bool) if unknown_out is None else unknown_out
-        reblurred = None
-        if keep_reblurred:
+        reblurred = reblurred_out
+        if keep_reblurred and reblurred is None:
             reblurred = np.zeros((H, W) if two_d else (H, W, C), np.float32)
         job = TileJob(
             poses=poses, s_ref=float(s_ref), s_obs=float(s_obs), gain=gain, offset=offset,
@@ -791,6 +801,7 @@ def detect_changes(
     keep_reblurred: bool | None = None,
     change_out=None,
     unknown_out=None,
+    reblurred_out=None,
     scheduler=None,
     work_dir=None,
     progress: Callable[[str, float], None] | None = None,
@@ -881,9 +892,15 @@ def detect_changes(
     rolling : RollingParams, optional
         Settings of the rolling model and of the choice.
     keep_reblurred : bool, optional
-        Return the full reblurred reference (default: when the observation has <= 64 MP).
+        Return the full reblurred reference in memory (default: when the observation has at
+        most :data:`KEEP_REBLURRED_PIXELS` pixels).
     change_out, unknown_out : array-like, optional
         Where to write the full-size masks (e.g. zarr arrays); default numpy arrays.
+    reblurred_out : array-like, optional
+        Where to write the full-size matched reblurred reference, tile by tile, at any size
+        (e.g. a :class:`reblur.gis.ReblurredStore` on disk, float32 ``(H, W[, C])``
+        values in [0, 1] of full scale); ``result.reblurred`` is then this array, whatever
+        ``keep_reblurred`` says.
     scheduler : None or str or distributed.Client
         None (default): the local path, a thread pool pulling tiles.  ``"threads"``,
         ``"processes"``, ``"tcp://host:port"`` (a running Dask scheduler), ``"distributed"``
@@ -973,13 +990,13 @@ def detect_changes(
             shutter, rolling, lam, poses, calibration)
         timings["shutter"] = time.perf_counter() - t_sh
         t = time.perf_counter()
-    keep = (Ho * Wo <= 64_000_000) if keep_reblurred is None else keep_reblurred
+    keep = (Ho * Wo <= KEEP_REBLURRED_PIXELS) if keep_reblurred is None else keep_reblurred
     dec = reblur_and_decide(
         reference, observed, poses, s_ref=s_ref, s_obs=s_obs, gain=gain, offset=offset,
         tile_size=tile_size, threshold=threshold, workers=workers,
         params=_decision_params(decision, illumination, est.field),
         keep_reblurred=keep, change_out=change_out, unknown_out=unknown_out,
-        scheduler=scheduler, work_dir=work_dir,
+        reblurred_out=reblurred_out, scheduler=scheduler, work_dir=work_dir,
         progress=(lambda f: report("reblur + decide", f)) if progress else None,
         calibration=calibration,
     )

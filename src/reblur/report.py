@@ -6,15 +6,20 @@
     The change mask, uint8 255 (change) / 0, in the observation's frame and size; unknown
     pixels are 0.  Byte-identical for identical masks.  Skipped above
     :data:`PNG_MAX_PIXELS` (``changes.tif`` holds the mask then).
-``changes.tif``
-    The same mask as a tiled, compressed TIFF, written tile by tile, when the image has more
-    than :data:`BIG_MASK_PIXELS` pixels or the observation is georeferenced (then a GeoTIFF
-    with the observation's CRS and transform).
+``changes.tif``, ``unknown.tif``
+    The same masks as Cloud-Optimised GeoTIFFs (:func:`reblur.gis.write_cog`: tiled,
+    internal overviews whose pixels are the maximum of those they cover, so a change of one
+    pixel shows at every zoom), written tile by tile, when the image has more than
+    :data:`BIG_MASK_PIXELS` pixels or the observation is georeferenced (then with its CRS
+    and transform).
 ``unknown.png``
     Observation pixels the aligned reference does not cover, 255 / 0.
 ``reblurred.tif``
-    The reblurred reference in the observation's frame and dtype (georeferenced like the
-    observation); skipped, with a note in ``report.json``, when the result holds none.
+    The reblurred reference in the observation's frame and dtype, a Cloud-Optimised
+    GeoTIFF with averaged overviews (georeferenced like the observation), written tile by
+    tile from the result's array -- in memory, or on disk at any size
+    (:class:`reblur.gis.ReblurredStore`); skipped, with a note in ``report.json``, when the
+    result holds none.
 ``overlay.png``
     The observation, downscaled to at most :data:`OVERLAY_MAX_SIDE` pixels on its long
     side, with changes filled in translucent red and outlined in yellow, unknown shaded.
@@ -31,8 +36,11 @@
     Inputs, alignment, chosen windows, non-zero poses, threshold, changed area, regions,
     timings, peak memory, options, version and (given a truth mask) scores; the HTML page
     embeds the two pictures and links the other files.
-``changes.geojson``
-    With a georeferenced observation: change regions as polygons in its CRS.
+``changes.geojson``, ``changes.gpkg``
+    With a georeferenced observation: one polygon per change region in its CRS, traced tile
+    by tile and merged across tile borders, simplified by at most half a pixel, with the
+    region's triage attributes (:func:`reblur.gis.change_features`); the GeoPackage when
+    the ``geo`` extra is installed (``pip install reblur[geo]``), else a note says so.
 """
 
 from __future__ import annotations
@@ -50,7 +58,15 @@ from typing import Any
 
 import numpy as np
 
-from .io import Image, iter_windows, to_jsonable, write_json, write_png, write_tiff
+from .gis import (
+    FEATURE_KEYS,
+    change_features,
+    geopackage_available,
+    quantize,
+    write_cog,
+    write_geopackage,
+)
+from .io import Image, iter_windows, to_jsonable, write_json, write_png
 from .result import ChangeResult, MotionEstimate
 
 __all__ = [
@@ -84,6 +100,7 @@ OUTPUT_NAMES = (
     "report.json",
     "report.html",
     "changes.geojson",
+    "changes.gpkg",
 )
 
 #: Above this many pixels the change mask is also written as a tiled TIFF.
@@ -94,6 +111,9 @@ PNG_MAX_PIXELS = 2**30
 
 #: Long side of ``overlay.png``.
 OVERLAY_MAX_SIDE = 2048
+
+#: Tile side (px) of the GeoTIFFs written (:func:`reblur.gis.write_cog`).
+COG_BLOCK = 512
 
 #: At most this many regions are listed in ``report.json`` (strongest first, :func:`triage`).
 MAX_LISTED_REGIONS = 1000
@@ -512,58 +532,21 @@ def find_regions(change: np.ndarray) -> list[dict[str, Any]]:
 
 
 #: Region properties copied into the GeoJSON features.
-_FEATURE_KEYS = ("rank", "score", "polarity", "mean_contrast", "contrast", "area_m2",
-                 "mean_stat", "max_stat")
+_FEATURE_KEYS = FEATURE_KEYS
 
 
-def change_polygons(change: np.ndarray, geo: dict[str, Any] | None = None,
+def change_polygons(change, geo: dict[str, Any] | None = None,
                     regions: list[dict[str, Any]] | None = None) -> dict[str, Any]:
-    """Change regions as a GeoJSON FeatureCollection.
+    """Change regions as a GeoJSON FeatureCollection (:func:`reblur.gis.change_features`).
 
-    Polygons (with holes) of 8-connected change pixels, traced by
-    :func:`rasterio.features.shapes`, in the observation's CRS when ``geo`` (``crs``,
-    ``transform``) is given, else in pixel coordinates.  The CRS is named in a ``crs``
-    member (GeoJSON 2008 style; RFC 7946 readers assume WGS 84 without it).  With
+    One feature per 8-connected region of ``change`` (numpy or lazy: traced tile by tile,
+    merged across tile borders), simplified by at most half a pixel, in the observation's
+    CRS when ``geo`` (``crs``, ``transform``) is given, else in pixel coordinates.  With
     ``regions`` (:func:`triage` records), each feature carries its region's triage
     properties (rank, score, polarity, mean contrast, area in m^2), matched by the region's
     bounding box and pixel count; features are listed by rank.
     """
-    import cv2
-    from affine import Affine
-    from rasterio import features
-    from shapely.geometry import mapping, shape
-
-    transform = (geo or {}).get("transform") or Affine.identity()
-    px_area = abs(transform.a * transform.e - transform.b * transform.d) or 1.0
-    m = np.asarray(change, dtype=np.uint8)
-    n, lab, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8, ltype=cv2.CV_32S)
-    by_key = {}
-    for r in regions or []:
-        if "bbox" in r and "area" in r:
-            by_key[(tuple(int(v) for v in r["bbox"]), int(r["area"]))] = r
-    props_of = {}
-    for i in range(1, n):
-        x, y, w, h, area = (int(v) for v in stats[i])
-        rec = by_key.get(((y, x, y + h, x + w), area))
-        if rec is not None:
-            props_of[i] = {k: rec[k] for k in _FEATURE_KEYS if k in rec}
-    feats = []
-    for geom, value in features.shapes(lab, mask=m.astype(bool), connectivity=8,
-                                       transform=transform):
-        poly = shape(geom)
-        props = dict(area=float(poly.area), area_px=int(round(poly.area / px_area)))
-        props.update(props_of.get(int(value), {}))
-        feats.append(dict(type="Feature", properties=props, geometry=mapping(poly)))
-    feats.sort(key=lambda f: (f["properties"].get("rank", np.inf), -f["properties"]["area"]))
-    for i, f in enumerate(feats):
-        f["properties"] = {"id": i, **f["properties"]}
-    fc: dict[str, Any] = dict(type="FeatureCollection", features=feats)
-    crs = (geo or {}).get("crs")
-    if crs is not None:
-        epsg = crs.to_epsg()
-        name = f"urn:ogc:def:crs:EPSG::{epsg}" if epsg else crs.to_wkt()
-        fc["crs"] = dict(type="name", properties=dict(name=name))
-    return fc
+    return change_features(change, geo, regions)
 
 
 # ---------------------------------------------------------------------------- summary
@@ -870,21 +853,9 @@ def remove_outputs(out_dir: str | os.PathLike, keep: Iterable[str] = ()) -> list
 def _to_dtype(dtype: np.dtype):
     """Block converter: float reblurred in [0, 1] units -> the observation's dtype."""
     dtype = np.dtype(dtype)
-    if dtype.kind in "ui":
-        info = np.iinfo(dtype)
-        scale = float(info.max)
 
-        def conv(b: np.ndarray) -> np.ndarray:
-            b = np.asarray(b, dtype=np.float32)
-            if b.ndim == 3 and b.shape[2] == 1:
-                b = b[:, :, 0]
-            return np.clip(np.rint(b * scale), info.min, info.max).astype(dtype)
-    else:
-        def conv(b: np.ndarray) -> np.ndarray:
-            b = np.asarray(b)
-            if b.ndim == 3 and b.shape[2] == 1:
-                b = b[:, :, 0]
-            return b.astype(dtype, copy=False)
+    def conv(b: np.ndarray) -> np.ndarray:
+        return quantize(b, dtype)
     return conv
 
 
@@ -952,27 +923,33 @@ def write_report(
         files["unknown.png"] = "unknown.png"
     else:
         notes.append(f"image of {H * W:,} pixels: masks written as TIFF only (PNG limit)")
-        write_tiff(out / "unknown.tif", _MaskView(unknown), georef=geo)
-        files["unknown.tif"] = "unknown.tif"
     if H * W > BIG_MASK_PIXELS or geo is not None or H * W > PNG_MAX_PIXELS:
-        write_tiff(out / "changes.tif", _MaskView(change, unknown), georef=geo)
-        files["changes.tif"] = "changes.tif"
+        for name, view in (("changes.tif", _MaskView(change, unknown)),
+                           ("unknown.tif", _MaskView(unknown))):
+            write_cog(out / name, view, geo, block=COG_BLOCK, overviews="max")
+            files[name] = name
     if geo is not None:
-        write_json(out / "changes.geojson", change_polygons(
-            np.asarray(change) & ~np.asarray(unknown), geo,
-            regions=triage(list(result.regions), observed)))
+        fc = change_polygons(_MaskView(change, unknown), geo,
+                             regions=triage(list(result.regions), observed))
+        write_json(out / "changes.geojson", fc)
         files["changes.geojson"] = "changes.geojson"
+        if geopackage_available():
+            write_geopackage(out / "changes.gpkg", fc, geo)
+            files["changes.gpkg"] = "changes.gpkg"
+        else:
+            notes.append("changes.gpkg not written: GeoPackage output needs the geo extra "
+                         "(pip install 'reblur[geo]'); changes.geojson holds the same polygons")
 
     # reblurred reference
     if result.reblurred is not None:
         dtype = observed.dtype if observed is not None else np.dtype(np.float32)
-        rb = result.reblurred
-        conv = _to_dtype(dtype)
-        write_tiff(out / "reblurred.tif", rb, convert=conv, georef=geo)
+        write_cog(out / "reblurred.tif", result.reblurred, geo, block=COG_BLOCK,
+                  overviews="average", convert=_to_dtype(dtype))
         files["reblurred.tif"] = "reblurred.tif"
     else:
         notes.append("reblurred.tif not written: the result holds no reblurred image "
-                     "(too large to keep in memory)")
+                     "(detect_changes keeps it in memory up to 64 MP, and writes it to "
+                     "reblurred_out at any size)")
 
     # pictures
     obs_arr = observed.array if observed is not None else None

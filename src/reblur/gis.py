@@ -1,0 +1,599 @@
+"""GIS-ready outputs, written from tiles: Cloud-Optimised GeoTIFFs and change polygons.
+
+:func:`write_cog`
+    An image (numpy or lazy, read window by window) as a Cloud-Optimised GeoTIFF (GDAL's
+    COG driver): tiled, compressed, with internal overviews, IFDs first and the smallest
+    overview's tiles before the larger ones, georeferenced when ``georef`` is given.  The
+    full-size image goes through a temporary tiled GeoTIFF written window by window, and
+    each overview level is made from the one above, window by window (2 x 2 means, or
+    maxima for masks: a change of one pixel stays visible at every zoom), so nothing
+    full-size is ever in memory; the COG driver only assembles the levels.
+:func:`region_shapes`
+    The 8-connected regions of a mask as pixel-edge polygons, traced tile by tile
+    (:func:`rasterio.features.shapes`) and merged across tile borders (:mod:`shapely`): only
+    the outlines of the regions that cross a border are held until the end, never a
+    full-size mask.
+:func:`change_features`
+    Those regions simplified (topology-preserving, at most half a pixel), in the
+    observation's CRS, with the attributes of the decision's region records, as a GeoJSON
+    FeatureCollection; :func:`write_geopackage` writes it as a GeoPackage when the optional
+    ``geo`` extra (``pip install reblur[geo]``, :mod:`pyogrio`) is installed.
+:class:`ReblurredStore`
+    A full-size image on disk (zarr, in the observation's dtype) that the tiled pass writes
+    the reblurred reference into, tile by tile, at any size.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import shutil
+import tempfile
+import warnings
+import xml.etree.ElementTree as ET
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .io import atomic_path, iter_windows
+
+__all__ = [
+    "COG_BLOCK",
+    "POLYGON_TILE",
+    "SIMPLIFY_PX",
+    "ReblurredStore",
+    "RegionShape",
+    "change_features",
+    "geopackage_available",
+    "quantize",
+    "region_shapes",
+    "write_cog",
+    "write_geopackage",
+]
+
+#: Tile side (px) of the COGs: blocks and the size below which no further overview is made.
+COG_BLOCK = 512
+
+#: Side (px) of the mask windows polygons are traced in.
+POLYGON_TILE = 2048
+
+#: Largest distance (px) the simplified outlines move from the pixel edges.
+SIMPLIFY_PX = 0.5
+
+#: GDAL's block cache (MB) while a COG is assembled: bounds the memory of the copy.
+_GDAL_CACHE_MB = 256
+
+_OVERVIEWS = ("average", "max", "none")
+
+_GDAL_TYPES = {"uint8": "Byte", "int8": "Int8", "uint16": "UInt16", "int16": "Int16",
+               "uint32": "UInt32", "int32": "Int32", "float32": "Float32",
+               "float64": "Float64"}
+
+
+# ---------------------------------------------------------------------------- rasters
+def quantize(block: np.ndarray, dtype) -> np.ndarray:
+    """Float intensities in [0, 1] of full scale -> ``dtype`` (integers: rounded and clipped
+    to the dtype's range, NaN to 0; floats: cast).  A trailing band axis of 1 is dropped."""
+    dtype = np.dtype(dtype)
+    b = np.asarray(block)
+    if b.ndim == 3 and b.shape[2] == 1:
+        b = b[:, :, 0]
+    if dtype.kind not in "ui":
+        return b.astype(dtype, copy=False)
+    info = np.iinfo(dtype)
+    b = np.nan_to_num(np.asarray(b, np.float32), nan=0.0) * np.float32(info.max)
+    return np.clip(np.rint(b), info.min, info.max).astype(dtype)
+
+
+def _step(shape: tuple[int, ...], block: int, chunks) -> int:
+    """Side of the windows read from a source: the block, or its chunk rounded up to whole
+    blocks (so a chunked store decodes each chunk once)."""
+    ch = int(chunks[0]) if chunks and isinstance(chunks[0], (int, np.integer)) else block
+    return block * max(1, -(-ch // block))
+
+
+def _write_level0(path: Path, data, shape: tuple[int, ...], dtype: np.dtype,
+                  georef: dict[str, Any] | None, block: int,
+                  convert: Callable | None) -> None:
+    """The full-size image as a tiled GeoTIFF, window by window (the COG's source)."""
+    import rasterio
+    from rasterio.windows import Window
+
+    h, w = shape[:2]
+    count = 1 if len(shape) == 2 else shape[2]
+    geo = georef or {}
+    profile = dict(driver="GTiff", height=h, width=w, count=count, dtype=dtype.name,
+                   tiled=True, blockxsize=block, blockysize=block, compress="zstd",
+                   zstd_level=1, BIGTIFF="IF_SAFER", crs=geo.get("crs"),
+                   transform=geo.get("transform"))
+    if count == 3 and dtype == np.uint8:
+        profile["photometric"] = "RGB"
+    step = _step(shape, block, getattr(data, "chunks", None))
+    with rasterio.open(path, "w", **profile) as dst:
+        for ys, xs in iter_windows(shape, step):
+            b = np.asarray(data[ys, xs])
+            if convert is not None:
+                b = convert(b)
+            win = Window(xs.start, ys.start, xs.stop - xs.start, ys.stop - ys.start)
+            if b.ndim == 2:
+                dst.write(b, 1, window=win)
+            else:
+                dst.write(np.moveaxis(b, -1, 0), window=win)
+
+
+def _level_shapes(h: int, w: int, block: int) -> list[tuple[int, int]]:
+    """Sizes of the overview levels (factor 2 each, GDAL's rounding up) until one fits in a
+    block."""
+    out = []
+    while max(h, w) > block:
+        h, w = -(-h // 2), -(-w // 2)
+        out.append((h, w))
+    return out
+
+
+def _reduce2(a: np.ndarray, how: str) -> np.ndarray:
+    """2 x 2 block maximum or mean (band axis first).  An odd last row / column is a block
+    of its own pixels (GDAL's overview sizes round up): it is repeated, which leaves the
+    maximum and the mean of its pixels as they are.  Means skip NaN and are rounded for
+    integer types."""
+    c, h, w = a.shape
+    if h % 2 or w % 2:
+        a = np.pad(a, ((0, 0), (0, h % 2), (0, w % 2)), mode="edge")
+    q = (a[:, 0::2, 0::2], a[:, 0::2, 1::2], a[:, 1::2, 0::2], a[:, 1::2, 1::2])
+    if how == "max":
+        return np.maximum(np.maximum(q[0], q[1]), np.maximum(q[2], q[3]))
+    ft = np.float64 if a.dtype.itemsize > 2 else np.float32
+    if a.dtype.kind in "ui":
+        m = (q[0].astype(ft) + q[1]) + (q[2].astype(ft) + q[3])
+        m *= 0.25
+        info = np.iinfo(a.dtype)
+        return np.clip(np.rint(m), info.min, info.max).astype(a.dtype)
+    ok = [~np.isnan(v) for v in q]
+    total = sum(np.where(k, v, 0).astype(ft) for k, v in zip(ok, q, strict=True))
+    n = sum(k.astype(np.uint8) for k in ok)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return (total / n).astype(a.dtype)  # NaN where a block holds no value
+
+
+def _write_level(src: Path, dst: Path, shape: tuple[int, int], block: int, how: str) -> None:
+    """Overview level ``shape`` of ``src`` (the previous level) by 2 x 2 block reduction."""
+    import rasterio
+    from rasterio.windows import Window
+
+    with rasterio.open(src) as s:
+        profile = s.profile
+        profile.update(height=shape[0], width=shape[1], transform=None, crs=None)
+        whole = Window(0, 0, s.width, s.height)
+        with rasterio.open(dst, "w", **profile) as d:
+            for ys, xs in iter_windows(shape, block):
+                h, w = ys.stop - ys.start, xs.stop - xs.start
+                win = Window(2 * xs.start, 2 * ys.start, 2 * w, 2 * h).intersection(whole)
+                a = _reduce2(s.read(window=win), how)
+                d.write(a[:, :h, :w], window=Window(xs.start, ys.start, w, h))
+
+
+def _vrt(path: Path, levels: list[Path], shape: tuple[int, ...], dtype: np.dtype,
+         georef: dict[str, Any] | None) -> None:
+    """A VRT of the full-size file whose overviews are the files of ``levels``."""
+    h, w = shape[:2]
+    count = 1 if len(shape) == 2 else shape[2]
+    root = ET.Element("VRTDataset", rasterXSize=str(w), rasterYSize=str(h))
+    geo = georef or {}
+    if geo.get("crs") is not None:
+        ET.SubElement(root, "SRS").text = geo["crs"].to_wkt()
+    if geo.get("transform") is not None:
+        ET.SubElement(root, "GeoTransform").text = ", ".join(
+            repr(float(v)) for v in geo["transform"].to_gdal())
+    for band in range(1, count + 1):
+        b = ET.SubElement(root, "VRTRasterBand", dataType=_GDAL_TYPES[dtype.name],
+                          band=str(band))
+        for k, p in enumerate(levels):
+            el = ET.SubElement(b, "SimpleSource" if k == 0 else "Overview")
+            ET.SubElement(el, "SourceFilename", relativeToVRT="1").text = p.name
+            ET.SubElement(el, "SourceBand").text = str(band)
+    ET.ElementTree(root).write(path, encoding="utf-8")
+
+
+def write_cog(
+    path: str | os.PathLike,
+    data,
+    georef: dict[str, Any] | None = None,
+    *,
+    block: int = COG_BLOCK,
+    overviews: str = "average",
+    convert: Callable[[np.ndarray], np.ndarray] | None = None,
+    compression: str = "deflate",
+) -> Path:
+    """Write an image as a Cloud-Optimised GeoTIFF, atomically, window by window.
+
+    Parameters
+    ----------
+    path : str or path-like
+        Destination.
+    data : array-like, (H, W) or (H, W, C)
+        Numpy, zarr or any lazy array read window by window (a chunked store in whole
+        chunks).
+    georef : dict, optional
+        ``crs`` (``rasterio.crs.CRS`` or None) and ``transform`` (``affine.Affine`` or None),
+        as :attr:`reblur.io.Image.geo`.  Without it the file has no georeferencing.
+    block : int
+        Tile side, a multiple of 16.  Overviews halve the size until one fits in a block.
+    overviews : {"average", "max", "none"}
+        Overview pixels are the mean (NaN skipped, integers rounded) or the maximum (for
+        masks: a single pixel stays visible) of the 2 x 2 pixels of the level above.
+    convert : callable, optional
+        Applied to each window read from ``data`` (e.g. :func:`quantize`).
+    compression : str
+        GDAL compression of the COG (``"deflate"`` is readable everywhere).
+
+    Returns
+    -------
+    Path
+    """
+    import rasterio
+    import rasterio.shutil
+    from rasterio.errors import NotGeoreferencedWarning
+
+    path = Path(path)
+    if overviews not in _OVERVIEWS:
+        raise ValueError(f"overviews must be one of {', '.join(_OVERVIEWS)}, got {overviews!r}")
+    if block < 16 or block % 16:
+        raise ValueError(f"block must be a positive multiple of 16, got {block}")
+    shape = tuple(int(s) for s in data.shape)
+    probe = np.asarray(data[:1, :1])
+    dtype = np.dtype((convert(probe) if convert is not None else probe).dtype)
+    if dtype.name not in _GDAL_TYPES:
+        raise ValueError(f"write_cog writes {', '.join(_GDAL_TYPES)} pixels, got {dtype} "
+                         "(convert bool masks to uint8 first)")
+    opts = dict(BLOCKSIZE=block, COMPRESS=compression.upper(), BIGTIFF="IF_SAFER",
+                NUM_THREADS=1, OVERVIEWS="NONE")
+    if compression.lower() in ("deflate", "zstd", "lzw"):
+        opts["PREDICTOR"] = "YES"
+    # temporaries next to the output, named like the output set's, so that a run killed
+    # here leaves nothing the next run into the directory does not remove
+    work = Path(tempfile.mkdtemp(prefix=f".reblur-tmp-{os.getpid()}-cog-", dir=path.parent))
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", NotGeoreferencedWarning)
+            with rasterio.Env(GDAL_CACHEMAX=_GDAL_CACHE_MB, CPL_LOG="/dev/null"):
+                src = work / "level0.tif"
+                _write_level0(src, data, shape, dtype, georef, block, convert)
+                shapes = _level_shapes(*shape[:2], block) if overviews != "none" else []
+                if shapes:  # each level from the one above, window by window
+                    levels = [src]
+                    for k, lv in enumerate(shapes, 1):
+                        levels.append(work / f"level{k}.tif")
+                        _write_level(levels[-2], levels[-1], lv, block, overviews)
+                    src = work / "pyramid.vrt"
+                    _vrt(src, levels, shape, dtype, georef)
+                    opts["OVERVIEWS"] = "FORCE_USE_EXISTING"
+                with atomic_path(path) as tmp:
+                    rasterio.shutil.copy(src, tmp, driver="COG", **opts)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+    return path
+
+
+class ReblurredStore:
+    """A full-size image on disk that tiles are written into: the reblurred reference at
+    any size.
+
+    Written with float intensities in [0, 1] of full scale (what the tiled pass makes),
+    stored in ``dtype`` (:func:`quantize`: the observation's, so the store is no larger than
+    the observation), read back as float32 in [0, 1].  A zarr array chunked like the tiles,
+    so each tile writes whole chunks; picklable (Dask workers reopen it by path).
+
+    Parameters
+    ----------
+    directory : path
+        The zarr array's directory (created; an existing one is replaced).
+    shape : (H, W) or (H, W, C)
+    dtype : numpy dtype
+        Storage type (the observation's).
+    chunk : int
+        Chunk side (the tile side of the pass).
+    """
+
+    def __init__(self, directory: str | os.PathLike, shape: tuple[int, ...], dtype,
+                 chunk: int = 1024):
+        import zarr
+
+        shape = tuple(int(v) for v in shape)
+        if len(shape) not in (2, 3):
+            raise ValueError(f"ReblurredStore holds (H, W) or (H, W, C) images, got {shape}")
+        self.stored = zarr.create_array(
+            str(directory), shape=shape, chunks=(int(chunk), int(chunk)) + shape[2:],
+            dtype=np.dtype(dtype), fill_value=0, overwrite=True)
+        self.shape = shape
+        self.dtype = np.dtype(np.float32)
+        self.ndim = len(shape)
+
+    @property
+    def chunks(self) -> tuple[int, ...]:
+        return tuple(self.stored.chunks)
+
+    @property
+    def stored_dtype(self) -> np.dtype:
+        return np.dtype(self.stored.dtype)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __setitem__(self, key, value) -> None:
+        self.stored[key] = quantize(value, self.stored_dtype)
+
+    def __getitem__(self, key) -> np.ndarray:
+        a = np.asarray(self.stored[key])
+        if self.stored_dtype.kind in "ui":
+            return a.astype(np.float32) / np.float32(np.iinfo(self.stored_dtype).max)
+        return a.astype(np.float32, copy=False)
+
+
+# ---------------------------------------------------------------------------- polygons
+@dataclass
+class RegionShape:
+    """One 8-connected region of a mask.
+
+    Attributes
+    ----------
+    geometry : shapely Polygon or MultiPolygon
+        The union of its pixels' squares, in pixel coordinates (x = column, y = row, pixel
+        ``(r, c)`` covering ``[c, c + 1] x [r, r + 1]``); a MultiPolygon where parts meet
+        only at a corner.
+    area : int
+        Pixels.
+    bbox : tuple of int
+        ``(y0, x0, y1, x1)``, end exclusive.
+    """
+
+    geometry: Any
+    area: int
+    bbox: tuple[int, int, int, int]
+
+
+def _tile_regions(m: np.ndarray, y0: int, x0: int, shape: tuple[int, int]
+                  ) -> Iterator[tuple[RegionShape, bool]]:
+    """The regions of one mask window, each with whether it may go on in a neighbouring
+    window (it touches a window edge inside the image)."""
+    import cv2
+    import shapely
+    from affine import Affine
+    from rasterio import features
+    from shapely.geometry import shape as to_shape
+
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(m.view(np.uint8), connectivity=8,
+                                                        ltype=cv2.CV_32S)
+    if n == 1:
+        return
+    pieces: dict[int, list] = {}
+    # 4-connected pieces are simple polygons; the pieces of one 8-connected region meet at
+    # corners and are joined below
+    for geom, v in features.shapes(lab, mask=m, connectivity=4,
+                                   transform=Affine.translation(x0, y0)):
+        pieces.setdefault(int(v), []).append(to_shape(geom))
+    h, w = m.shape
+    H, W = shape
+    for i in range(1, n):
+        x, y, bw, bh, area = (int(v) for v in stats[i])
+        parts = pieces[i]
+        g = parts[0] if len(parts) == 1 else shapely.union_all(parts)
+        if not g.is_valid:  # a ring touching itself at a corner
+            g = shapely.make_valid(g)
+        open_ = ((y == 0 and y0 > 0) or (x == 0 and x0 > 0) or (y + bh == h and y0 + h < H)
+                 or (x + bw == w and x0 + w < W))
+        yield RegionShape(g, area, (y0 + y, x0 + x, y0 + y + bh, x0 + x + bw)), open_
+
+
+def _merge(pieces: list[RegionShape]) -> list[RegionShape]:
+    """Join the pieces of regions cut by window borders: pieces of different windows whose
+    squares touch (along an edge or at a corner) are 8-connected."""
+    import shapely
+    from shapely import STRtree
+
+    if not pieces:
+        return []
+    geoms = [p.geometry for p in pieces]
+    a, b = STRtree(geoms).query(geoms, predicate="intersects")
+    parent = list(range(len(pieces)))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            parent[i] = parent[parent[i]]
+            i = parent[i]
+        return i
+
+    for i, j in zip(a.tolist(), b.tolist(), strict=True):
+        ri, rj = root(i), root(j)
+        if ri != rj:
+            parent[max(ri, rj)] = min(ri, rj)
+    groups: dict[int, list[int]] = {}
+    for i in range(len(pieces)):
+        groups.setdefault(root(i), []).append(i)
+    out = []
+    for idx in groups.values():
+        ps = [pieces[i] for i in idx]
+        g = ps[0].geometry if len(ps) == 1 else shapely.union_all([p.geometry for p in ps])
+        bbox = (min(p.bbox[0] for p in ps), min(p.bbox[1] for p in ps),
+                max(p.bbox[2] for p in ps), max(p.bbox[3] for p in ps))
+        out.append(RegionShape(g, sum(p.area for p in ps), bbox))
+    return out
+
+
+def region_shapes(mask, *, tile: int = POLYGON_TILE) -> list[RegionShape]:
+    """The 8-connected regions of a mask as exact pixel-edge polygons, traced tile by tile.
+
+    Each ``tile`` x ``tile`` window is read, labelled and traced
+    (:func:`rasterio.features.shapes`); a region inside a window is final, the pieces of
+    regions that reach a window border are joined across borders at the end (union of the
+    pieces whose squares touch).  Only those outlines are held, never the full-size mask.
+
+    Parameters
+    ----------
+    mask : (H, W) array-like
+        Non-zero = region (numpy, zarr or a lazy view).
+    tile : int
+        Window side.
+
+    Returns
+    -------
+    list of RegionShape
+        In the raster order of their bounding boxes' top-left corners.
+    """
+    if tile < 1:
+        raise ValueError(f"tile must be positive, got {tile}")
+    shape = tuple(int(v) for v in mask.shape[:2])
+    done: list[RegionShape] = []
+    pending: list[RegionShape] = []
+    for ys, xs in iter_windows(shape, tile):
+        m = np.asarray(mask[ys, xs]) != 0
+        if not m.any():
+            continue
+        for r, open_ in _tile_regions(m, ys.start, xs.start, shape):
+            (pending if open_ else done).append(r)
+    done += _merge(pending)
+    done.sort(key=lambda r: (r.bbox[0], r.bbox[1], r.bbox[2], r.bbox[3]))
+    return done
+
+
+#: Region properties copied into the features.
+FEATURE_KEYS = ("rank", "score", "polarity", "mean_contrast", "contrast", "area_m2",
+                "mean_stat", "max_stat")
+
+
+def change_features(
+    mask,
+    georef: dict[str, Any] | None = None,
+    regions: list[dict[str, Any]] | None = None,
+    *,
+    tile: int = POLYGON_TILE,
+    tolerance: float = SIMPLIFY_PX,
+) -> dict[str, Any]:
+    """The change regions of a mask as a GeoJSON FeatureCollection, built tile by tile.
+
+    One feature per 8-connected region (:func:`region_shapes`), its outline simplified
+    (Douglas-Peucker, topology-preserving: no ring crosses another; every vertex dropped
+    lies within ``tolerance`` pixels of the simplified outline, which lies within
+    ``tolerance`` of the pixel edges), in the CRS of ``georef`` (``crs``, ``transform``)
+    or in pixel coordinates.  The CRS is named in a ``crs`` member (GeoJSON 2008 style;
+    RFC 7946 readers assume WGS 84 without it).
+
+    Properties: ``id`` (0, 1, ... in the listed order), ``area`` (in CRS units squared, or
+    pixels), ``area_px`` and, for the region's record in ``regions`` (matched by bounding
+    box and pixel count: :func:`reblur.report.triage` records), its :data:`FEATURE_KEYS`.
+    Features are listed by rank (then by area).
+    """
+    from affine import Affine
+    from shapely import affinity
+    from shapely.geometry import mapping
+
+    if tolerance < 0 or not math.isfinite(tolerance):
+        raise ValueError(f"tolerance must be a finite number of pixels >= 0, got {tolerance}")
+    transform = (georef or {}).get("transform") or Affine.identity()
+    px_area = abs(transform.a * transform.e - transform.b * transform.d) or 1.0
+    by_key = {}
+    for r in regions or []:
+        if "bbox" in r and "area" in r:
+            by_key[(tuple(int(v) for v in r["bbox"]), int(r["area"]))] = r
+    coeffs = [transform.a, transform.b, transform.d, transform.e, transform.c, transform.f]
+    feats = []
+    for s in region_shapes(mask, tile=tile):
+        g = s.geometry.simplify(tolerance, preserve_topology=True) if tolerance else s.geometry
+        props: dict[str, Any] = dict(area=s.area * px_area, area_px=s.area)
+        rec = by_key.get((s.bbox, s.area))
+        if rec is not None:
+            props.update({k: rec[k] for k in FEATURE_KEYS if k in rec})
+        feats.append(dict(type="Feature", properties=props,
+                          geometry=mapping(affinity.affine_transform(g, coeffs))))
+    feats.sort(key=lambda f: (f["properties"].get("rank", np.inf), -f["properties"]["area"]))
+    for i, f in enumerate(feats):
+        f["properties"] = {"id": i, **f["properties"]}
+    fc: dict[str, Any] = dict(type="FeatureCollection", features=feats)
+    crs = (georef or {}).get("crs")
+    if crs is not None:
+        epsg = crs.to_epsg()
+        name = f"urn:ogc:def:crs:EPSG::{epsg}" if epsg else crs.to_wkt()
+        fc["crs"] = dict(type="name", properties=dict(name=name))
+    return fc
+
+
+def geopackage_available() -> bool:
+    """Whether :func:`write_geopackage` can write (the ``geo`` extra, :mod:`pyogrio`)."""
+    try:
+        import pyogrio  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def _field(values: list) -> tuple[np.ndarray, np.ndarray | None]:
+    """A column for pyogrio (int64, float64 or str) and its null mask (None: no nulls)."""
+    present = [v for v in values if v is not None]
+    null = np.array([v is None for v in values])
+    if present and all(isinstance(v, (bool, np.bool_)) for v in present):
+        kind: type = bool
+    elif present and all(isinstance(v, (int, np.integer)) for v in present):
+        kind = int
+    elif present and all(isinstance(v, (int, float, np.number)) for v in present):
+        kind = float
+    else:
+        kind = str
+    if kind is str:
+        col = np.array(["" if v is None else str(v) for v in values], dtype=object)
+    else:
+        fill = {bool: False, int: 0, float: np.nan}[kind]
+        dt = {bool: np.bool_, int: np.int64, float: np.float64}[kind]
+        col = np.array([fill if v is None else v for v in values], dtype=dt)
+    return col, (null if null.any() else None)
+
+
+def write_geopackage(path: str | os.PathLike, collection: dict[str, Any],
+                     georef: dict[str, Any] | None = None, *, layer: str = "changes") -> Path:
+    """Write a FeatureCollection (:func:`change_features`) as a GeoPackage, atomically.
+
+    Every geometry is written as a MultiPolygon (one geometry type per layer), with the
+    CRS of ``georef``.  Needs the ``geo`` extra (:mod:`pyogrio`).
+
+    Raises
+    ------
+    ImportError
+        :mod:`pyogrio` is not installed (``pip install reblur[geo]``).
+    """
+    try:
+        from pyogrio.raw import write
+    except ImportError as exc:
+        raise ImportError("writing a GeoPackage needs pyogrio: pip install 'reblur[geo]'"
+                          ) from exc
+    import shapely
+    from shapely.geometry import MultiPolygon, shape
+
+    feats = collection.get("features", [])
+    geoms = []
+    for f in feats:
+        g = shape(f["geometry"])
+        geoms.append(MultiPolygon([g]) if g.geom_type == "Polygon" else g)
+    keys: list[str] = []
+    for f in feats:
+        keys += [k for k in f["properties"] if k not in keys]
+    cols, masks = [], []
+    for k in keys:
+        col, null = _field([f["properties"].get(k) for f in feats])
+        cols.append(col)
+        masks.append(null)
+    crs = (georef or {}).get("crs")
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.unlink()  # the driver creates the file
+        try:
+            write(str(tmp), np.array(shapely.to_wkb(geoms), dtype=object), cols, keys,
+                  field_mask=masks if any(m is not None for m in masks) else None,
+                  layer=layer, driver="GPKG", geometry_type="MultiPolygon",
+                  crs=crs.to_wkt() if crs is not None else None)
+        finally:
+            for extra in ("-wal", "-shm", "-journal"):
+                with contextlib.suppress(OSError):
+                    Path(str(tmp) + extra).unlink()
+    return path
