@@ -90,8 +90,13 @@ def main(megapixels: float = 25.0) -> str:
     from affine import Affine
     from rasterio.crs import CRS
 
-    from reblur.gis import change_features, geopackage_available, write_cog, write_geopackage
-    from reblur.io import write_json
+    from reblur.gis import (
+        geopackage_available,
+        region_features,
+        write_cog,
+        write_geojson,
+        write_geopackage,
+    )
     from reblur.report import _MaskView, _to_dtype
 
     side = int(round(np.sqrt(megapixels * 1e6)))
@@ -112,21 +117,21 @@ def main(megapixels: float = 25.0) -> str:
             ("reblurred.tif", lambda: write_cog(out / "reblurred.tif", rb, geo,
                                                 convert=_to_dtype(np.uint8))),
         ]
-        fc = {}
+        feats = []
 
         def polygons():
-            fc.update(change_features(_MaskView(change, unknown), geo))
-            write_json(out / "changes.geojson", fc)
+            feats.extend(region_features(_MaskView(change, unknown), geo))
+            write_geojson(out / "changes.geojson", feats, geo)
 
         stages.append(("changes.geojson", polygons))
         if geopackage_available():
             stages.append(("changes.gpkg",
-                           lambda: write_geopackage(out / "changes.gpkg", fc, geo)))
+                           lambda: write_geopackage(out / "changes.gpkg", feats, geo)))
         for name, fn in stages:
             with _Peak() as p:
                 fn()
             rows.append((name, p.seconds, p.growth_mb, (out / name).stat().st_size / 2**20))
-        n_feat = len(fc["features"])
+        n_feat = len(feats)
     lines = [
         f"## GIS outputs at {side * side / 1e6:.1f} MP (`python -m benchmarks.gis_outputs "
         f"--megapixels {megapixels:g}`)",

@@ -27,8 +27,10 @@ from reblur.gis import (
     ReblurredStore,
     change_features,
     quantize,
+    region_features,
     region_shapes,
     write_cog,
+    write_geojson,
     write_geopackage,
 )
 from reblur.io import write_geotiff
@@ -239,6 +241,21 @@ def test_polygons_carry_the_region_records():
     assert g.bounds == (5.0, 54.0, 15.0, 59.0)  # cols 10:30, rows 10:20 at 0.5 m
 
 
+def test_geojson_file_holds_the_feature_collection(tmp_path):
+    mask = _blobs((90, 120), 8)
+    regions = [dict(bbox=list(r.bbox), area=r.area, rank=1, score=float("nan"))
+               for r in region_shapes(mask)[:1]]
+    p = write_geojson(tmp_path / "c.geojson", region_features(mask, GEO, regions), GEO)
+    got = json.loads(p.read_text())
+    want = change_features(mask, GEO, regions)
+    assert got["crs"] == want["crs"] and len(got["features"]) == len(want["features"]) > 5
+    assert got["features"][0]["properties"]["score"] is None  # NaN is no JSON number
+    for a, b in zip(got["features"], want["features"], strict=True):
+        assert a["properties"].keys() == b["properties"].keys()
+        assert shape(a["geometry"]).equals_exact(shape(b["geometry"]), 1e-6)
+    assert [q.name for q in tmp_path.iterdir()] == ["c.geojson"]
+
+
 # ---------------------------------------------------------------------------- GeoPackage
 def test_geopackage_holds_the_features(tmp_path):
     pyogrio = pytest.importorskip("pyogrio", reason="the geo extra is not installed")
@@ -246,7 +263,7 @@ def test_geopackage_holds_the_features(tmp_path):
     regions = [dict(bbox=list(r.bbox), area=r.area, rank=k + 1, score=2.0 - k / 100,
                     polarity="darker") for k, r in enumerate(region_shapes(mask))][:-3]
     fc = change_features(mask, GEO, regions)
-    p = write_geopackage(tmp_path / "c.gpkg", fc, GEO)
+    p = write_geopackage(tmp_path / "c.gpkg", region_features(mask, GEO, regions), GEO)
     assert [q.name for q in tmp_path.iterdir()] == ["c.gpkg"]
     info = pyogrio.read_info(p)
     assert info["features"] == len(fc["features"])

@@ -13,11 +13,12 @@
     (:func:`rasterio.features.shapes`) and merged across tile borders (:mod:`shapely`): only
     the outlines of the regions that cross a border are held until the end, never a
     full-size mask.
-:func:`change_features`
+:func:`region_features`
     Those regions simplified (topology-preserving, at most half a pixel), in the
-    observation's CRS, with the attributes of the decision's region records, as a GeoJSON
-    FeatureCollection; :func:`write_geopackage` writes it as a GeoPackage when the optional
-    ``geo`` extra (``pip install reblur[geo]``, :mod:`pyogrio`) is installed.
+    observation's CRS, with the attributes of the decision's region records;
+    :func:`write_geojson` writes them as GeoJSON (:func:`change_features`: the same as a
+    dict), :func:`write_geopackage` as a GeoPackage when the optional ``geo`` extra
+    (``pip install reblur[geo]``, :mod:`pyogrio`) is installed.
 :class:`ReblurredStore`
     A full-size image on disk (zarr, in the observation's dtype) that the tiled pass writes
     the reblurred reference into, tile by tile, at any size.
@@ -43,15 +44,19 @@ from .io import atomic_path, iter_windows
 
 __all__ = [
     "COG_BLOCK",
+    "FEATURE_KEYS",
     "POLYGON_TILE",
     "SIMPLIFY_PX",
     "ReblurredStore",
+    "Feature",
     "RegionShape",
     "change_features",
     "geopackage_available",
     "quantize",
+    "region_features",
     "region_shapes",
     "write_cog",
+    "write_geojson",
     "write_geopackage",
 ]
 
@@ -464,22 +469,37 @@ FEATURE_KEYS = ("rank", "score", "polarity", "mean_contrast", "contrast", "area_
                 "mean_stat", "max_stat")
 
 
-def change_features(
+@dataclass
+class Feature:
+    """One change region for the vector outputs.
+
+    Attributes
+    ----------
+    properties : dict
+        ``id``, ``area``, ``area_px`` and the region record's :data:`FEATURE_KEYS`.
+    geometry : shapely Polygon or MultiPolygon
+        The simplified outline, in the CRS (or pixel coordinates).
+    """
+
+    properties: dict[str, Any]
+    geometry: Any
+
+
+def region_features(
     mask,
     georef: dict[str, Any] | None = None,
     regions: list[dict[str, Any]] | None = None,
     *,
     tile: int = POLYGON_TILE,
     tolerance: float = SIMPLIFY_PX,
-) -> dict[str, Any]:
-    """The change regions of a mask as a GeoJSON FeatureCollection, built tile by tile.
+) -> list[Feature]:
+    """The change regions of a mask as simplified, attributed outlines, built tile by tile.
 
     One feature per 8-connected region (:func:`region_shapes`), its outline simplified
     (Douglas-Peucker, topology-preserving: no ring crosses another; every vertex dropped
     lies within ``tolerance`` pixels of the simplified outline, which lies within
-    ``tolerance`` of the pixel edges), in the CRS of ``georef`` (``crs``, ``transform``)
-    or in pixel coordinates.  The CRS is named in a ``crs`` member (GeoJSON 2008 style;
-    RFC 7946 readers assume WGS 84 without it).
+    ``tolerance`` of the pixel edges), then mapped by the ``transform`` of ``georef``
+    (pixel coordinates without it).
 
     Properties: ``id`` (0, 1, ... in the listed order), ``area`` (in CRS units squared, or
     pixels), ``area_px`` and, for the region's record in ``regions`` (matched by bounding
@@ -488,7 +508,6 @@ def change_features(
     """
     from affine import Affine
     from shapely import affinity
-    from shapely.geometry import mapping
 
     if tolerance < 0 or not math.isfinite(tolerance):
         raise ValueError(f"tolerance must be a finite number of pixels >= 0, got {tolerance}")
@@ -506,18 +525,71 @@ def change_features(
         rec = by_key.get((s.bbox, s.area))
         if rec is not None:
             props.update({k: rec[k] for k in FEATURE_KEYS if k in rec})
-        feats.append(dict(type="Feature", properties=props,
-                          geometry=mapping(affinity.affine_transform(g, coeffs))))
-    feats.sort(key=lambda f: (f["properties"].get("rank", np.inf), -f["properties"]["area"]))
+        feats.append(Feature(props, affinity.affine_transform(g, coeffs)))
+    feats.sort(key=lambda f: (f.properties.get("rank", np.inf), -f.properties["area"]))
     for i, f in enumerate(feats):
-        f["properties"] = {"id": i, **f["properties"]}
-    fc: dict[str, Any] = dict(type="FeatureCollection", features=feats)
+        f.properties = {"id": i, **f.properties}
+    return feats
+
+
+def _crs_member(georef: dict[str, Any] | None) -> dict[str, Any] | None:
+    """GeoJSON 2008's ``crs`` member naming the CRS of ``georef`` (None without one)."""
     crs = (georef or {}).get("crs")
+    if crs is None:
+        return None
+    epsg = crs.to_epsg()
+    name = f"urn:ogc:def:crs:EPSG::{epsg}" if epsg else crs.to_wkt()
+    return dict(type="name", properties=dict(name=name))
+
+
+def change_features(
+    mask,
+    georef: dict[str, Any] | None = None,
+    regions: list[dict[str, Any]] | None = None,
+    *,
+    tile: int = POLYGON_TILE,
+    tolerance: float = SIMPLIFY_PX,
+) -> dict[str, Any]:
+    """:func:`region_features` as a GeoJSON FeatureCollection (a dict).
+
+    The CRS is named in a ``crs`` member (GeoJSON 2008 style; RFC 7946 readers assume
+    WGS 84 without it).  :func:`write_geojson` writes the same text without building it.
+    """
+    from shapely.geometry import mapping
+
+    feats = region_features(mask, georef, regions, tile=tile, tolerance=tolerance)
+    fc: dict[str, Any] = dict(type="FeatureCollection", features=[
+        dict(type="Feature", properties=f.properties, geometry=mapping(f.geometry))
+        for f in feats])
+    crs = _crs_member(georef)
     if crs is not None:
-        epsg = crs.to_epsg()
-        name = f"urn:ogc:def:crs:EPSG::{epsg}" if epsg else crs.to_wkt()
-        fc["crs"] = dict(type="name", properties=dict(name=name))
+        fc["crs"] = crs
     return fc
+
+
+def write_geojson(path: str | os.PathLike, features: list[Feature],
+                  georef: dict[str, Any] | None = None) -> Path:
+    """Write features (:func:`region_features`) as a GeoJSON FeatureCollection, atomically,
+    one feature per line (the geometry's text made by GEOS, feature by feature)."""
+    import json
+
+    import shapely
+
+    from .io import to_jsonable
+
+    path = Path(path)
+    crs = _crs_member(georef)
+    with atomic_path(path) as tmp, open(tmp, "w", encoding="utf-8") as f:
+        f.write('{"type": "FeatureCollection", ')
+        if crs is not None:
+            f.write(f'"crs": {json.dumps(crs)}, ')
+        f.write('"features": [\n')
+        for k, feat in enumerate(features):
+            props = json.dumps(to_jsonable(feat.properties), allow_nan=False)
+            f.write(f'{"," if k else ""}{{"type": "Feature", "properties": {props}, '
+                    f'"geometry": {shapely.to_geojson(feat.geometry)}}}\n')
+        f.write("]}\n")
+    return path
 
 
 def geopackage_available() -> bool:
@@ -550,9 +622,9 @@ def _field(values: list) -> tuple[np.ndarray, np.ndarray | None]:
     return col, (null if null.any() else None)
 
 
-def write_geopackage(path: str | os.PathLike, collection: dict[str, Any],
+def write_geopackage(path: str | os.PathLike, features: list[Feature],
                      georef: dict[str, Any] | None = None, *, layer: str = "changes") -> Path:
-    """Write a FeatureCollection (:func:`change_features`) as a GeoPackage, atomically.
+    """Write features (:func:`region_features`) as a GeoPackage layer, atomically.
 
     Every geometry is written as a MultiPolygon (one geometry type per layer), with the
     CRS of ``georef``.  Needs the ``geo`` extra (:mod:`pyogrio`).
@@ -568,19 +640,16 @@ def write_geopackage(path: str | os.PathLike, collection: dict[str, Any],
         raise ImportError("writing a GeoPackage needs pyogrio: pip install 'reblur[geo]'"
                           ) from exc
     import shapely
-    from shapely.geometry import MultiPolygon, shape
+    from shapely.geometry import MultiPolygon
 
-    feats = collection.get("features", [])
-    geoms = []
-    for f in feats:
-        g = shape(f["geometry"])
-        geoms.append(MultiPolygon([g]) if g.geom_type == "Polygon" else g)
+    geoms = [MultiPolygon([f.geometry]) if f.geometry.geom_type == "Polygon" else f.geometry
+             for f in features]
     keys: list[str] = []
-    for f in feats:
-        keys += [k for k in f["properties"] if k not in keys]
+    for f in features:
+        keys += [k for k in f.properties if k not in keys]
     cols, masks = [], []
     for k in keys:
-        col, null = _field([f["properties"].get(k) for f in feats])
+        col, null = _field([f.properties.get(k) for f in features])
         cols.append(col)
         masks.append(null)
     crs = (georef or {}).get("crs")

@@ -63,7 +63,9 @@ from .gis import (
     change_features,
     geopackage_available,
     quantize,
+    region_features,
     write_cog,
+    write_geojson,
     write_geopackage,
 )
 from .io import Image, iter_windows, to_jsonable, write_json, write_png
@@ -127,6 +129,8 @@ class _MaskView:
         self.change, self.unknown = change, unknown
         self.shape = tuple(int(s) for s in change.shape[:2])
         self.dtype = np.dtype(np.uint8)
+        #: the masks' chunks (zarr on disk): the writers read whole chunks
+        self.chunks = getattr(change, "chunks", None)
 
     def __getitem__(self, key) -> np.ndarray:
         m = np.asarray(self.change[key], dtype=bool)
@@ -929,12 +933,12 @@ def write_report(
             write_cog(out / name, view, geo, block=COG_BLOCK, overviews="max")
             files[name] = name
     if geo is not None:
-        fc = change_polygons(_MaskView(change, unknown), geo,
-                             regions=triage(list(result.regions), observed))
-        write_json(out / "changes.geojson", fc)
+        feats = region_features(_MaskView(change, unknown), geo,
+                                triage(list(result.regions), observed))
+        write_geojson(out / "changes.geojson", feats, geo)
         files["changes.geojson"] = "changes.geojson"
         if geopackage_available():
-            write_geopackage(out / "changes.gpkg", fc, geo)
+            write_geopackage(out / "changes.gpkg", feats, geo)
             files["changes.gpkg"] = "changes.gpkg"
         else:
             notes.append("changes.gpkg not written: GeoPackage output needs the geo extra "
