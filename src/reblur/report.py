@@ -443,9 +443,11 @@ def rolling_figure(shutter: dict[str, Any], path: str | os.PathLike) -> Path:
         ax.set_xlabel("band centre row")
         ax.grid(alpha=0.3)
     r = shutter.get("readout")
+    q = shutter.get("readout_quartiles")
     crit = shutter.get("criterion", {})
+    spread = "" if not q else f" (windows' quartiles {q[0]:.2f}-{q[1]:.2f})"
     fig.suptitle(f"rolling shutter, {len(bands)} bands: estimated readout "
-                 f"{'-' if r is None else f'{r:.2f}'} of an exposure; inlier RSS "
+                 f"{'-' if r is None else f'{r:.2f}'}{spread} of an exposure; inlier RSS "
                  f"{100 * crit.get('drop', float('nan')):.0f} % below the global model's",
                  fontsize=10)
     path = Path(path)
