@@ -33,6 +33,10 @@
     embeds the two pictures and links the other files.
 ``changes.geojson``
     With a georeferenced observation: change regions as polygons in its CRS.
+``viewer/``
+    A zoomable, offline viewer (``viewer/index.html``; :mod:`reblur.viewer`): tile pyramids
+    of the observation, the reblurred reference and the masks, the strongest regions'
+    outlines and the estimation windows.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ import html
 import importlib.metadata
 import os
 import resource
+import shutil
 import sys
 import time
 from collections.abc import Iterable
@@ -52,6 +57,7 @@ import numpy as np
 
 from .io import Image, iter_windows, to_jsonable, write_json, write_png, write_tiff
 from .result import ChangeResult, MotionEstimate
+from .viewer import ViewerOptions
 
 __all__ = [
     "OUTPUT_NAMES",
@@ -84,6 +90,7 @@ OUTPUT_NAMES = (
     "report.json",
     "report.html",
     "changes.geojson",
+    "viewer",
 )
 
 #: Above this many pixels the change mask is also written as a tiled TIFF.
@@ -864,7 +871,10 @@ def remove_outputs(out_dir: str | os.PathLike, keep: Iterable[str] = ()) -> list
     removed = []
     for p in existing_outputs(out_dir):
         if p.name not in keep:
-            p.unlink()
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p)
+            else:
+                p.unlink()
             removed.append(p)
     return removed
 
@@ -890,6 +900,23 @@ def _to_dtype(dtype: np.dtype):
     return conv
 
 
+def _write_viewer(result: ChangeResult, out: Path, observed: Image | None,
+                  summary: dict[str, Any], files: dict[str, str], notes: list[str],
+                  options: ViewerOptions) -> None:
+    """The zoomable viewer (:func:`reblur.viewer.write_viewer`), regions as in the report."""
+    from .viewer import VIEWER_DIR, write_viewer
+
+    info = write_viewer(out / VIEWER_DIR, result, observed=observed,
+                        regions=summary["changes"]["regions"],
+                        n_regions=summary["changes"]["n_regions"],
+                        reblurred_path=out / files["reblurred.tif"]
+                        if "reblurred.tif" in files else None,
+                        options=options)
+    files["viewer"] = f"{VIEWER_DIR}/index.html"
+    notes.extend(f"viewer: {n}" for n in info.notes)
+    summary["timings_s"]["viewer"] = info.time_s
+
+
 def write_report(
     result: ChangeResult,
     out_dir: str | os.PathLike,
@@ -900,6 +927,7 @@ def write_report(
     options: dict[str, Any] | None = None,
     timings: dict[str, float] | None = None,
     notes: Iterable[str] = (),
+    viewer: ViewerOptions | None = ViewerOptions(),  # noqa: B008 - frozen
 ) -> tuple[dict[str, str], dict[str, Any]]:
     """Write every result file of one detection into ``out_dir`` (created if missing).
 
@@ -922,6 +950,8 @@ def write_report(
         Extra stage timings (seconds), merged with ``result.timings``.
     notes : iterable of str
         Extra remarks recorded in the report.
+    viewer : reblur.viewer.ViewerOptions or None
+        How to write the zoomable viewer ``viewer/``; None: no viewer.
 
     Returns
     -------
@@ -996,6 +1026,8 @@ def write_report(
     timings["report"] = time.perf_counter() - t0
     summary = summarize(result, reference=reference, observed=observed, truth=truth,
                         options=options, timings=timings)
+    if viewer is not None:
+        _write_viewer(result, out, observed, summary, files, notes, viewer)
     files["report.json"] = "report.json"
     files["report.html"] = "report.html"
     summary["notes"] = notes
