@@ -410,6 +410,34 @@ def gopro_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def _median(v: list[float]) -> float | None:
+    return float(np.median(v)) if v else None
+
+
+def gopro_summary(rows: list[dict]) -> str:
+    """Per label and ``k``: pairs, ran / refused / crashed, and the flagged share and the
+    flagged share outside the moving area (median and worst, with the worst pair)."""
+    lines = ["| label | k | pairs | ran | refused | crashed | flagged median / max "
+             "| outside moving area median / max | worst pair (c) | s median |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for label in dict.fromkeys(r["label"] for r in rows):
+        for k in sorted({r["k"] for r in rows if r["label"] == label}):
+            mine = [r for r in rows if r["label"] == label and r["k"] == k]
+            ok = [r for r in mine if r.get("status") == "ran"]
+            flagged = [r["flagged"] for r in ok]
+            outside = [r["flagged_outside"] for r in ok]
+            worst = max(ok, key=lambda r: r["flagged_outside"]) if ok else None
+            lines.append(
+                f"| {label} | {k} | {len(mine)} | {len(ok)} | "
+                f"{sum(r['status'] == 'refused' for r in mine)} | "
+                f"{sum(r['status'] == 'crashed' for r in mine)} | {_pct(_median(flagged))} / "
+                f"{_pct(max(flagged, default=None))} | {_pct(_median(outside))} / "
+                f"{_pct(max(outside, default=None))} | "
+                f"{worst['centre'] if worst else '-'} | "
+                f"{_median([r.get('seconds', 0.0) for r in mine]) or 0:.0f} |")
+    return "\n".join(lines)
+
+
 def testbed_table(rows: list[dict]) -> str:
     lines = ["| label | case | result | method | residual RMS / max (px) | one-homography "
              "floor RMS / max | occlusion edges RMS | FAR | recall | JC | s |",
@@ -482,7 +510,8 @@ def main(gopro: str = "quick", cases: tuple[str, ...] = QUICK_CASES, src: Path |
         and (r["label"] == label or not resume))]
     return ("### Test-bed geometry\n\n" + testbed_table(
         sorted([r for r in shown if r["kind"] == "testbed"], key=lambda r: (r["case"],)))
-            + "\n\n### GoPro k-frame averages\n\n" + gopro_table(
+            + "\n\n### GoPro k-frame averages\n\n" + (gopro_summary if len(pairs) > 40
+                                                         else gopro_table)(
         sorted([r for r in shown if r["kind"] == "gopro"],
                key=lambda r: (r["k"], r["centre"], r["frames"][0]))))
 

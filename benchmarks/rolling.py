@@ -70,6 +70,7 @@ def run(pair, shutter: str, bands: int | None = None) -> dict:
     out.update(seconds=seconds, cpu_seconds=cpu,
                shutter_seconds=res.timings.get("shutter", 0.0),
                model=sh.get("model", "global"), readout=sh.get("readout"),
+               readout_quartiles=sh.get("readout_quartiles"),
                drop=sh.get("criterion", {}).get("drop"))
     return out
 
@@ -91,13 +92,15 @@ def matrix(size: int, readouts, shutters, bands: int | None = None,
 def _cell(d: dict) -> list[str]:
     rec = "-" if d["recall"] is None else f"{d['recall']:.3f}"
     r = "-" if d.get("readout") is None else f"{d['readout']:.2f}"
+    if d.get("readout_quartiles"):
+        r += " ({:.2f}-{:.2f})".format(*d["readout_quartiles"])
     return [f"{100 * d['far']:.3f} %", rec, d["model"], r,
             f"{d['seconds']:.0f} ({d.get('cpu_seconds', float('nan')):.0f})"]
 
 
 def table(rows: list[dict], shutters) -> str:
     head = "| readout | changes | " + " | ".join(
-        f"{s} FAR | recall | model | r est | s (cpu s)" for s in shutters) + " |"
+        f"{s} FAR | recall | model | r est (quartiles) | s (cpu s)" for s in shutters) + " |"
     lines = [head, "|" + "---|" * (2 + 5 * len(shutters))]
     for row in rows:
         cells = [f"{row['readout']:g}", "yes" if row["changes"] else "no"]

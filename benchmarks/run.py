@@ -33,6 +33,8 @@ BENCHES = {
     "cost": ("benchmarks.cost", "main"),
     # the decision's failure modes (issue #27); before: --src OLD/src --label COMMIT
     "failure_modes": ("benchmarks.failure_modes", "main"),
+    # the zoomable viewer's pyramids at 4 and 25 MP (issue #31)
+    "viewer": ("benchmarks.viewer", "main"),
 }
 
 

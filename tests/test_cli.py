@@ -121,7 +121,7 @@ def test_report_files_and_contents(tmp_path):
     )
     out = tmp_path / "out"
     expect = {"changes.png", "unknown.png", "reblurred.tif", "overlay.png", "motion.png",
-              "report.json", "report.html"}
+              "report.json", "report.html", "viewer"}
     assert set(files) == expect
     assert {p.name for p in out.iterdir()} == expect  # no temp files left behind
 
@@ -619,8 +619,8 @@ def test_detect_end_to_end(detected):
 
     assert names == {"changes.png", "changes.tif", "changes.geojson", "unknown.png",
                      "unknown.tif", "reblurred.tif", "overlay.png", "motion.png",
-                     "report.json", "report.html"} | ({"changes.gpkg"} if geopackage_available()
-                                                      else set())
+                     "report.json", "report.html", "viewer"} | (
+                         {"changes.gpkg"} if geopackage_available() else set())
     ch = read_png(out / "changes.png")
     assert ch.shape == (256, 256) and set(np.unique(ch)) <= {0, 255}
     unk = read_png(out / "unknown.png")

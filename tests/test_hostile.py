@@ -208,7 +208,7 @@ def assert_complete(out: Path) -> dict:
     import json
 
     rep = json.loads((out / "report.json").read_text())
-    names = sorted(rep["files"].values())
+    names = sorted({n.split("/")[0] for n in rep["files"].values()})  # viewer/index.html
     assert sorted(p.name for p in out.iterdir()) == names
     for n in names:
         assert (out / n).stat().st_size > 0
@@ -274,9 +274,12 @@ def test_killed_runs_leave_no_or_complete_results_and_are_cleaned(tmp_path, pair
     assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith("writing-")) == [
         live.name, "in", "res"]
     # killed while overwriting: the earlier complete set stays, byte for byte
-    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    def files(d: Path) -> dict[str, bytes]:  # the viewer/ folder too
+        return {str(p.relative_to(d)): p.read_bytes() for p in d.rglob("*") if p.is_file()}
+
+    before = files(out)
     _kill_during_write(tmp_path, detect_args(pair, out, "--overwrite"), 0.5)
-    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert files(out) == before
 
 
 def test_overwrite_into_a_folder_with_other_files(tmp_path, pair):

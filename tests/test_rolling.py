@@ -172,7 +172,8 @@ def scene():
 def test_choice_keeps_the_shutter_that_made_the_pair(scene, readout):
     """The test bed's rolling renderer (bicubic, 64 sub-poses per exposure), a constant
     velocity of (7, 2) px per exposure: auto keeps rolling for r = 0.25, 0.5, 1 and
-    estimates r within 0.05 (6 bands); it keeps global for r = 0."""
+    estimates r within 0.05 (6 bands), every window and band pair agreeing (quartiles
+    within 0.1 of each other); it keeps global for r = 0."""
     hs = _translation_path(scene.shape, 64, readout)
     obs, _ = render_rolling_tiled(scene, hs, readout=readout, n_exposure=64)
     grid = PoseGrid(scene.shape, tx=np.arange(-8, 9), ty=np.arange(-4, 5))
@@ -183,6 +184,9 @@ def test_choice_keeps_the_shutter_that_made_the_pair(scene, readout):
     assert choice.model == ("rolling" if readout else "global"), choice.criterion
     if readout:
         assert abs(choice.rolling.info["readout"] - readout) <= 0.05, choice.rolling.info
+        q25, q75 = choice.rolling.info["readout_fit"]["quartiles"]
+        assert q25 <= choice.rolling.info["readout"] <= q75
+        assert q75 - q25 <= 0.1, choice.rolling.info["readout_fit"]
 
 
 def test_tiled_reblur_equals_the_operator(scene):

@@ -186,7 +186,8 @@ def _earlier_set(out: Path, names: Sequence[str], manifest: str | None) -> set[s
     listed = files.values() if isinstance(files, dict) else files
     if not isinstance(listed, (list, type({}.values()))):
         return set()
-    return present & ({manifest} | {str(n) for n in listed})
+    # a folder of the set (viewer/) is listed by a file in it (viewer/index.html)
+    return present & ({manifest} | {str(n).split("/")[0] for n in listed})
 
 
 def _plan(out: Path, stage: Path, names: Sequence[str],
@@ -214,10 +215,20 @@ def _move_in(stage: Path, out: Path, new: set[str], stale: set[str],
     report) is removed first and moved in last, the ``stale`` results are removed."""
     gone = [n for n in last if (out / n).exists() or (out / n).is_symlink()]
     for n in gone + sorted(stale - set(gone)):
-        with contextlib.suppress(FileNotFoundError):
-            (out / n).unlink()
+        _remove(out / n)
     for n in sorted(new, key=lambda n: (n in last, list(last).index(n) if n in last else 0)):
+        if (stage / n).is_dir() and (out / n).is_dir() and not (out / n).is_symlink():
+            _remove(out / n)  # a folder of results (viewer/) replaces the earlier one
         os.replace(stage / n, out / n)
+
+
+def _remove(p: Path) -> None:
+    """Delete a result file or folder (a missing one is fine)."""
+    if p.is_dir() and not p.is_symlink():
+        shutil.rmtree(p)
+    else:
+        with contextlib.suppress(FileNotFoundError):
+            p.unlink()
 
 
 def _commit(stage: Path, out: Path, names: Sequence[str], last: Sequence[str],

@@ -766,7 +766,9 @@ def _shutter_stage(reference, view, grid, H0, weights, shutter, params, lam, pos
                             params=params)
     model = "rolling" if shutter == "rolling" else choice.model
     info = dict(asked=shutter, model=model, criterion=choice.criterion,
-                readout=choice.rolling.info["readout"], rolling=choice.rolling.to_dict())
+                readout=choice.rolling.info["readout"],
+                readout_quartiles=choice.rolling.info["readout_fit"]["quartiles"],
+                rolling=choice.rolling.to_dict())
     if model == "rolling":
         m = choice.rolling
         poses = RollingPoses(m, H0, field=getattr(poses, "field", None))

@@ -41,6 +41,10 @@
     by tile and merged across tile borders, simplified by at most half a pixel, with the
     region's triage attributes (:func:`reblur.gis.change_features`); the GeoPackage when
     the ``geo`` extra is installed (``pip install reblur[geo]``), else a note says so.
+``viewer/``
+    A zoomable, offline viewer (``viewer/index.html``; :mod:`reblur.viewer`): tile pyramids
+    of the observation, the reblurred reference and the masks, the strongest regions'
+    outlines and the estimation windows.
 """
 
 from __future__ import annotations
@@ -50,6 +54,7 @@ import html
 import importlib.metadata
 import os
 import resource
+import shutil
 import sys
 import time
 from collections.abc import Iterable
@@ -70,6 +75,7 @@ from .gis import (
 )
 from .io import Image, iter_windows, to_jsonable, write_json, write_png
 from .result import ChangeResult, MotionEstimate
+from .viewer import ViewerOptions
 
 __all__ = [
     "OUTPUT_NAMES",
@@ -103,6 +109,7 @@ OUTPUT_NAMES = (
     "report.html",
     "changes.geojson",
     "changes.gpkg",
+    "viewer",
 )
 
 #: Above this many pixels the change mask is also written as a tiled TIFF.
@@ -467,9 +474,11 @@ def rolling_figure(shutter: dict[str, Any], path: str | os.PathLike) -> Path:
         ax.set_xlabel("band centre row")
         ax.grid(alpha=0.3)
     r = shutter.get("readout")
+    q = shutter.get("readout_quartiles")
     crit = shutter.get("criterion", {})
+    spread = "" if not q else f" (windows' quartiles {q[0]:.2f}-{q[1]:.2f})"
     fig.suptitle(f"rolling shutter, {len(bands)} bands: estimated readout "
-                 f"{'-' if r is None else f'{r:.2f}'} of an exposure; inlier RSS "
+                 f"{'-' if r is None else f'{r:.2f}'}{spread} of an exposure; inlier RSS "
                  f"{100 * crit.get('drop', float('nan')):.0f} % below the global model's",
                  fontsize=10)
     path = Path(path)
@@ -849,7 +858,10 @@ def remove_outputs(out_dir: str | os.PathLike, keep: Iterable[str] = ()) -> list
     removed = []
     for p in existing_outputs(out_dir):
         if p.name not in keep:
-            p.unlink()
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p)
+            else:
+                p.unlink()
             removed.append(p)
     return removed
 
@@ -863,6 +875,23 @@ def _to_dtype(dtype: np.dtype):
     return conv
 
 
+def _write_viewer(result: ChangeResult, out: Path, observed: Image | None,
+                  summary: dict[str, Any], files: dict[str, str], notes: list[str],
+                  options: ViewerOptions) -> None:
+    """The zoomable viewer (:func:`reblur.viewer.write_viewer`), regions as in the report."""
+    from .viewer import VIEWER_DIR, write_viewer
+
+    info = write_viewer(out / VIEWER_DIR, result, observed=observed,
+                        regions=summary["changes"]["regions"],
+                        n_regions=summary["changes"]["n_regions"],
+                        reblurred_path=out / files["reblurred.tif"]
+                        if "reblurred.tif" in files else None,
+                        options=options)
+    files["viewer"] = f"{VIEWER_DIR}/index.html"
+    notes.extend(f"viewer: {n}" for n in info.notes)
+    summary["timings_s"]["viewer"] = info.time_s
+
+
 def write_report(
     result: ChangeResult,
     out_dir: str | os.PathLike,
@@ -873,6 +902,7 @@ def write_report(
     options: dict[str, Any] | None = None,
     timings: dict[str, float] | None = None,
     notes: Iterable[str] = (),
+    viewer: ViewerOptions | None = ViewerOptions(),  # noqa: B008 - frozen
 ) -> tuple[dict[str, str], dict[str, Any]]:
     """Write every result file of one detection into ``out_dir`` (created if missing).
 
@@ -895,6 +925,8 @@ def write_report(
         Extra stage timings (seconds), merged with ``result.timings``.
     notes : iterable of str
         Extra remarks recorded in the report.
+    viewer : reblur.viewer.ViewerOptions or None
+        How to write the zoomable viewer ``viewer/``; None: no viewer.
 
     Returns
     -------
@@ -975,6 +1007,8 @@ def write_report(
     timings["report"] = time.perf_counter() - t0
     summary = summarize(result, reference=reference, observed=observed, truth=truth,
                         options=options, timings=timings)
+    if viewer is not None:
+        _write_viewer(result, out, observed, summary, files, notes, viewer)
     files["report.json"] = "report.json"
     files["report.html"] = "report.html"
     summary["notes"] = notes
