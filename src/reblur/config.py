@@ -84,9 +84,13 @@ class RunConfig:
         return out
 
 
-def _check_value(section: str, key: str, value: Any, default: Any) -> Any:
-    """``value`` in the field's type (from its default), or ConfigError."""
+def _check_value(section: str, key: str, value: Any, default: Any,
+                 optional: bool = False) -> Any:
+    """``value`` in the field's type (from its default; ``optional``: None allowed, given
+    as ``"none"``), or ConfigError."""
     where = f"[{section}] {key}"
+    if optional and isinstance(value, str) and value.lower() == "none":
+        return None
     if isinstance(default, bool):
         if not isinstance(value, bool):
             raise ConfigError(f"{where} must be true or false, got {value!r}")
@@ -96,10 +100,8 @@ def _check_value(section: str, key: str, value: Any, default: Any) -> Any:
             raise ConfigError(f"{where} must be an integer, got {value!r}")
         return int(value)
     if isinstance(default, Real) or default is None:
-        if default is None and isinstance(value, str) and value.lower() == "none":
-            return None
         if isinstance(value, bool) or not isinstance(value, Real):
-            none = ' (or "none")' if default is None else ""
+            none = ' (or "none")' if optional else ""
             raise ConfigError(f"{where} must be a number{none}, got {value!r}")
         return float(value)
     if isinstance(default, str):
@@ -113,14 +115,16 @@ def _check_value(section: str, key: str, value: Any, default: Any) -> Any:
     raise ConfigError(f"{where} cannot be set from a file")
 
 
-def _fields(section: str) -> dict[str, Any]:
+def _fields(section: str) -> dict[str, tuple[Any, bool]]:
+    """Each option of the table: its default and whether it may be None."""
     cls = SECTIONS[section]
     skip = _NOT_OPTIONS.get(section, set())
     out = {}
     for f in dataclasses.fields(cls):
         if f.name in skip:
             continue
-        out[f.name] = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()
+        out[f.name] = (default, default is None or "None" in str(f.type))
     return out
 
 
@@ -149,7 +153,7 @@ def parse_config(data: dict[str, Any], source: str | None = None) -> RunConfig:
                 hint = f" (did you mean {', '.join(near)}?)" if near else ""
                 raise ConfigError(f"[{section}] unknown key {key!r}{hint}; the keys are the "
                                   f"fields of {SECTIONS[section].__name__}")
-            values[key] = _check_value(section, key, value, fields[key])
+            values[key] = _check_value(section, key, value, *fields[key])
         try:
             built[section] = SECTIONS[section](**values)
         except (ValueError, TypeError) as exc:
