@@ -76,6 +76,22 @@ def _timed(args: list[str]) -> tuple[float, float, subprocess.CompletedProcess]:
     return wall, cpu, proc
 
 
+#: Stages of report.json's ``timings_s`` shown per frame.
+STAGES = ("open", "align", "photometry", "estimate", "refine", "field", "reblur_decide",
+          "report")
+
+
+def _stage_means(folders: list[Path]) -> dict[str, float]:
+    """Mean seconds per stage over the runs' report.json files (those that exist)."""
+    got: dict[str, list[float]] = {}
+    for f in folders:
+        if (f / "report.json").exists():
+            t = json.loads((f / "report.json").read_text())["timings_s"]
+            for k in STAGES:
+                got.setdefault(k, []).append(float(t.get(k) or 0.0))
+    return {k: round(float(np.mean(v)), 2) for k, v in got.items()}
+
+
 def measure(n: int, reference: int = 12, k: int = 1, keep: Path | None = None) -> dict:
     """Run both ways on ``n`` observations; the figures as a dict."""
     work = Path(tempfile.mkdtemp(prefix="reblur-many-")) if keep is None else keep
@@ -113,6 +129,8 @@ def measure(n: int, reference: int = 12, k: int = 1, keep: Path | None = None) -
             cpu_ratio=round(m_cpu / sum(sep_cpu), 3),
             identical_masks=int(same), separate_failed=failed,
             many_returncode=proc.returncode,
+            stages_separate=_stage_means([work / "sep" / p.stem for p in obs]),
+            stages_many=_stage_means([work / "many" / p.stem for p in obs]),
         )
     finally:
         if keep is None:
@@ -136,6 +154,14 @@ def markdown(r: dict) -> str:
         f"| ratio (target <= 0.5) | {r['wall_ratio']} | {r['cpu_ratio']} |",
         "",
         f"Change masks identical: {r['identical_masks']} of {len(r['frames'])}.",
+        "",
+        "Mean seconds per frame by stage (report.json `timings_s`; the rest of the wall "
+        "time is the process: start, imports, first calls):",
+        "",
+        "| | " + " | ".join(STAGES) + " |",
+        "|---|" + "---|" * len(STAGES),
+        *(f"| {label} | " + " | ".join(str(r[key].get(s, "-")) for s in STAGES) + " |"
+          for label, key in (("separate", "stages_separate"), ("many", "stages_many"))),
     ])
 
 

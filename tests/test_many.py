@@ -294,3 +294,14 @@ def test_cli_progress_lines_when_stderr_is_not_a_terminal(tmp_path):
         assert levels[0] == 0 and levels[-1] == 100, (stage, levels)
         assert all(v % 10 == 0 for v in levels), (stage, levels)
     assert res.stdout.startswith("changes: ")
+
+
+def test_benchmark_frames_are_spread_and_skip_the_reference():
+    from benchmarks.many import _observations
+
+    assert _observations(6, 12, 1) == [1, 5, 10, 15, 20, 24]
+    assert len(_observations(23, 12, 1)) == 23 and 12 not in _observations(23, 12, 1)
+    # 4-frame means: centres 3..23 (gopro_frame_indices), the reference's centre allowed
+    assert _observations(3, 12, 4) == [3, 13, 23]
+    with pytest.raises(SystemExit):
+        _observations(24, 12, 1)
