@@ -22,6 +22,7 @@ The figures depend on the machine's load; both are measured in turn on the same 
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import resource
 import shutil
@@ -100,18 +101,24 @@ def measure(n: int, reference: int = 12, k: int = 1, keep: Path | None = None) -
         centres = _observations(n, reference, k)
         obs = _write_inputs(work, reference, centres, k)
         ref = work / "ref.png"
-        sep_wall, sep_cpu, failed = [], [], []
+        sep_wall, sep_cpu, failed = [], [], {}
         for p in obs:
             w, c, proc = _timed(["detect", str(ref), str(p), "--out", str(work / "sep" / p.stem),
                                  "-q"])
             sep_wall.append(w)
             sep_cpu.append(c)
             if proc.returncode != 0:
-                failed.append(p.stem)
+                failed[p.stem] = (proc.stderr.strip().splitlines() or ["?"])[-1][:200]
             print(f"separate {p.stem}: {w:.1f} s wall, {c:.1f} s CPU", flush=True)
         m_wall, m_cpu, proc = _timed(["detect", str(ref), *map(str, obs), "--out",
                                       str(work / "many"), "-q"])
         print(f"many ({len(obs)}): {m_wall:.1f} s wall, {m_cpu:.1f} s CPU", flush=True)
+        rows = {}
+        if (work / "many" / "summary.csv").exists():
+            with open(work / "many" / "summary.csv", newline="") as f:
+                rows = {r["name"]: r for r in csv.DictReader(f)}
+        ran = [i for i, p in enumerate(obs)
+               if p.stem not in failed and rows.get(p.stem, {}).get("status") == "ok"]
         same = sum(
             (work / "sep" / p.stem / "changes.png").exists()
             and (work / "sep" / p.stem / "changes.png").read_bytes()
@@ -129,6 +136,15 @@ def measure(n: int, reference: int = 12, k: int = 1, keep: Path | None = None) -
             cpu_ratio=round(m_cpu / sum(sep_cpu), 3),
             identical_masks=int(same), separate_failed=failed,
             many_returncode=proc.returncode,
+            ran_in_both=len(ran),
+            # frames that ran both ways: separate runs' wall time (processes included)
+            # against the many-observation run's own seconds for each (summary.csv)
+            ran_separate_wall_s=round(float(np.mean([sep_wall[i] for i in ran])), 2)
+            if ran else None,
+            ran_many_seconds=round(float(np.mean([float(rows[obs[i].stem]["seconds"])
+                                                  for i in ran])), 2) if ran else None,
+            many_failed={n: r["reason"][:200] for n, r in rows.items()
+                         if r["status"] != "ok"},
             stages_separate=_stage_means([work / "sep" / p.stem for p in obs]),
             stages_many=_stage_means([work / "many" / p.stem for p in obs]),
         )
@@ -153,7 +169,12 @@ def markdown(r: dict) -> str:
         f"{r['per_frame_many_cpu_s']} |",
         f"| ratio (target <= 0.5) | {r['wall_ratio']} | {r['cpu_ratio']} |",
         "",
-        f"Change masks identical: {r['identical_masks']} of {len(r['frames'])}.",
+        f"Ran both ways: {r['ran_in_both']} of {len(r['frames'])} (refused separately: "
+        f"{', '.join(sorted(r['separate_failed'])) or 'none'}; in the many-observation run: "
+        f"{', '.join(sorted(r['many_failed'])) or 'none'}); their change masks "
+        f"identical: {r['identical_masks']} of {r['ran_in_both']}.  On those frames: "
+        f"{r['ran_separate_wall_s']} s wall per separate run, {r['ran_many_seconds']} s per "
+        "frame inside the many-observation run (summary.csv `seconds`).",
         "",
         "Mean seconds per frame by stage (report.json `timings_s`; the rest of the wall "
         "time is the process: start, imports, first calls):",
