@@ -1,4 +1,9 @@
-"""Helpers shared by the benchmarks: subprocess runs with peak RSS, machine description."""
+"""Helpers shared by the benchmarks: subprocess runs with peak RSS, machine description.
+
+The shared data folder is ``$REBLUR_DATA`` (``python -m benchmarks.run --data DIR`` sets
+it), else ``../shared/data`` beside the repository; ``DATA`` and ``LEVIR_A`` are read from
+the environment when first used (:func:`data_dir`).
+"""
 
 from __future__ import annotations
 
@@ -13,9 +18,27 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from reblur.testbed.scenes import DataMissing, require_data, shared_data_dir
+
 REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data"
-LEVIR_A = DATA / "levir_whu_1024" / "samples_LEVIR" / "A"
+
+
+def data_dir() -> Path:
+    """The shared data folder: ``$REBLUR_DATA``, else ``../shared/data`` beside the repo
+    (not checked: :func:`require_data` checks what a benchmark reads)."""
+    return shared_data_dir(check=False)
+
+
+def __getattr__(name: str):
+    # DATA and LEVIR_A follow REBLUR_DATA as it is when they are first imported
+    if name == "DATA":
+        return data_dir()
+    if name == "LEVIR_A":
+        return data_dir() / "levir_whu_1024" / "samples_LEVIR" / "A"
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+__all__ = ["DataMissing", "REPO", "data_dir", "require_data"]
 
 
 def machine() -> str:
@@ -93,7 +116,8 @@ def save_runs(path: Path, runs: list[dict]) -> None:
 
 
 def levir_gray(i: int = 0) -> np.ndarray:
-    files = sorted(LEVIR_A.glob("*.png"))
+    files = sorted(require_data(data_dir() / "levir_whu_1024" / "samples_LEVIR" / "A")
+                   .glob("*.png"))
     img = cv2.imread(str(files[i]))[:, :, ::-1]
     return img.astype(np.float64).mean(axis=2) / 255.0
 

@@ -28,13 +28,14 @@ import cv2
 import numpy as np
 from skimage.filters import threshold_otsu
 
+from benchmarks.common import data_dir
 from reblur.decide import decide
 from reblur.grid import pose_homography
 from reblur.metrics import change_metrics
 from reblur.warp import warp_window
 
 REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data" / "levir_whu_1024"
+DATA = data_dir() / "levir_whu_1024"
 OUT = REPO / "docs" / "results" / "decision.md"
 
 #: (name, before, after, label) relative to the data directory

@@ -10,11 +10,13 @@ from __future__ import annotations
 import argparse
 import datetime
 import importlib
+import os
 import re
+import sys
 import time
 from pathlib import Path
 
-from benchmarks.common import REPO, machine
+from benchmarks.common import REPO, DataMissing, data_dir, machine, require_data
 
 DOC = REPO / "docs" / "benchmarks.md"
 #: name -> (module, callable returning markdown)
@@ -55,18 +57,36 @@ def write_section(name: str, body: str, path: Path = DOC) -> None:
     tmp.replace(path)
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser()
-    ap.add_argument("names", nargs="*", default=list(BENCHES))
-    a = ap.parse_args()
-    for name in a.names:
-        mod, fn = BENCHES[name]
-        t = time.perf_counter()
-        print(f"[bench] {name} ...", flush=True)
-        body = getattr(importlib.import_module(mod), fn)()
-        write_section(name, body)
-        print(f"[bench] {name} done in {time.perf_counter() - t:.0f} s", flush=True)
+def main(argv: list[str] | None = None) -> int:
+    """Run the benchmarks named (default: all); one line on stderr and exit 2 when the
+    shared data they read is missing (``--data DIR``, else ``$REBLUR_DATA``, else
+    ``../shared/data`` beside the repository)."""
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.run")
+    ap.add_argument("names", nargs="*", default=list(BENCHES), metavar="NAME",
+                    help=f"benchmarks to run: {', '.join(BENCHES)}")
+    ap.add_argument("--data", type=Path, default=None,
+                    help="the shared data folder (default: $REBLUR_DATA, else "
+                         "../shared/data beside the repository)")
+    a = ap.parse_args(argv)
+    unknown = [n for n in a.names if n not in BENCHES]
+    if unknown:
+        ap.error(f"unknown benchmark(s) {', '.join(unknown)}; choose from {', '.join(BENCHES)}")
+    if a.data is not None:
+        os.environ["REBLUR_DATA"] = str(a.data)  # read by the benchmarks and their cases
+    try:
+        require_data(data_dir())
+        for name in a.names:
+            mod, fn = BENCHES[name]
+            t = time.perf_counter()
+            print(f"[bench] {name} ...", flush=True)
+            body = getattr(importlib.import_module(mod), fn)()
+            write_section(name, body)
+            print(f"[bench] {name} done in {time.perf_counter() - t:.0f} s", flush=True)
+    except DataMissing as exc:
+        print(f"benchmarks: error: {exc}", file=sys.stderr)
+        return 2
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

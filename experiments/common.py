@@ -15,11 +15,28 @@ from typing import Any
 import cv2
 import numpy as np
 
+from reblur.testbed.scenes import DataMissing, require_data, shared_data_dir
+
 REPO = Path(__file__).resolve().parents[1]
-DATA = REPO.parent / "shared" / "data"
-LEVIR = DATA / "levir_whu_1024" / "samples_LEVIR"
-WHU = DATA / "levir_whu_1024" / "samples_WHU-CD"
 OUT = REPO / "docs" / "results"
+
+
+def data_dir() -> Path:
+    """The shared data folder: ``$REBLUR_DATA`` (``python -m experiments.run --data DIR``
+    sets it), else ``../shared/data`` beside the repository (not checked here)."""
+    return shared_data_dir(check=False)
+
+
+def __getattr__(name: str):
+    # DATA, LEVIR and WHU follow REBLUR_DATA as it is when they are first imported
+    subs = {"DATA": (), "LEVIR": ("levir_whu_1024", "samples_LEVIR"),
+            "WHU": ("levir_whu_1024", "samples_WHU-CD")}
+    if name in subs:
+        return data_dir().joinpath(*subs[name])
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+__all__ = ["DataMissing", "OUT", "REPO", "data_dir", "require_data"]
 
 
 # ---------------------------------------------------------------------------- data
@@ -42,11 +59,16 @@ def dev_pairs() -> list[tuple[str, Path, Path, Path]]:
 
     Same order as ``benchmarks/quality.py`` (so the seeds ``100 + index`` match it).
     """
+    levir = require_data(data_dir() / "levir_whu_1024" / "samples_LEVIR")
+    whu = require_data(data_dir() / "levir_whu_1024" / "samples_WHU-CD")
     out = []
-    for a in sorted((LEVIR / "A").glob("*.png")):
-        out.append((f"LEVIR {a.stem}", a, LEVIR / "B" / a.name, LEVIR / "label" / a.name))
-    for a in sorted((WHU / "prev").glob("*.png")):
-        out.append((f"WHU {a.stem}", a, WHU / "curr" / a.name, WHU / "label" / a.name))
+    for a in sorted((levir / "A").glob("*.png")):
+        out.append((f"LEVIR {a.stem}", a, levir / "B" / a.name, levir / "label" / a.name))
+    for a in sorted((whu / "prev").glob("*.png")):
+        out.append((f"WHU {a.stem}", a, whu / "curr" / a.name, whu / "label" / a.name))
+    if not out:
+        raise DataMissing(f"no development pair found in {levir} or {whu}: the shared data "
+                          "is incomplete")
     return out
 
 

@@ -394,7 +394,7 @@ def test_output_dir_holds_results(tmp_path, good_pair):
 def test_usage_error_and_verbose_traceback(tmp_path, good_pair):
     res = run("detect", good_pair[0], "--out", tmp_path / "x")
     assert res.returncode == 2
-    assert_one_line_error(res, "Missing argument 'OBSERVED'")
+    assert_one_line_error(res, "Missing argument 'OBSERVED")
     res = run("detect", tmp_path / "nope.png", good_pair[1], "--out", tmp_path / "x", "-v")
     assert res.returncode == 1
     assert "Traceback" in res.stderr

@@ -138,8 +138,8 @@ def test_align_hint_is_passed_to_the_alignment(monkeypatch):
     seen = []
     align_coarse = pipeline.align_coarse
 
-    def spy(reference, observed, shakes=(8.0, 16.0, 32.0, 64.0), hint=None):
-        seen.append(align_coarse(reference, observed, shakes, hint=hint))
+    def spy(reference, observed, shakes=(8.0, 16.0, 32.0, 64.0), hint=None, params=None):
+        seen.append(align_coarse(reference, observed, shakes, hint=hint, params=params))
         raise Aligned
 
     monkeypatch.setattr(pipeline, "align_coarse", spy)

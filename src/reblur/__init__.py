@@ -21,8 +21,10 @@ __all__ = [
     "GridParams",
     "MotionEstimate",
     "PoseGrid",
+    "ReferenceCache",
     "__version__",
     "detect_changes",
+    "detect_changes_many",
     "estimate_motion",
     "metrics",
     "reblur",
@@ -35,6 +37,14 @@ def __getattr__(name):
         from .pipeline import detect_changes
 
         return detect_changes
+    if name == "detect_changes_many":
+        from .many import detect_changes_many
+
+        return detect_changes_many
+    if name == "ReferenceCache":
+        from .refcache import ReferenceCache
+
+        return ReferenceCache
     if name == "metrics":
         import importlib
 

@@ -12,6 +12,8 @@ directory at the end, holding its lock meanwhile (:func:`reblur.outdir.output_se
 
 from __future__ import annotations
 
+import dataclasses
+import glob
 import json
 import logging
 import math
@@ -26,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 import click
+import numpy as np
 
 from .io import (
     DEFAULT_MAX_PIXELS,
@@ -286,27 +289,54 @@ def max_pixels_option(default: int) -> Callable:
 _PATH = click.Path(path_type=Path)
 
 
-class _Progress:
-    """``progress(stage, fraction)`` callback drawing one tqdm bar per stage on stderr.
+def _stderr_is_terminal() -> bool:
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):  # replaced or closed stream
+        return False
 
-    Bars are drawn only when stderr is a terminal.
+
+class _Progress:
+    """``progress(stage, fraction)`` callback for the stages of a run.
+
+    On a terminal: one tqdm bar per stage on stderr.  Otherwise (a batch job, a log file):
+    a line ``reblur: [PREFIX]STAGE: N % (S s)`` each time a stage passes another ``step``
+    (10 %), its start and its end included.
     """
 
-    def __init__(self) -> None:
+    def __init__(self, prefix: str = "", step: int = 10) -> None:
         self.bar = None
         self.stage: str | None = None
+        self.prefix = prefix
+        self.step = int(step)
+        self.tty = _stderr_is_terminal()
+        self.shown = -1
+        self.t_stage = time.perf_counter()
 
     def __call__(self, stage: str, fraction: float) -> None:
-        from tqdm import tqdm
-
+        n = int(round(100 * min(max(float(fraction), 0.0), 1.0)))
         if stage != self.stage:
             self.close()
             self.stage = stage
-            self.bar = tqdm(total=100, desc=stage, file=sys.stderr, leave=False, disable=None,
-                            unit="%", bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}")
-        n = int(round(100 * min(max(float(fraction), 0.0), 1.0)))
-        if self.bar is not None and n > self.bar.n:
-            self.bar.update(n - self.bar.n)
+            self.shown = -1
+            self.t_stage = time.perf_counter()
+            if self.tty:
+                from tqdm import tqdm
+
+                self.bar = tqdm(total=100, desc=self.prefix + stage, file=sys.stderr,
+                                leave=False, unit="%",
+                                bar_format="{desc}: {percentage:3.0f}%|{bar}| {elapsed}")
+        if self.bar is not None:
+            if n > self.bar.n:
+                self.bar.update(n - self.bar.n)
+            return
+        if not self.tty:
+            level = n - n % self.step
+            if level > self.shown:
+                self.shown = level
+                click.echo(display_path(f"reblur: {self.prefix}{stage}: {level} % "
+                                        f"({time.perf_counter() - self.t_stage:.1f} s)"),
+                           err=True)
 
     def close(self) -> None:
         if self.bar is not None:
@@ -428,9 +458,50 @@ def main() -> None:
     """
 
 
-@main.command(short_help="Detect changes between a reference and a blurred observation.")
+def _read_boxes(ctx: click.Context, param: click.Parameter, value: tuple[str, ...]):
+    """``--box Y0,X0,H,W`` (repeatable) -> list of int tuples, or None."""
+    if not value:
+        return None
+    boxes = []
+    for text in value:
+        parts = text.replace(" ", "").split(",")
+        try:
+            box = tuple(int(v) for v in parts)
+        except ValueError:
+            box = ()
+        if len(box) != 4 or box[0] < 0 or box[1] < 0 or box[2] < 8 or box[3] < 8:
+            raise click.BadParameter(f"{text!r}: give Y0,X0,H,W in pixels (whole numbers, "
+                                     "Y0, X0 >= 0, H, W >= 8)")
+        boxes.append(box)
+    return boxes
+
+
+def _read_config(ctx: click.Context, param: click.Parameter, value: Path | None):
+    """``--config FILE``: a :class:`reblur.config.RunConfig`, or one line and exit 2."""
+    from .config import ConfigError, RunConfig, load_config
+
+    if value is None:
+        return RunConfig()
+    try:
+        return load_config(value)
+    except ConfigError as exc:
+        raise click.BadParameter(str(exc)) from None
+
+
+def _read_frames(ctx: click.Context, param: click.Parameter, value: str | None):
+    if value is None:
+        return None
+    from .many import parse_frames
+
+    try:
+        return parse_frames(value)
+    except ValueError as exc:
+        raise click.BadParameter(str(exc)) from None
+
+
+@main.command(short_help="Detect changes between a reference and blurred observations.")
 @click.argument("reference", type=_PATH)
-@click.argument("observed", type=_PATH)
+@click.argument("observed", type=_PATH, nargs=-1, required=True, metavar="OBSERVED...")
 @click.option("-o", "--out", type=_PATH, required=True,
               help="Output directory (created; must not hold results unless --overwrite).")
 @click.option("--t-max", type=click.IntRange(min=0), default=12, show_default=True,
@@ -452,9 +523,10 @@ def main() -> None:
 @click.option("--truth", type=_PATH, default=None,
               help="True change mask (non-zero = change): scores go into report.json.")
 @click.option("--illumination", type=click.Choice(["auto", "global", "field"]),
-              default="auto", show_default=True,
+              default=None,
               help="Photometric model: one gain and offset per band, a smooth field "
-                   "(ramps, vignetting, shadow gradients), or chosen from the data.")
+                   "(ramps, vignetting, shadow gradients), or chosen from the data "
+                   "(default: auto, or the --config file's [decision] illumination).")
 @click.option("--nodata", type=_Finite(allow_nan=True), default=None, metavar="VALUE",
               help="Pixels whose every band equals VALUE ('nan': any band not finite) "
                    "hold no data in either image: unknown, never change.  Default: what "
@@ -497,6 +569,23 @@ def main() -> None:
               help="Skip the local displacement field after the refinement (tie "
                    "points on a lattice, a smooth field for parallax and lens "
                    "distortion).")
+@click.option("--windows", type=click.IntRange(min=1, max=16), default=None,
+              help="Estimation windows estimated jointly (1: the paper's Algorithm 1).  "
+                   "Default: 2, 4 above --large-side px, 5 above 16384 px.")
+@click.option("--box", "boxes", multiple=True, callback=_read_boxes, metavar="Y0,X0,H,W",
+              help="Estimate the motion on this window of OBSERVED (pixels; repeat for "
+                   "several) instead of choosing windows.")
+@click.option("--large-side", type=click.IntRange(min=64), default=2500, show_default=True,
+              help="Long side (px) above which the large-image defaults apply.")
+@click.option("--config", type=_PATH, default=None, callback=_read_config, metavar="FILE",
+              help="TOML file of options: tables [decision], [select], [align], [rolling] "
+                   "whose keys are the fields of DecisionParams, SelectParams, AlignParams, "
+                   "RollingParams.  Flags given on the command line take precedence.")
+@click.option("--every", type=click.IntRange(min=1), default=None, metavar="N",
+              help="Video OBSERVED: compare every N-th frame (default: every frame).")
+@click.option("--frames", default=None, callback=_read_frames, metavar="A:B",
+              help="Video OBSERVED: frames A to B-1 (0-based; 'A:' to the end, ':B' from "
+                   "the start).")
 @max_pixels_option(DEFAULT_MAX_PIXELS)
 @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
               help="Threads for the tiled stages (processes with --scheduler processes).")
@@ -508,14 +597,15 @@ def main() -> None:
 @overwrite_option
 @quiet_option
 @verbose_option
-def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float,
+def detect(reference: Path, observed: tuple[Path, ...], out: Path, t_max: int, rz_max: float,
            rz_step: float | None, lam: float, tile_size: int, threshold: float | None,
-           truth: Path | None, illumination: str, nodata: float | None, shutter: str,
+           truth: Path | None, illumination: str | None, nodata: float | None, shutter: str,
            no_align: bool, align_hint: Any, no_refine: bool, no_field: bool,
            grid_kind: str, focal: float | None, tz_max: float | None, tz_step: float | None,
-           tilt_max: float | None, tilt_step: float | None,
-           max_pixels: int, workers: int, scheduler: str | None, overwrite: bool,
-           quiet: bool) -> None:
+           tilt_max: float | None, tilt_step: float | None, windows: int | None,
+           boxes: list | None, large_side: int, config: Any, every: int | None,
+           frames: tuple[int, int | None] | None, max_pixels: int, workers: int,
+           scheduler: str | None, overwrite: bool, quiet: bool) -> None:
     """Find what changed between REFERENCE (sharp) and OBSERVED (later, blurred).
 
     Inputs: PNG, JPEG, TIFF/BigTIFF/GeoTIFF or zarr; uint8, uint16 or float; gray, RGB
@@ -525,28 +615,118 @@ def detect(reference: Path, observed: Path, out: Path, t_max: int, rz_max: float
     Writes into --out: changes.png (255 = change, in OBSERVED's frame), unknown.png,
     reblurred.tif, overlay.png, motion.png, report.json, report.html, and for large or
     georeferenced inputs changes.tif (and changes.geojson).  Prints one summary line.
+
+    Several observations (files, folders of images, glob patterns, videos read frame by
+    frame): each gets its own folder OUT/NAME with those files, and OUT/index.html and
+    OUT/summary.csv list them all; the reference's own work is done once.  An observation
+    that fails is listed with its reason and the run goes on (the exit code is then 1).
     """
-    from .report import OUTPUT_NAMES, summary_line
+    from .many import observation_sources
 
     t0 = time.perf_counter()
+    ctx = click.get_current_context()
     _check_grid(t_max, rz_max, rz_step)
     if no_align and align_hint is not None:
         raise click.UsageError("--align-hint seeds the alignment that --no-align skips: "
-                               "give one of them", ctx=click.get_current_context())
+                               "give one of them", ctx=ctx)
     six = _six_d_options(grid_kind, rz_max, dict(focal=focal, tz_max=tz_max, tz_step=tz_step,
                                                  tilt_max=tilt_max, tilt_step=tilt_step))
-    inputs = [reference, observed] + ([truth] if truth is not None else [])
-    out_dir = _check_output_dir(out, inputs, OUTPUT_NAMES, overwrite)
-    with output_set(out_dir, OUTPUT_NAMES, overwrite=overwrite, last=REPORT_NAMES,
-                    manifest="report.json") as stage:
-        summary = _detect(stage, out_dir, reference, observed, truth, max_pixels, quiet, t0,
-                          dict(t_max=t_max, rz_max=rz_max, rz_step=rz_step, lam=lam,
-                               tile_size=tile_size, threshold=threshold, workers=workers,
-                               scheduler=scheduler, illumination=illumination,
-                               shutter=shutter, align=not no_align,
-                               refine=not no_refine, local_field=not no_field,
-                               align_hint=align_hint), nodata, six)
-    click.echo(display_path(summary_line(summary, out)))
+    plan = _plan(ctx, config, six, max_pixels, nodata, quiet, dict(
+        t_max=t_max, rz_max=rz_max, rz_step=rz_step, lam=lam, tile_size=tile_size,
+        threshold=threshold, workers=workers, scheduler=scheduler, illumination=illumination,
+        shutter=shutter, align=not no_align, refine=not no_refine, local_field=not no_field,
+        align_hint=align_hint, windows=windows, boxes=boxes, large_side=large_side))
+    if _single_observation(observed):
+        if every is not None or frames is not None:
+            raise click.UsageError("--every and --frames pick the frames of a video; OBSERVED "
+                                   "is one image", ctx=ctx)
+        _detect_single(reference, observed[0], out, truth, plan, overwrite, t0)
+        return
+    if truth is not None:
+        raise click.UsageError("--truth scores one observation: give one OBSERVED", ctx=ctx)
+    sources = observation_sources(observed)
+    if (every is not None or frames is not None) and not any(
+            s.kind == "video" for s in sources):
+        raise click.UsageError("--every and --frames pick the frames of a video; OBSERVED "
+                               "names none", ctx=ctx)
+    _detect_many(reference, observed, sources, out, plan, every or 1, frames or (0, None),
+                 overwrite)
+
+
+def _single_observation(observed: tuple[Path, ...]) -> bool:
+    """One OBSERVED naming one image file (or zarr store): the single-pair layout."""
+    from .many import VIDEO_SUFFIXES, _is_zarr
+
+    if len(observed) != 1:
+        return False
+    p = observed[0]
+    if p.is_dir():
+        return _is_zarr(p)
+    if not p.exists() and not p.is_symlink() and glob.has_magic(str(p)):
+        return False
+    return p.suffix.lower() not in VIDEO_SUFFIXES
+
+
+@dataclasses.dataclass(frozen=True)
+class _Plan:
+    """What every observation of a run shares: :func:`reblur.detect_changes`' options,
+    the configuration file, and the options settled per observation (the 6-D grid's
+    focal length, the selection's window count)."""
+
+    options: dict[str, Any]
+    six: dict[str, Any] | None
+    config: Any
+    max_pixels: int
+    nodata: float | None
+    quiet: bool
+
+
+def _plan(ctx: click.Context, config: Any, six: dict[str, Any] | None, max_pixels: int,
+          nodata: float | None, quiet: bool, options: dict[str, Any]) -> _Plan:
+    """The run's options: the flags, the --config file's tables where no flag was given
+    explicitly (a flag given explicitly wins)."""
+    def explicit(name: str) -> bool:
+        src = ctx.get_parameter_source(name)
+        return src is not None and src.name not in ("DEFAULT", "DEFAULT_MAP")
+
+    if config.select is not None:
+        for key in ("lam", "windows"):
+            if config.sets("select", key) and not explicit(key):
+                options[key] = getattr(config.select, key)
+    options.update(decision=config.decision, rolling=config.rolling,
+                   align_params=config.align)
+    return _Plan(options, six, config, max_pixels, nodata, quiet)
+
+
+def _options_for(plan: _Plan, observed: Path | None,
+                 shape: tuple[int, int]) -> tuple[dict[str, Any], dict[str, Any]]:
+    """:func:`reblur.detect_changes`' options for one observation of ``shape`` (``observed``:
+    its file, for the focal length in its EXIF) and what to record about its grid."""
+    from .pipeline import default_windows
+
+    options = dict(plan.options)
+    recorded: dict[str, Any] = dict(grid="3d")
+    if plan.six is not None:
+        gp, source = _grid_params(plan.six, observed, options["t_max"], options["rz_step"])
+        options["grid"] = gp
+        recorded = dict(grid="6d", grid_params=vars(gp).copy(), focal_source=source)
+    if plan.config.select is not None:
+        windows = options["windows"] or default_windows(shape, options["large_side"])
+        options["select"] = dataclasses.replace(plan.config.select, lam=options["lam"],
+                                                windows=windows)
+    return options, recorded
+
+
+def _recorded(options: dict[str, Any], plan: _Plan, **extra: Any) -> dict[str, Any]:
+    """The options as report.json records them (dataclasses as their fields)."""
+    rec = {k: (dataclasses.asdict(v) if dataclasses.is_dataclass(v) else v)
+           for k, v in options.items() if k != "grid"}
+    hint = options.get("align_hint")
+    rec.update(align_hint=None if hint is None else np.asarray(hint).tolist(),
+               max_pixels=plan.max_pixels, nodata=plan.nodata,
+               config=plan.config.source)
+    rec.update(extra)
+    return rec
 
 
 def _six_d_options(kind: str, rz_max: float, given: dict[str, Any]) -> dict[str, Any] | None:
@@ -562,7 +742,8 @@ def _six_d_options(kind: str, rz_max: float, given: dict[str, Any]) -> dict[str,
                 rz_max=rz_max if explicit else None)
 
 
-def _grid_params(six: dict[str, Any], observed: Path, t_max: int, rz_step: float | None):
+def _grid_params(six: dict[str, Any], observed: Path | None, t_max: int,
+                 rz_step: float | None):
     """The 6-D :class:`~reblur.grid.GridParams` (the focal length from --focal, else from
     OBSERVED's EXIF, else the default) and how the focal length was found."""
     from .grid import GridParams
@@ -571,33 +752,46 @@ def _grid_params(six: dict[str, Any], observed: Path, t_max: int, rz_step: float
     six = dict(six)
     source = "--focal"
     if six.get("focal") is None:
-        six["focal"] = exif_focal_px(observed)
+        six["focal"] = exif_focal_px(observed) if observed is not None else None
         source = "EXIF FocalLengthIn35mmFilm" if six["focal"] is not None else "default"
     gp = GridParams(kind="6d", t_max=t_max, rz_step=rz_step, **six)
     return gp, source
 
 
-def _detect(stage: Path, out_dir: Path, reference: Path, observed: Path, truth: Path | None,
-            max_pixels: int, quiet: bool, t0: float, options: dict[str, Any],
-            nodata: float | None = None, six: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The work of ``reblur detect``: every output is written into ``stage``, the temporary
-    directory that becomes ``out_dir``."""
-    from .report import write_report
+def _detect_single(reference: Path, observed: Path, out: Path, truth: Path | None,
+                   plan: _Plan, overwrite: bool, t0: float) -> None:
+    """``reblur detect REF OBS``: one pair, its outputs directly in ``out``."""
+    from .report import OUTPUT_NAMES, summary_line
 
-    grid_opts: dict[str, Any] = {}
-    recorded: dict[str, Any] = dict(grid="3d")
-    if six is not None:
-        gp, source = _grid_params(six, observed, options["t_max"], options["rz_step"])
-        grid_opts = dict(grid=gp)
-        recorded = dict(grid="6d", grid_params=vars(gp).copy(), focal_source=source)
-    ref, obs = _open_pair(reference, observed, max_pixels, nodata)
-    truth_mask = (read_mask(truth, obs.shape[:2], max_pixels=max_pixels, what="truth mask")
-                  if truth is not None else None)
-    t_open = time.perf_counter() - t0
-    log.info("reference %s %s, observed %s %s", ref.shape, ref.dtype, obs.shape, obs.dtype)
+    inputs = [reference, observed] + ([truth] if truth is not None else [])
+    out_dir = _check_output_dir(out, inputs, OUTPUT_NAMES, overwrite)
+    with output_set(out_dir, OUTPUT_NAMES, overwrite=overwrite, last=REPORT_NAMES,
+                    manifest="report.json") as stage:
+        ref, obs = _open_pair(reference, observed, plan.max_pixels, plan.nodata)
+        truth_mask = (read_mask(truth, obs.shape[:2], max_pixels=plan.max_pixels,
+                                what="truth mask") if truth is not None else None)
+        t_open = time.perf_counter() - t0
+        log.info("reference %s %s, observed %s %s", ref.shape, ref.dtype, obs.shape, obs.dtype)
+        summary = _detect_one(stage, out_dir, ref, obs, observed, plan,
+                              None if plan.quiet else _Progress(), truth=truth_mask,
+                              timings=dict(open=t_open),
+                              extra=dict(truth=str(truth) if truth is not None else None))
+    click.echo(display_path(summary_line(summary, out)))
 
+
+def _detect_one(stage: Path, out_dir: Path, ref: Image, obs: Image, observed: Path | None,
+                plan: _Plan, progress: _Progress | None, *, truth=None,
+                timings: dict[str, float] | None = None, extra: dict[str, Any] | None = None,
+                reference_array: Any = None, cache: Any = None) -> dict[str, Any]:
+    """Detect and write one observation's outputs into ``stage``, the temporary directory
+    that becomes ``out_dir``; returns the content of its report.json.  ``reference_array``
+    and ``cache``: the reference as detected and its :class:`reblur.ReferenceCache` (a
+    run of several observations)."""
     import reblur
 
+    from .report import write_report
+
+    options, recorded = _options_for(plan, observed, obs.shape[:2])
     georef = None
     if options.get("align", True) and options.get("align_hint") is None:
         # two georeferenced inputs: their CRSs and transforms seed the alignment
@@ -609,7 +803,6 @@ def _detect(stage: Path, out_dir: Path, reference: Path, observed: Path, truth: 
             georef = prior.to_dict()
             log.info("alignment seeded by the georeferencing (fit residual %.2f px)",
                      prior.residual_max)
-    progress = None if quiet else _Progress()
     # full-size masks of large inputs (and every mask written by Dask workers) go to a zarr
     # store in the temporary output directory, never to memory; it is removed once the
     # outputs exist
@@ -627,27 +820,129 @@ def _detect(stage: Path, out_dir: Path, reference: Path, observed: Path, truth: 
             masks["reblurred_out"] = ReblurredStore(work / "reblurred", obs.shape, obs.dtype,
                                                     options["tile_size"])
         try:
-            result = reblur.detect_changes(ref.for_detection(), obs.for_detection(),
-                                           progress=progress, work_dir=work, **masks,
-                                           **options, **grid_opts)
+            result = reblur.detect_changes(
+                ref.for_detection() if reference_array is None else reference_array,
+                obs.for_detection(), progress=progress, work_dir=work, **masks,
+                **options, **({} if cache is None else dict(reference_cache=cache)))
+            with _writing(out_dir):
+                _, summary = write_report(
+                    result, stage, reference=ref, observed=obs, truth=truth,
+                    options=_recorded(options, plan, **recorded, command="detect",
+                                      georef_prior=georef, **(extra or {})),
+                    timings=timings, progress=progress,
+                )
         finally:
             if progress is not None:
                 progress.close()
-        with _writing(out_dir):
-            _, summary = write_report(
-                result, stage, reference=ref, observed=obs, truth=truth_mask,
-                options=dict(options, **recorded, max_pixels=max_pixels, command="detect",
-                             nodata=nodata,
-                             truth=str(truth) if truth is not None else None,
-                             align_hint=None if options.get("align_hint") is None
-                             else options["align_hint"].tolist(),
-                             georef_prior=georef),
-                timings=dict(open=t_open),
-            )
     finally:
         if work is not None:
             shutil.rmtree(work, ignore_errors=True)
     return summary
+
+
+#: Files of a run of several observations, besides the observations' folders.
+MANY_NAMES = ("index.html", "summary.csv")
+
+
+def _detect_many(reference: Path, observed: tuple[Path, ...], sources: list, out: Path,
+                 plan: _Plan, every: int, frames: tuple[int, int | None],
+                 overwrite: bool) -> None:
+    """``reblur detect REF OBS [OBS ...]``: each observation into its folder OUT/NAME,
+    the list of them into OUT/index.html and OUT/summary.csv."""
+    from .many import iter_observations, summary_row, write_index_html, write_summary_csv
+    from .refcache import ReferenceCache
+    from .report import OUTPUT_NAMES
+
+    inputs = [reference, *observed, *(s.path for s in sources)]
+    out_dir = _check_output_dir(out, inputs, MANY_NAMES + OUTPUT_NAMES, overwrite)
+    ref = open_image(reference, max_pixels=plan.max_pixels, nodata=plan.nodata)
+    for note in ref.notes:
+        log.info("%s: %s", ref.name, note)
+    variants: dict[int, tuple[Image, Any, ReferenceCache]] = {}
+    rows: list[dict[str, str]] = []
+
+    def unreadable(src, exc: Exception) -> None:
+        rows.append(summary_row(src.path.stem, str(src.path), reason=_describe(exc)))
+        click.echo(display_path(f"{src.path.name}: failed: {rows[-1]['reason']}"))
+
+    with output_set(out_dir, MANY_NAMES, overwrite=overwrite, last=("index.html",)) as top:
+        for k, ob in enumerate(iter_observations(sources, every=every, frames=frames,
+                                                 on_error=unreadable), 1):
+            row = _one_of_many(k, ob, ref, variants, out_dir, plan, overwrite)
+            rows.append(row)
+            what = (f"{row['changed_percent']} % changed in {row['regions']} regions"
+                    if row["status"] == "ok" else f"failed: {row['reason']}")
+            click.echo(display_path(f"{ob.name}: {what} ({row['seconds']} s)"))
+        if not rows:
+            raise click.ClickException("no observation to compare: the videos hold no frame "
+                                       "in the --frames range")
+        totals: dict[str, Any] = {"reused": {}}
+        for _, _, cache in variants.values():
+            for kind, n in cache.totals()["reused"].items():
+                totals["reused"][kind] = totals["reused"].get(kind, 0) + n
+        with _writing(out_dir):
+            write_summary_csv(top / "summary.csv", rows)
+            write_index_html(top / "index.html", rows, reference=str(reference),
+                             totals=totals)
+    failed = sum(r["status"] != "ok" for r in rows)
+    click.echo(display_path(f"{len(rows)} observations: {len(rows) - failed} ok, {failed} "
+                            f"failed -> {out / 'index.html'}"))
+    if failed:
+        raise click.ClickException(f"{failed} of {len(rows)} observations failed (reasons in "
+                                   f"{_show(out / 'summary.csv')})")
+
+
+def _reference_variant(ref: Image, obs: Image, variants: dict) -> tuple[Image, Any, Any]:
+    """The reference as compared with ``obs`` (in gray for a gray observation of an RGB
+    reference), its detection array and its cache, made once per variant."""
+    from .refcache import ReferenceCache
+
+    key = 1 if (ref.bands == 3 and obs.bands == 1) else ref.bands
+    if key not in variants:
+        r = reconcile_bands(ref, obs)[0] if key != ref.bands else ref
+        array = r.for_detection()
+        variants[key] = (r, array, ReferenceCache(array))
+    return variants[key]
+
+
+def _one_of_many(k: int, ob: Any, ref: Image, variants: dict, out_dir: Path, plan: _Plan,
+                 overwrite: bool) -> dict[str, str]:
+    """Detect one observation of a run into ``out_dir/NAME``: its summary row, or the
+    row of its failure (the run goes on)."""
+    from .many import summary_row
+    from .report import OUTPUT_NAMES
+
+    t0 = time.perf_counter()
+    progress = None if plan.quiet else _Progress(prefix=f"[{k}] {ob.name}: ")
+    try:
+        if ob.array is not None:  # a video frame
+            obs = Image.from_array(ob.array, ob.label)
+            if plan.nodata is not None:
+                obs = obs.with_nodata(plan.nodata)
+        else:
+            obs = open_image(ob.path, max_pixels=plan.max_pixels, nodata=plan.nodata)
+        check_sizes(ref, obs)
+        ref_v, array, cache = _reference_variant(ref, obs, variants)
+        _, obs = reconcile_bands(ref_v, obs)
+        t_open = time.perf_counter() - t0
+        with output_set(out_dir / ob.name, OUTPUT_NAMES, overwrite=overwrite,
+                        last=REPORT_NAMES, manifest="report.json") as stage:
+            summary = _detect_one(stage, out_dir / ob.name, ref_v, obs,
+                                  ob.path if ob.frame is None else None, plan, progress,
+                                  timings=dict(open=t_open), reference_array=array,
+                                  cache=cache, extra=dict(observation=ob.label))
+    except click.ClickException as exc:
+        return summary_row(ob.name, ob.label, reason=exc.format_message(),
+                           seconds=time.perf_counter() - t0)
+    except Exception as exc:  # noqa: BLE001 - one observation fails, the run goes on
+        if _STATE["verbose"]:
+            traceback.print_exc()
+        return summary_row(ob.name, ob.label, reason=_describe(exc),
+                           seconds=time.perf_counter() - t0)
+    finally:
+        if progress is not None:
+            progress.close()
+    return summary_row(ob.name, ob.label, summary, seconds=time.perf_counter() - t0)
 
 
 @main.command(short_help="Run detection on the embedded demo pair.")
@@ -677,12 +972,13 @@ def demo(out: Path, overwrite: bool, quiet: bool) -> None:
         try:
             result = reblur.detect_changes(ref.for_detection(), obs.for_detection(),
                                            progress=progress)
+            with _writing(out_dir):
+                _, summary = write_report(result, stage, reference=ref, observed=obs,
+                                          truth=truth, options=dict(command="demo"),
+                                          progress=progress)
         finally:
             if progress is not None:
                 progress.close()
-        with _writing(out_dir):
-            _, summary = write_report(result, stage, reference=ref, observed=obs,
-                                      truth=truth, options=dict(command="demo"))
     click.echo(display_path(summary_line(summary, out)))
     click.echo(f"open {_show(out / 'report.html')} for the full report")
 

@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from .align import OverviewCache, block_means, overview_matrix, refine_alignment
+from .align import AlignParams, OverviewCache, block_means, overview_matrix, refine_alignment
 from .align.field import estimate_field
 from .decide import (
     DecisionParams,
@@ -34,6 +34,7 @@ from .decide.photometry import with_model_error
 from .estimate import estimate_motion, intensity_scale
 from .grid import GridParams, PoseGrid
 from .io import chunk_cached
+from .refcache import ReferenceCache, ReferenceRun
 from .result import ChangeResult, CropChoice
 from .robust import inlier_scale, robust_line
 from .rolling import RollingParams, RollingPoses, choose_shutter
@@ -242,6 +243,16 @@ KEEP_REBLURRED_PIXELS = 64_000_000
 
 #: Long side (px) above which the default spread windows add one near the centre.
 CENTRE_WINDOW_SIDE = 16384
+
+def default_windows(shape: tuple[int, int], large_side: int = 2500) -> int:
+    """Estimation windows :func:`detect_changes` uses by default for an observation of
+    ``shape``: 2 up to ``large_side`` px a side, 4 above, 5 above
+    :data:`CENTRE_WINDOW_SIDE`."""
+    side = max(int(v) for v in shape[:2])
+    if side <= large_side:
+        return 2
+    return 5 if side > CENTRE_WINDOW_SIDE else 4
+
 
 #: Side (px) of pass 1's sample windows.  The sample's job is to see the whole image (its
 #: windows are spread on a lattice); 256 px windows do that with a quarter of the pixels
@@ -556,11 +567,13 @@ def _calibrate_tolerance(p: DecisionParams, windows, load, photometry, shape):
                                min_threshold=floor), info
 
 
-def align_coarse(reference, observed, shakes=(8.0, 16.0, 32.0, 64.0), hint=None):
+def align_coarse(reference, observed, shakes=(8.0, 16.0, 32.0, 64.0), hint=None,
+                 params: AlignParams | None = None):
     """Coarse alignment, trying camera-shake extents from small to large.
 
     ``hint`` is an optional rough reference -> observation homography in full-resolution
-    pixels (:func:`reblur.align.coarse_align`), passed to every extent.
+    pixels (:func:`reblur.align.coarse_align`), passed to every extent; ``params`` the
+    alignment's options (default ``AlignParams()``).
 
     :func:`reblur.align.coarse_align` refines at the finest pyramid level where the shake
     spans a few pixels and verifies the result with blur kernels fitted region by region;
@@ -583,7 +596,7 @@ def align_coarse(reference, observed, shakes=(8.0, 16.0, 32.0, 64.0), hint=None)
 
     err: Exception | None = None
     reserve = None
-    for _, a in coarse_align_shakes(reference, observed, shakes, hint=hint):
+    for _, a in coarse_align_shakes(reference, observed, shakes, params, hint=hint):
         if isinstance(a, Exception):
             err = a
             continue
@@ -631,10 +644,15 @@ def _estimate_stage(
     select: SelectParams | None,
     boxes: list | None,
     align_hint: np.ndarray | None = None,
+    align_params: AlignParams | None = None,
     progress: Callable[[str, float], None] | None = None,
+    reference_run: ReferenceRun | None = None,
 ) -> Estimated:
     """Coarse alignment, photometric pre-match, window selection, motion estimate and
-    whole-image geometric refinement (steps 1-3 of :func:`detect_changes`)."""
+    whole-image geometric refinement (steps 1-3 of :func:`detect_changes`).
+
+    With ``reference_run`` (a :class:`~reblur.refcache.ReferenceCache`'s view), the
+    reference's overviews, pyramid levels and features come from the cache."""
     timings: dict[str, float] = {}
 
     def report(stage: str, frac: float) -> None:
@@ -645,14 +663,16 @@ def _estimate_stage(
     s_ref = intensity_scale(reference.dtype)
     s_obs = intensity_scale(observed.dtype)
     # the low-resolution views of steps 1-3 (alignment, photometric pre-fit, window
-    # selection) come from one read of each image
-    reference, observed = OverviewCache(reference), OverviewCache(observed)
+    # selection) come from one read of each image (of the reference: one per cache)
+    reference = (OverviewCache(reference) if reference_run is None
+                 else reference_run.overviews)
+    observed = OverviewCache(observed)
 
     # 1. coarse alignment
     t = time.perf_counter()
     report("align", 0.0)
     if align:
-        alignment = align_coarse(reference, observed, hint=align_hint)
+        alignment = align_coarse(reference, observed, hint=align_hint, params=align_params)
         H0 = alignment.H
         align_info = alignment.to_dict()
     else:
@@ -672,9 +692,8 @@ def _estimate_stage(
 
     # 3. grid, window selection and the motion estimate
     t = time.perf_counter()
-    large = max(Ho, Wo) > large_side
     if windows is None:
-        windows = (5 if max(Ho, Wo) > CENTRE_WINDOW_SIDE else 4) if large else 2
+        windows = default_windows((Ho, Wo), large_side)
     if isinstance(grid, GridParams):
         grid = grid.build((Ho, Wo))
     if grid is None:
@@ -716,20 +735,24 @@ def _estimate_stage(
     refine_info: dict[str, Any] = {"applied": False, "model": "off"}
     if refine:
         t = time.perf_counter()
+        report("refine", 0.0)
         ref_res = refine_alignment(reference, observed, motion.weights, grid, H0,
                                    ref_scale=s_ref, obs_scale=s_obs)
         refine_info = ref_res.info
         H0 = ref_res.base
         timings["refine"] = time.perf_counter() - t
+        report("refine", 1.0)
 
     # 3c. local residual displacement (parallax, lens distortion) on a lattice of tie points
     fld, field_info = None, {"applied": False, "reason": "off"}
     if local_field:
         t = time.perf_counter()
+        report("field", 0.0)
         fe = estimate_field(reference, observed, SparsePoses(motion.weights, grid, H0),
                             ref_scale=s_ref, obs_scale=s_obs)
         fld, field_info = fe.field, fe.info
         timings["field"] = time.perf_counter() - t
+        report("field", 1.0)
 
     return Estimated(base=H0, gain=gain, offset=offset, grid=grid, motion=motion, crop=crop,
                      align_info=align_info, refine_info=refine_info, timings=timings,
@@ -789,6 +812,7 @@ def detect_changes(
     refine: bool = True,
     local_field: bool = True,
     align_hint: np.ndarray | None = None,
+    align_params: AlignParams | None = None,
     windows: int | None = None,
     large_side: int = 2500,
     select: SelectParams | None = None,
@@ -807,6 +831,7 @@ def detect_changes(
     scheduler=None,
     work_dir=None,
     progress: Callable[[str, float], None] | None = None,
+    reference_cache: ReferenceCache | None = None,
 ) -> ChangeResult:
     """Find what changed between a sharp reference and a blurred, re-viewpointed observation.
 
@@ -852,6 +877,9 @@ def detect_changes(
         of the features and rotation hypotheses (:func:`reblur.align.coarse_align`'s
         ``hint``): it reaches pairs the alignment refuses on its own (large rotations,
         captures years apart).  Needs ``align=True``.
+    align_params : AlignParams, optional
+        Options of the coarse alignment (:class:`reblur.align.AlignParams`: method,
+        pyramid sizes, thresholds of its stages and checks).
     windows : int, optional
         Windows estimated jointly (1 = the paper's Algorithm 1, single growing crop).
         Default: 2 up to ``large_side``, 4 above, 5 above ``CENTRE_WINDOW_SIDE`` (16384
@@ -918,6 +946,13 @@ def detect_changes(
         masks stay there as zarr arrays (``result.decision["backend"]["store"]``).
     progress : callable, optional
         ``progress(stage, fraction)`` for progress bars.
+    reference_cache : ReferenceCache, optional
+        What depends on the reference alone (its overviews, alignment pyramid levels and
+        features), computed by the first call that uses the cache and reused by the next
+        ones: pass one :class:`reblur.refcache.ReferenceCache` of ``reference`` to every
+        comparison of this reference (:func:`reblur.many.detect_changes_many` does).  The
+        result is the one a call without the cache gives;
+        ``result.decision["reference_cache"]`` says what was reused.
 
     Returns
     -------
@@ -959,10 +994,18 @@ def detect_changes(
     s_obs = intensity_scale(observed.dtype)
     if align_hint is not None and not align:
         raise ValueError("align_hint needs align=True: the hint seeds the coarse alignment")
+    if align_params is not None and not isinstance(align_params, AlignParams):
+        raise TypeError(f"align_params must be an AlignParams, got {type(align_params).__name__}")
+    if reference_cache is not None and reference_cache.reference is not reference:
+        raise ValueError("reference_cache was made for another reference: pass "
+                         "reference_cache.reference as the reference, or a new "
+                         "ReferenceCache(reference)")
     options = dict(grid=grid, t_max=t_max, rz_max=rz_max, rz_step=rz_step, lam=lam,
                    align=align, refine=refine, local_field=local_field, windows=windows,
                    large_side=large_side, select=select, boxes=boxes,
-                   align_hint=align_hint)
+                   align_hint=align_hint, align_params=align_params)
+    cache_info: dict[str, Any] | None = None
+    est = None
     if scheduler is not None:
         from .dask_backend import portable, run_once, scheduler_kind
 
@@ -973,10 +1016,15 @@ def detect_changes(
                            portable(observed, "observed", work_dir), scheduler=scheduler,
                            **options)
             report("estimate", 1.0)
-        else:
-            est = _estimate_stage(reference, observed, progress=progress, **options)
-    else:
-        est = _estimate_stage(reference, observed, progress=progress, **options)
+            if reference_cache is not None:
+                cache_info = {"used": False, "reason": "the estimate ran on a Dask worker"}
+            reference_cache = None
+    if est is None:
+        run = reference_cache.begin() if reference_cache is not None else None
+        est = _estimate_stage(reference, observed, progress=progress, reference_run=run,
+                              **options)
+        if run is not None:
+            cache_info = dict(run.to_dict(), used=True)
     timings.update(est.timings)
     H0, gain, offset, grid, motion = est.base, est.gain, est.offset, est.grid, est.motion
 
@@ -993,6 +1041,7 @@ def detect_changes(
         timings["shutter"] = time.perf_counter() - t_sh
         t = time.perf_counter()
     keep = (Ho * Wo <= KEEP_REBLURRED_PIXELS) if keep_reblurred is None else keep_reblurred
+    report("reblur + decide", 0.0)
     dec = reblur_and_decide(
         reference, observed, poses, s_ref=s_ref, s_obs=s_obs, gain=gain, offset=offset,
         tile_size=tile_size, threshold=threshold, workers=workers,
@@ -1007,6 +1056,8 @@ def detect_changes(
     dec.info["prefit_gain"] = gain.tolist()
     dec.info["prefit_offset"] = offset.tolist()
     dec.info["shutter"] = shutter_info
+    if cache_info is not None:
+        dec.info["reference_cache"] = cache_info
     return ChangeResult(
         change=dec.change,
         unknown=dec.unknown,

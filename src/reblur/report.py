@@ -57,7 +57,7 @@ import resource
 import shutil
 import sys
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -903,6 +903,7 @@ def write_report(
     timings: dict[str, float] | None = None,
     notes: Iterable[str] = (),
     viewer: ViewerOptions | None = ViewerOptions(),  # noqa: B008 - frozen
+    progress: Callable[[str, float], None] | None = None,
 ) -> tuple[dict[str, str], dict[str, Any]]:
     """Write every result file of one detection into ``out_dir`` (created if missing).
 
@@ -927,6 +928,8 @@ def write_report(
         Extra remarks recorded in the report.
     viewer : reblur.viewer.ViewerOptions or None
         How to write the zoomable viewer ``viewer/``; None: no viewer.
+    progress : callable, optional
+        ``progress("report", fraction)`` as the files are written.
 
     Returns
     -------
@@ -950,6 +953,12 @@ def write_report(
                          f"observation {W}x{H}")
     geo = observed.geo if observed is not None else None
     files: dict[str, str] = {}
+
+    def done(fraction: float) -> None:
+        if progress is not None:
+            progress("report", fraction)
+
+    done(0.0)
 
     # masks
     if H * W <= PNG_MAX_PIXELS:
@@ -975,6 +984,7 @@ def write_report(
         else:
             notes.append("changes.gpkg not written: GeoPackage output needs the geo extra "
                          "(pip install 'reblur[geo]'); changes.geojson holds the same polygons")
+    done(0.3)
 
     # reblurred reference
     if result.reblurred is not None:
@@ -986,6 +996,7 @@ def write_report(
         notes.append("reblurred.tif not written: the result holds no reblurred image "
                      "(detect_changes keeps it in memory up to 64 MP, and writes it to "
                      "reblurred_out at any size)")
+    done(0.6)
 
     # pictures
     obs_arr = observed.array if observed is not None else None
@@ -993,8 +1004,10 @@ def write_report(
         obs_arr = result.reblurred if result.reblurred is not None else _MaskView(change)
     write_png(out / "overlay.png", overlay_image(obs_arr, change, unknown))
     files["overlay.png"] = "overlay.png"
+    done(0.8)
     motion_figure(result.motion, out / "motion.png")
     files["motion.png"] = "motion.png"
+    done(0.9)
     if getattr(result, "field", None) is not None:
         field_figure(result.field, result.change.shape[:2], out / "field.png")
         files["field.png"] = "field.png"
@@ -1015,4 +1028,5 @@ def write_report(
     summary["files"] = dict(files)
     write_json(out / "report.json", summary)
     write_html(out / "report.html", summary, files)
+    done(1.0)
     return files, summary

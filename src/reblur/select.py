@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass, field
+from numbers import Integral, Real
 
 import cv2
 import numpy as np
@@ -76,6 +77,28 @@ class SelectParams:
     refit_photometry: bool = True
     overview_side: int = 1024  #: resolution of the region-score map
     extra: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for name in ("beta", "gamma", "patch", "unit", "s_start", "s_max", "alpha",
+                     "max_tries", "unfit_outer", "windows", "spread_size", "spread_pixels",
+                     "overview_side"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, Integral) or v < 1:
+                raise ValueError(f"SelectParams.{name} must be an integer >= 1, got {v!r}")
+        for name in ("ratio", "invariant_ratio", "max_occluded", "texture_floor"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, Real) or not 0 <= v <= 1:
+                raise ValueError(f"SelectParams.{name} must lie in [0, 1], got {v!r}")
+        if isinstance(self.lam, bool) or not (isinstance(self.lam, Real)
+                                              and 0 < self.lam < float("inf")):
+            raise ValueError(f"SelectParams.lam must be a finite number > 0, got {self.lam!r}")
+        if isinstance(self.unfit_rtol, bool) or not (isinstance(self.unfit_rtol, Real)
+                                                     and 0 <= self.unfit_rtol < 1):
+            raise ValueError(f"SelectParams.unfit_rtol must lie in [0, 1), got "
+                             f"{self.unfit_rtol!r}")
+        if self.s_start > self.s_max:
+            raise ValueError(f"SelectParams.s_start ({self.s_start}) must be at most s_max "
+                             f"({self.s_max})")
 
 
 # ---------------------------------------------------------------------------- scores

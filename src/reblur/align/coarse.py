@@ -250,6 +250,9 @@ class Prepared:
 def _prepare(reference, observed, params: AlignParams, hint) -> Prepared:
     """Overviews of both images (each read once), their pyramid, and the checked hint.
 
+    A reference that belongs to a :class:`~reblur.refcache.ReferenceCache` run (it has a
+    ``reference_run``) takes its pyramid levels and their features from the cache.
+
     Raises ValueError when they are too small or the hint is bad, AlignmentError when one
     is textureless."""
     ref_shape, obs_shape = image_shape(reference), image_shape(observed)
@@ -269,8 +272,25 @@ def _prepare(reference, observed, params: AlignParams, hint) -> Prepared:
     except AlignmentError as err:
         raise AlignmentError(f"alignment (overviews): {err}: nothing to align or compare; "
                              "check the input (blank, saturated or all nodata?)") from None
-    levels = pyramid(ref0, obs0, scale0, params.min_side, params.nodata)
+    run = getattr(reference, "reference_run", None)  # a ReferenceCache's run: reuse
+    token = None if run is None else run.token(ref0)
+    ref_memo = None
+    if token is not None:
+        def ref_memo(i, make):
+            return run.memo("pyramid levels", (token, params.nodata, i), make)
+    levels = pyramid(ref0, obs0, scale0, params.min_side, params.nodata, ref_memo=ref_memo)
+    if token is not None:
+        for lv in levels:
+            level_token = run.token(lv.ref)
+            if level_token is not None:
+                lv.ref_memo = functools.partial(_reference_product, run, level_token)
     return Prepared(ref_shape, obs_shape, scale0, levels, hint)
+
+
+def _reference_product(run, level_token, key, compute):
+    """A product of one reference level (its SIFT features) from the run's
+    :class:`~reblur.refcache.ReferenceCache`."""
+    return run.memo("reference features", (level_token, key), compute)
 
 
 def _checked_hint(hint, ref_shape: tuple[int, int], obs_shape: tuple[int, int],

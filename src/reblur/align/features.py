@@ -63,7 +63,15 @@ def _matches(level: Level, params: AlignParams) -> tuple[np.ndarray, np.ndarray]
     closest); AlignmentError when there are fewer than ``params.min_inliers``."""
     min_inliers = params.min_inliers
     sift = cv2.SIFT_create(nfeatures=params.n_features)
-    kr, dr = sift.detectAndCompute(_to_u8(level.ref), None)
+
+    def reference_features():
+        return cv2.SIFT_create(nfeatures=params.n_features).detectAndCompute(
+            _to_u8(level.ref), None)
+
+    # the reference's keypoints and descriptors depend on its level alone: a cache of the
+    # reference's products (one reference, many observations) computes them once
+    kr, dr = (reference_features() if level.ref_memo is None
+              else level.ref_memo(("sift", params.n_features), reference_features))
     ko, do = sift.detectAndCompute(_to_u8(level.obs), None)
     nk = min(len(kr), len(ko))
     if dr is None or do is None or nk < min_inliers:

@@ -14,8 +14,10 @@ between the two frames.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Hashable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -263,6 +265,10 @@ class Level:
     scale: float
     ref_mask: np.ndarray  # uint8, 1 where the overview pixel holds data
     obs_mask: np.ndarray
+    #: ``ref_memo(key, compute)``: a product of the reference level alone (its SIFT
+    #: features), kept for the next observation (:class:`reblur.refcache.ReferenceCache`);
+    #: None: computed every time
+    ref_memo: Callable[[Hashable, Callable[[], Any]], Any] | None = None
 
     @property
     def side(self) -> int:
@@ -295,19 +301,26 @@ def _halve_mask(m: np.ndarray) -> np.ndarray:
 
 
 def pyramid(
-    ref0: np.ndarray, obs0: np.ndarray, scale0: float, min_side: int, nodata: float | None
+    ref0: np.ndarray, obs0: np.ndarray, scale0: float, min_side: int, nodata: float | None,
+    ref_memo: Callable[[int, Callable[[], Any]], Any] | None = None,
 ) -> list[Level]:
-    """Levels from fine (index 0) to coarse; each halves the previous one."""
-    levels = [Level(ref0, obs0, scale0, _data_mask(ref0, nodata), _data_mask(obs0, nodata))]
+    """Levels from fine (index 0) to coarse; each halves the previous one.
+
+    ``ref_memo(i, compute)`` (optional) gives the reference half of level ``i`` (its
+    overview and data mask) from a cache of the reference's products instead of
+    ``compute()`` (:class:`reblur.refcache.ReferenceCache`)."""
+    def ref_level(i: int, make: Callable[[], tuple[np.ndarray, np.ndarray]]):
+        return make() if ref_memo is None else ref_memo(i, make)
+
+    ref, mask = ref_level(0, lambda: (ref0, _data_mask(ref0, nodata)))
+    levels = [Level(ref, obs0, scale0, mask, _data_mask(obs0, nodata))]
     while True:
         last = levels[-1]
         if last.side // 2 < min_side or min(last.ref.shape + last.obs.shape) // 2 < 16:
             break
-        levels.append(
-            Level(
-                _halve(last.ref), _halve(last.obs), last.scale / 2.0,
-                _halve_mask(last.ref_mask), _halve_mask(last.obs_mask),
-            )
-        )
+        ref, mask = ref_level(len(levels), lambda last=last: (_halve(last.ref),
+                                                              _halve_mask(last.ref_mask)))
+        levels.append(Level(ref, _halve(last.obs), last.scale / 2.0, mask,
+                            _halve_mask(last.obs_mask)))
     return levels
 

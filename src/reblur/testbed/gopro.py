@@ -14,7 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from .scenes import shared_data_dir
+from .scenes import require_data, shared_data_dir
 
 __all__ = ["N_FRAMES", "gopro_frame", "gopro_frame_indices", "gopro_pair"]
 
@@ -22,10 +22,7 @@ N_FRAMES = 24
 
 
 def _frames_dir() -> Path:
-    folder = shared_data_dir() / "gopro" / "frames_GOPR0477_11_00"
-    if not folder.is_dir():
-        raise FileNotFoundError(f"GoPro frames not found at {folder}")
-    return folder
+    return require_data(shared_data_dir() / "gopro" / "frames_GOPR0477_11_00")
 
 
 def gopro_frame_indices(centre: int, k: int) -> list[int]:

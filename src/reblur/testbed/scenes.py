@@ -13,6 +13,7 @@ of that is used here.
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,8 +24,10 @@ import numpy as np
 from .render import Box, _apply, _check_homographies, _inverses
 
 __all__ = [
+    "DATA_ENV",
     "ChangeObject",
     "ChangedScene",
+    "DataMissing",
     "CroppedScene",
     "UpsampledScene",
     "change_boxes",
@@ -42,8 +45,21 @@ _KINDS = ("rect", "blob", "thin", "L")
 _KIND_P = (0.35, 0.35, 0.15, 0.15)
 
 
-def shared_data_dir() -> Path:
-    """The project's shared data folder, ``<repo>/../shared/data``.
+#: Environment variable naming the shared data folder (default ``<repo>/../shared/data``).
+DATA_ENV = "REBLUR_DATA"
+
+
+class DataMissing(FileNotFoundError):
+    """The shared data (or a part of it) is not where it is looked for; one-line message."""
+
+
+def shared_data_dir(check: bool = True) -> Path:
+    """The project's shared data folder: ``$REBLUR_DATA``, else ``<repo>/../shared/data``.
+
+    Parameters
+    ----------
+    check : bool
+        Raise :class:`DataMissing` when the folder does not exist.
 
     Returns
     -------
@@ -51,16 +67,32 @@ def shared_data_dir() -> Path:
 
     Raises
     ------
-    FileNotFoundError
-        If the folder does not exist next to the repository.
+    DataMissing
+        With ``check``, if the folder does not exist.
     """
-    repo = Path(__file__).resolve().parents[3]
-    data = repo.parent / "shared" / "data"
-    if not data.is_dir():
-        raise FileNotFoundError(
-            f"shared data not found at {data}: the test bed reads real imagery from "
-            "<repo>/../shared/data (see that folder's README.md)")
+    env = os.environ.get(DATA_ENV, "").strip()
+    if env:
+        data = Path(env).expanduser()
+    else:
+        data = Path(__file__).resolve().parents[3].parent / "shared" / "data"
+    if check and not data.is_dir():
+        raise DataMissing(missing_data_message(data))
     return data
+
+
+def missing_data_message(path: Path) -> str:
+    """One line saying that ``path`` (a part of the shared data) is missing and how to
+    point reblur at the data."""
+    how = (f"set {DATA_ENV} to the shared data folder (see its README.md)" if
+           not os.environ.get(DATA_ENV, "").strip() else f"check {DATA_ENV}")
+    return f"shared data not found: {path} does not exist; {how}, or pass --data DIR"
+
+
+def require_data(path: Path) -> Path:
+    """``path`` (inside the shared data), or :class:`DataMissing` when it does not exist."""
+    if not Path(path).exists():
+        raise DataMissing(missing_data_message(Path(path)))
+    return Path(path)
 
 
 def load_image(path: str | Path, gray: bool = True) -> np.ndarray:
@@ -93,7 +125,7 @@ def _dataset_dir(dataset: str) -> Path:
     sub = {"levir": "samples_LEVIR", "whu": "samples_WHU-CD"}
     if dataset not in sub:
         raise ValueError(f"dataset must be 'levir' or 'whu', got {dataset!r}")
-    return shared_data_dir() / "levir_whu_1024" / sub[dataset]
+    return require_data(shared_data_dir() / "levir_whu_1024" / sub[dataset])
 
 
 def scene_names(dataset: str = "levir") -> list[str]:
