@@ -614,7 +614,9 @@ def detect(reference: Path, observed: tuple[Path, ...], out: Path, t_max: int, r
 
     Writes into --out: changes.png (255 = change, in OBSERVED's frame), unknown.png,
     reblurred.tif, overlay.png, motion.png, report.json, report.html, and for large or
-    georeferenced inputs changes.tif (and changes.geojson).  Prints one summary line.
+    georeferenced inputs changes.tif and unknown.tif (the TIFFs are Cloud-Optimised
+    GeoTIFFs) and changes.geojson (and changes.gpkg with reblur[geo]).  Prints one
+    summary line.
 
     Several observations (files, folders of images, glob patterns, videos read frame by
     frame): each gets its own folder OUT/NAME with those files, and OUT/index.html and
