@@ -21,7 +21,10 @@ resampling follows it: measured on GDAL 3.10 files, ceil-sized ``gdaladdo`` and
 floor-sized COG levels alike) and OpenSlide's.  A level must be consistent with one
 downsampling of the base -- a common factor ``f`` with ``|H / f - h| < 1`` and
 ``|W / f - w| < 1`` -- and smaller than it; otherwise it is ignored, with the reason
-logged and recorded.
+logged and recorded.  A zarr multiscales translation that differs from the base's is
+read as the position of the level's first pixel centre (OME-NGFF); without one, the
+level is taken to cover the base from its corner, as above (the writers that state no
+translation -- most -- average blocks from the corner).
 
 A level made by decimation (``a[::2, ::2]``, GDAL's ``nearest``) is read as if it were
 the average it stands for: that costs aliasing, and its samples sit off the centres of

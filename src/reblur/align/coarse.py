@@ -64,7 +64,9 @@ def coarse_align(
     ----------
     reference, observed : array-like, (H, W) or (H, W, C)
         Sharp reference and blurred observation (numpy, zarr, ... any dtype; sizes and band
-        counts may differ).  Each is read once, strip by strip, into an overview.
+        counts may differ).  Each is read once, strip by strip, into an overview (an
+        :class:`OverviewCache` of a file with reduced-resolution levels reads one of
+        those instead).
     params : AlignParams, optional
         The options (default ``AlignParams()``): method, pyramid sizes, thresholds of the
         features, blocks, polish and checks.

@@ -1,9 +1,12 @@
 """Low-resolution overviews of (possibly huge, on-disk) images and the alignment pyramid.
 
-Both images are read once, in horizontal strips, and block-averaged to a grey overview
-(:func:`overview`, :func:`block_means`; an :class:`OverviewCache` keeps them for the
-other low-resolution views of a pipeline); :func:`pyramid` halves the overviews of a pair
-into :class:`Level` s.
+Both images are read once, in bands of whole chunk rows (in threads), and block-averaged
+to a grey overview (:func:`overview`, :func:`block_means`; an :class:`OverviewCache`
+keeps them for the other low-resolution views of a pipeline).  When the file carries
+its own reduced-resolution levels (:mod:`reblur.levels`), an :class:`OverviewCache`
+reads the overview from one of them instead (:func:`level_block_means`) and the
+full-resolution image is not read.  :func:`pyramid` halves the overviews of a pair into
+:class:`Level` s.
 
 An overview made with the integer block factor ``k`` (``scale = 1 / k``) has pixel ``x_s``
 centred on the full-resolution position ``x = k * x_s + (k - 1) / 2`` (i.e.
@@ -427,22 +430,27 @@ def level_block_means(level, k: int, shape: tuple[int, int]
     Wx = Wx[:, c0:c1].tocsr()
     Wy = Wy.tocsc()
     is_float = np.dtype(arr.dtype).kind == "f"
-    out = np.zeros((h, w * C), np.float64)
+    down = np.zeros((h, (c1 - c0) * C), np.float32)  # the rows' weights applied
 
     def work(y0: int, y1: int, a: np.ndarray):
-        f = a.astype(np.float32)
+        part = Wy[:, y0:y1]
+        if not part.nnz:
+            return 0, 0, None
+        j0, j1 = int(part.indices.min()), int(part.indices.max()) + 1
+        f = a.astype(np.float32).reshape(y1 - y0, -1)
         if is_float:
             f = np.nan_to_num(f, copy=False, nan=0.0, posinf=0.0, neginf=0.0)
-        # across: (rows, w, C), each band's rows times the column weights
-        return y0, y1, np.stack([(Wx @ f[:, :, c].T).T for c in range(C)], axis=2)
+        return j0, j1, part[j0:j1].tocsr() @ f
 
     edges = _band_edges(r0, r1, _band_rows(arr, 1, (c1 - c0) * C * 4), _chunk_rows(arr))
-    for y0, y1, t in _in_bands(arr, edges, slice(c0, c1), C, work):
-        part = Wy[:, y0:y1]
-        if part.nnz:
-            j0, j1 = int(part.indices.min()), int(part.indices.max()) + 1
-            out[j0:j1] += part[j0:j1] @ t.reshape(y1 - y0, w * C)
-    bands = (out * _dtype_norm(arr.dtype)).astype(np.float32).reshape(h, w, C)
+    for j0, j1, t in _in_bands(arr, edges, slice(c0, c1), C, work):
+        if t is not None:
+            down[j0:j1] += t
+    down = down.reshape(h, c1 - c0, C)
+    bands = np.empty((h, w, C), np.float32)
+    norm = _dtype_norm(arr.dtype)
+    for c in range(C):  # then the columns' weights
+        bands[:, :, c] = (Wx @ np.ascontiguousarray(down[:, :, c].T)).T * norm
     grey = bands[:, :, 0] if C == 1 else bands.mean(axis=2, dtype=np.float32)
     return grey, bands
 
@@ -466,7 +474,7 @@ def _area_weights(n: int, k: int, n_in: int, f: float, origin: float):
     wgt /= tot[:, None]
     keep = wgt > 0
     rows = np.broadcast_to(np.arange(n)[:, None], wgt.shape)[keep]
-    return sp.csr_matrix((wgt[keep], (rows, i[keep])), shape=(n, n_in))
+    return sp.csr_matrix((wgt[keep].astype(np.float32), (rows, i[keep])), shape=(n, n_in))
 
 
 def overview(image, max_side: int = 1024) -> tuple[np.ndarray, float]:
