@@ -383,7 +383,14 @@ def test_unreadable_level_falls_back_to_the_full_image(caplog):
 
 
 def test_file_levels_pickle(pair_files):
+    """The levels travel by path: pickled alone, or with the reader Dask workers get."""
+    from reblur.dask_backend import portable
+
     view = open_image(pair_files / "ref_levels.tif", lazy=True).for_detection()
+    sent = pickle.loads(pickle.dumps(portable(view, "reference")))
+    cache = OverviewCache(sent)
+    block_means(cache, 4)
+    assert cache.reads == 0 and cache.overview_source(4)["source"] == "file levels"
     again = pickle.loads(pickle.dumps(view.file_levels))
     with again.open() as (levels, ignored):
         assert [lv.shape for lv in levels] == [(512, 512), (256, 256), (128, 128)]
