@@ -289,17 +289,20 @@ def test_zarr_multiscales_alignment(pair_files, tmp_path):
 def test_zarr_stated_scale_and_translation(tmp_path):
     """Levels made by decimation, ``a[1::2]`` (centres on base pixels 1, 3, ...), stating
     scale 2 and translation 1: read where they say they are (a ramp's block means at the
-    block centres); a level whose stated scale contradicts its shape is ignored."""
+    block centres); a level whose stated scale contradicts its shape, and one with chunks
+    never written, are ignored."""
     a = _ramps(600, 800)
-    arrays = {"0": a, "1": np.ascontiguousarray(a[1::2, 1::2]), "2": a[::4, ::4].copy()}
-    _ngff(tmp_path / "r.zarr", arrays, {"0": (1, 1), "1": (2, 2), "2": (2, 2)},
-          {"0": (0, 0), "1": (1, 1)})
+    arrays = {"0": a, "1": np.ascontiguousarray(a[1::2, 1::2]), "2": a[::4, ::4].copy(),
+              "3": np.zeros((75, 100, 2), np.float32)}
+    _ngff(tmp_path / "r.zarr", arrays, {"0": (1, 1), "1": (2, 2), "2": (2, 2), "3": (8, 8)},
+          {"0": (0, 0), "1": (1, 1)}, chunks=(64, 64))  # zarr skips "3"'s chunks: fill value
     view = open_image(tmp_path / "r.zarr", lazy=True).for_detection()
     cache = OverviewCache(view)
     _, bands = block_means(cache, 8)
     src = cache.overview_source(8)
     assert src["level"]["name"] == "zarr dataset '1'" and src["level"]["origin"] == [0.5, 0.5]
     assert any("stated scale" in s for s in src["ignored_levels"])
+    assert any("'3': 4 of its 4 chunks were never written" in s for s in src["ignored_levels"])
     # (the first block lacks the half pixel before the level's first sample)
     mean_err, max_err = _centre_errors(bands, 8, skip=1)
     assert mean_err < 1e-3 and max_err < 1e-3

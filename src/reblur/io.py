@@ -1485,9 +1485,9 @@ def _open_tiff(path: Path, max_pixels: int, lazy: bool | None,
             tif.close()
             img = Image(arr, path, "tiff")
         else:
-            arr = _tiff_view(series, layout, path)
+            arr, chunks = _tiff_view(series, layout, path)
             kind = "tiles" if page.is_tiled else "strips"
-            _check_chunk_bytes(path, arr.chunks, dtype, f"TIFF image stored in {kind}",
+            _check_chunk_bytes(path, chunks, dtype, f"TIFF image stored in {kind}",
                                f"rewrite it in tiles first: {convert_command(path)}")
             if tiff_has_levels(series):
                 arr.file_levels = tiff_levels(path)
@@ -1519,19 +1519,21 @@ def _tiff_layout(axes: str, shape: tuple[int, ...]) -> tuple[str, bool, int] | N
     return None
 
 
-def _tiff_view(series, layout: tuple[str, bool, int], path: Path, level: int = 0) -> _Guarded:
+def _tiff_view(series, layout: tuple[str, bool, int], path: Path,
+               level: int = 0) -> tuple[_Guarded, tuple[int, ...]]:
     """A lazy channel-last reader of a tifffile series' ``level`` (0: the image itself)
-    of the ``layout`` :func:`_tiff_layout` found; its failures are one-line
-    :class:`InputError` s."""
+    of the ``layout`` :func:`_tiff_layout` found, its failures one-line
+    :class:`InputError` s; and the file's chunks (tiles or strips, all axes)."""
     import zarr
 
     lv = series.levels[level] if level else series
     axes, shape = lv.axes, tuple(int(s) for s in lv.shape)
     ax, channel_first, _ = layout
     z = zarr.open(series.aszarr(level=level), mode="r")
+    chunks = tuple(int(c) for c in z.chunks)
     if len(z.shape) != len(ax):
         z = _Squeezed(z, axes, shape)
-    return _Guarded(LazyBands(z, channel_first=True) if channel_first else z, path)
+    return _Guarded(LazyBands(z, channel_first=True) if channel_first else z, path), chunks
 
 
 class _Squeezed:

@@ -261,13 +261,29 @@ def _open_tiff_levels(path: str) -> Opened:
             if layout is None:
                 ignored.append(f"{name}: unsupported layout (axes {lv.axes})")
                 continue
-            found.append((_tiff_view(series, layout, Path(path), level=i), name, None,
-                          (0.0, 0.0)))
+            view, chunks = _tiff_view(series, layout, Path(path), level=i)
+            why = _chunk_problem(chunks, lv.dtype)
+            if why:
+                ignored.append(f"{name}: {why}")
+                continue
+            found.append((view, name, None, (0.0, 0.0)))
         levels, bad = _checked(base, found)
         return levels, ignored + bad, tif.close
     except Exception as exc:  # noqa: BLE001 - a level tifffile cannot describe is unusable
         tif.close()
         return [], [f"cannot read the file's levels ({exc})"], lambda: None
+
+
+def _chunk_problem(chunks, dtype) -> str | None:
+    """Why a level's chunks are too large to decode (as :data:`reblur.io.CHUNK_MAX_BYTES`
+    guards the image's own), or None."""
+    from .io import CHUNK_MAX_BYTES
+
+    n = int(np.prod([int(c) for c in chunks], dtype=np.int64)) * np.dtype(dtype).itemsize
+    if n > CHUNK_MAX_BYTES:
+        return f"its chunks decode to {n / 2**20:.0f} MB each (at most " \
+               f"{CHUNK_MAX_BYTES / 2**20:.0f} MB)"
+    return None
 
 
 def _tiff_level_problem(path: str, series, lv) -> str | None:
@@ -344,6 +360,18 @@ def _spatial_axes(group, ndim: int) -> tuple[int, int]:
     return 0, 1
 
 
+def _unwritten(arr) -> str | None:
+    """Why a zarr level cannot be trusted: chunks never written (they would read as the
+    fill value, as :func:`reblur.io.open_image` refuses for the image itself)."""
+    try:
+        total, written = int(arr.nchunks), int(arr.nchunks_initialized)
+    except Exception as exc:  # noqa: BLE001 - an unlistable store is an unusable level
+        return f"its chunks cannot be listed ({exc})"
+    if written < total:
+        return f"{total - written} of its {total} chunks were never written"
+    return None
+
+
 def _open_zarr_levels(path: str, base_name: str) -> Opened:
     import zarr
 
@@ -378,6 +406,10 @@ def _open_zarr_levels(path: str, base_name: str) -> Opened:
             continue
         if np.dtype(arr.dtype) != np.dtype(base.dtype):
             ignored.append(f"{name}: dtype {arr.dtype} differs from the base's {base.dtype}")
+            continue
+        why = _chunk_problem(arr.chunks, arr.dtype) or _unwritten(arr)
+        if why:
+            ignored.append(f"{name}: {why}")
             continue
         s = _transform(d, "scale", ndim)
         stated = None
