@@ -22,6 +22,18 @@ and each worker.  The explicit-F column is the memory of the paper's dense F ove
 whole image: pixels x 8125 poses x 4 bytes.
 
 Writes a log-log plot (``docs/images/scale.png``) and returns the markdown section.
+
+``--overviews [--sizes 100] [--repeat 3]`` times the alignment stage alone (the
+pipeline's: an :class:`~reblur.align.OverviewCache` of each image, then
+:func:`~reblur.pipeline.align_coarse`) on the same pair read three ways, each run in a
+fresh process: ``align`` -- the tiled TIFFs opened lazily, overviews by block means of the
+full images; ``align-levels`` -- the same pixels with GDAL ``average`` overviews (2x to
+32x, zstd, as ``gdaladdo`` writes them) appended, overviews from those levels;
+``align-numpy`` -- both decoded into memory first (what ``reblur detect`` does with a TIFF
+under 512 MB; the decode is reported as ``open``, not in the stage).  Wall and CPU seconds
+(``getrusage``: every thread of the process) of the overviews and of the whole stage, and
+how far the homography's corners lie from the ``align`` run's.  Prints JSON rows and a
+markdown table; writes nothing under ``docs/``.
 """
 
 from __future__ import annotations
@@ -213,6 +225,129 @@ def detect_case(d: Path, mode: str, tile: int = 1024) -> dict:
         if cluster is not None:
             cluster.close()
         shutil.rmtree(work, ignore_errors=True)
+
+
+# ---------------------------------------------------------------------------- alignment
+ALIGN_MODES = ("align", "align-levels", "align-numpy")
+
+
+def add_levels(src: Path, dst: Path) -> float:
+    """Copy ``src`` to ``dst`` with GDAL ``average`` overviews (2x to 32x, zstd, 512 px
+    tiles) appended, as ``gdaladdo -r average`` writes them; returns the seconds taken."""
+    import warnings
+
+    import rasterio
+    from rasterio.enums import Resampling
+
+    t = time.perf_counter()
+    shutil.copyfile(src, dst)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # not georeferenced
+        with rasterio.Env(COMPRESS_OVERVIEW="ZSTD", GDAL_TIFF_OVR_BLOCKSIZE="512"), \
+                rasterio.open(dst, "r+") as ds:
+            ds.build_overviews([2, 4, 8, 16, 32], Resampling.average)
+    return time.perf_counter() - t
+
+
+def _cpu() -> float:
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def align_case(d: Path, mode: str) -> dict:
+    """The pipeline's alignment stage on the pair in ``d`` read as ``mode`` says
+    (:data:`ALIGN_MODES`): wall and CPU seconds of the overviews and the whole stage."""
+    import tifffile
+
+    from reblur.align import AlignParams, OverviewCache, block_means
+    from reblur.align.overviews import block_factor
+    from reblur.io import open_image
+    from reblur.pipeline import align_coarse
+
+    suffix = "_levels" if mode == "align-levels" else ""
+    t, c = time.perf_counter(), _cpu()
+    if mode == "align-numpy":
+        ref, obs = tifffile.imread(d / "ref.tif"), tifffile.imread(d / "obs.tif")
+    else:
+        ref = open_image(d / f"ref{suffix}.tif", lazy=True).for_detection()
+        obs = open_image(d / f"obs{suffix}.tif", lazy=True).for_detection()
+    opened = dict(wall_s=time.perf_counter() - t, cpu_s=_cpu() - c)
+    t, c = time.perf_counter(), _cpu()
+    ref, obs = OverviewCache(ref), OverviewCache(obs)
+    k = block_factor(max(ref.shape[:2] + obs.shape[:2]), AlignParams().max_side)
+    block_means(ref, k)
+    block_means(obs, k)
+    ov = dict(wall_s=time.perf_counter() - t, cpu_s=_cpu() - c)
+    a = align_coarse(ref, obs)
+    stage = dict(wall_s=time.perf_counter() - t, cpu_s=_cpu() - c)
+    return dict(mode=mode, mp=ref.shape[0] * ref.shape[1] / 1e6, open=opened, overviews=ov,
+                align=stage, method=a.method, H=np.asarray(a.H).tolist(),
+                sources=a.overviews, full_reads=ref.reads + obs.reads,
+                level_reads=ref.level_reads + obs.level_reads, load=os.getloadavg()[0])
+
+
+def _corner_gap(Ha, Hb, shape) -> float:
+    from reblur.grid import map_points
+
+    h, w = shape
+    c = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], float)
+    return float(np.hypot(*(map_points(np.asarray(Ha), c) - map_points(np.asarray(Hb), c)).T
+                          ).max())
+
+
+def overviews_main(sizes=(100,), repeat: int = 3) -> str:
+    """Generate each size's pair (and its copy with levels), run every alignment mode
+    ``repeat`` times in fresh processes (interleaved), print the rows, return a table."""
+    from benchmarks.pipeline import make_big
+
+    rows = []
+    for mp in sizes:
+        side = _side(mp)
+        with tempfile.TemporaryDirectory(dir="/tmp", prefix="reblur-overviews-") as dd:
+            d = Path(dd)
+            t = time.perf_counter()
+            make_big(d, side)
+            gen = time.perf_counter() - t
+            lv = sum(add_levels(d / f"{n}.tif", d / f"{n}_levels.tif") for n in ("ref", "obs"))
+            print(f"[overviews] {mp} MP generated in {gen:.0f} s, levels added in {lv:.1f} s",
+                  flush=True)
+            for i in range(repeat):
+                for mode in ALIGN_MODES:
+                    r = run_case("benchmarks.scale", "--case", str(d), "--mode", mode,
+                                 timeout=1800, blas_threads=None)
+                    r.update(run=i, commit=commit())
+                    rows.append(r)
+                    print(json.dumps(r), flush=True)
+    return _overviews_table(rows)
+
+
+def _overviews_table(rows: list[dict]) -> str:
+    """Median (min-max) per size and mode of the stage's wall and CPU seconds."""
+    lines = ["| size | mode | overviews: wall / CPU (s) | alignment stage: wall / CPU (s) "
+             "| corners vs `align` (px) | overviews from | load |", "|---" * 7 + "|"]
+    for mp in sorted({round(r["mp"]) for r in rows}):
+        base = next(r for r in rows if round(r["mp"]) == mp and r["mode"] == "align")
+        side = int(round(np.sqrt(base["mp"] * 1e6)))
+        for mode in ALIGN_MODES:
+            rs = [r for r in rows if round(r["mp"]) == mp and r["mode"] == mode]
+            if not rs:
+                continue
+
+            def cell(part: str, rs=rs) -> str:
+                w = [r[part]["wall_s"] for r in rs]
+                c = [r[part]["cpu_s"] for r in rs]
+                return (f"{np.median(w):.2f} ({min(w):.2f}-{max(w):.2f}) / "
+                        f"{np.median(c):.2f} ({min(c):.2f}-{max(c):.2f})")
+
+            gap = max(_corner_gap(r["H"], base["H"], (side, side)) for r in rs)
+            src = rs[0]["sources"]["reference"]
+            where = src["source"] + (f" ({src['level']['name']}, 1/{src['level']['factor'][0]:g})"
+                                     if "level" in src else "")
+            lines.append(f"| {mp} MP | {mode} | {cell('overviews')} | {cell('align')} | "
+                         f"{gap:.3f} | {where} | {max(r['load'] for r in rs):.1f} |")
+    return "\n".join(lines)
 
 
 # ---------------------------------------------------------------------------- driver
@@ -487,7 +622,14 @@ def _cli() -> None:
     ap.add_argument("--write", action="store_true", help="write the docs/benchmarks.md section")
     ap.add_argument("--table-only", action="store_true",
                     help="rewrite the section from docs/scale_runs.json without running")
+    ap.add_argument("--overviews", action="store_true",
+                    help="time the alignment stage with and without the file's overviews")
+    ap.add_argument("--repeat", type=int, default=3, help="runs per mode with --overviews")
     a = ap.parse_args()
+    if a.overviews:
+        print(overviews_main(tuple(a.sizes) if a.sizes != list(SIZES_MP) else (100,),
+                             a.repeat))
+        return
     if a.table_only:
         runs = load_runs(RUNS)
         rows = _newest(runs)
@@ -500,7 +642,10 @@ def _cli() -> None:
             write_section("scale", md)
         return
     if a.case is not None:
-        r = io_floor(a.case) if a.mode == "io" else detect_case(a.case, a.mode)
+        if a.mode in ALIGN_MODES:
+            r = align_case(a.case, a.mode)
+        else:
+            r = io_floor(a.case) if a.mode == "io" else detect_case(a.case, a.mode)
         print(json.dumps(r))
         return
     md = main(tuple(a.sizes), dask_up_to=-1 if a.no_dask else 400,

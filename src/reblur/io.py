@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import contextlib
 import errno
+import functools
 import json
 import logging
 import math
@@ -61,6 +62,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from .levels import FileLevels, combine, tiff_has_levels, tiff_levels, zarr_levels, zarr_multiscales
 
 __all__ = [
     "InputError",
@@ -212,6 +215,14 @@ class LazyBands(_Sized):
     def __repr__(self) -> str:
         return f"LazyBands(shape={self._shape}, dtype={self.dtype}, source={type(self.source)})"
 
+    @property
+    def file_levels(self) -> FileLevels | None:
+        """The source file's reduced-resolution levels, seen through this view."""
+        fl = getattr(self.source, "file_levels", None)
+        return None if fl is None else fl.map(functools.partial(
+            LazyBands, channel_first=self.channel_first, bands=self.bands,
+            luminance=self.luminance))
+
     def __getitem__(self, key) -> np.ndarray:
         if not isinstance(key, tuple):
             key = (key,)
@@ -288,6 +299,12 @@ class NodataMask:
         self.dtype = np.dtype(bool)
         self.ndim = 2
 
+    @property
+    def file_levels(self) -> FileLevels | None:
+        """The validity of the image file's reduced-resolution levels (the same value)."""
+        fl = getattr(self.array, "file_levels", None)
+        return None if fl is None else fl.map(functools.partial(NodataMask, value=self.value))
+
     def __getitem__(self, key) -> np.ndarray:
         a = np.asarray(self.array[_spatial_key(key, len(self.array.shape))])
         if np.isnan(self.value):
@@ -305,6 +322,12 @@ class AlphaMask:
         self.shape = tuple(int(s) for s in alpha.shape[:2])
         self.dtype = np.dtype(bool)
         self.ndim = 2
+
+    @property
+    def file_levels(self) -> FileLevels | None:
+        """The validity of the image file's reduced-resolution levels (their alpha band)."""
+        fl = getattr(self.alpha, "file_levels", None)
+        return None if fl is None else fl.map(AlphaMask)
 
     def __getitem__(self, key) -> np.ndarray:
         return np.asarray(self.alpha[_spatial_key(key, 2)]) > 0
@@ -362,6 +385,13 @@ class MaskedView:
     @property
     def chunks(self):
         return getattr(self.array, "chunks", None)
+
+    @property
+    def file_levels(self) -> FileLevels | None:
+        """The image file's reduced-resolution levels seen through the same view (when the
+        validity is a no-data value or alpha band of the same file: it has them too)."""
+        return combine(getattr(self.array, "file_levels", None),
+                       getattr(self.valid, "file_levels", None), MaskedView)
 
     def __len__(self) -> int:
         return self.shape[0]
@@ -558,6 +588,9 @@ class _Guarded(_Sized):
     returns numpy arrays; ``source`` is the wrapped reader (:func:`reblur.dask_backend.portable`
     makes it picklable).
     """
+
+    #: The file's reduced-resolution levels (:mod:`reblur.levels`), None without any.
+    file_levels: FileLevels | None = None
 
     def __init__(self, source, path: Path):
         self.source = source
@@ -1404,17 +1437,11 @@ def _open_tiff(path: Path, max_pixels: int, lazy: bool | None,
         page = series.pages[0] if series.pages else tif.pages[0]
         if page is None:
             raise _fail(path, "TIFF file holds no image")
-        # canonical layouts: YX, YXS (chunky), SYX / CYX / IYX / QYX (planar or page stack)
-        squeezed = [(a, n) for a, n in zip(axes, shape, strict=True) if n > 1 or a in "YX"]
-        ax = "".join(a for a, _ in squeezed)
-        if ax == "YX":
-            channel_first, bands = False, 1
-        elif len(ax) == 3 and ax[:2] == "YX":
-            channel_first, bands = False, squeezed[2][1]
-        elif len(ax) == 3 and ax[1:] == "YX":
-            channel_first, bands = True, squeezed[0][1]
-        else:
+        layout = _tiff_layout(axes, shape)
+        if layout is None:
             raise _fail(path, f"unsupported TIFF layout (axes {axes}, shape {shape})")
+        ax, channel_first, bands = layout
+        squeezed = [(a, n) for a, n in zip(axes, shape, strict=True) if n > 1 or a in "YX"]
         hw = (shape[axes.index("Y")], shape[axes.index("X")])
         _check_shape(path, hw + ((bands,) if bands > 1 else ()), max_pixels)
         dtype = np.dtype(series.dtype)
@@ -1458,16 +1485,12 @@ def _open_tiff(path: Path, max_pixels: int, lazy: bool | None,
             tif.close()
             img = Image(arr, path, "tiff")
         else:
-            import zarr
-
-            store = series.aszarr(level=0)
-            z = zarr.open(store, mode="r")
+            arr, chunks = _tiff_view(series, layout, path)
             kind = "tiles" if page.is_tiled else "strips"
-            _check_chunk_bytes(path, z.chunks, dtype, f"TIFF image stored in {kind}",
+            _check_chunk_bytes(path, chunks, dtype, f"TIFF image stored in {kind}",
                                f"rewrite it in tiles first: {convert_command(path)}")
-            if len(z.shape) != len(ax):
-                z = _Squeezed(z, axes, shape)
-            arr = _Guarded(LazyBands(z, channel_first=True) if channel_first else z, path)
+            if tiff_has_levels(series):
+                arr.file_levels = tiff_levels(path)
             _check_first_window(path, arr)
             img = Image(arr, path, "tiff", _closer=tif.close)
     except InputError:
@@ -1479,6 +1502,38 @@ def _open_tiff(path: Path, max_pixels: int, lazy: bool | None,
         raise _fail(path, f"cannot read TIFF file ({msg})") from exc
     img.geo, nodata, internal = _read_geo(path)
     return _with_file_mask(_drop_alpha(img, alpha), nodata, internal)
+
+
+def _tiff_layout(axes: str, shape: tuple[int, ...]) -> tuple[str, bool, int] | None:
+    """The canonical layout of a TIFF series -- YX, YXS (chunky), SYX / CYX / IYX / QYX
+    (planar or page stack) once length-1 axes are dropped -- as (those axes, channel
+    first, bands), or None for another layout."""
+    squeezed = [(a, n) for a, n in zip(axes, shape, strict=True) if n > 1 or a in "YX"]
+    ax = "".join(a for a, _ in squeezed)
+    if ax == "YX":
+        return ax, False, 1
+    if len(ax) == 3 and ax[:2] == "YX":
+        return ax, False, squeezed[2][1]
+    if len(ax) == 3 and ax[1:] == "YX":
+        return ax, True, squeezed[0][1]
+    return None
+
+
+def _tiff_view(series, layout: tuple[str, bool, int], path: Path,
+               level: int = 0) -> tuple[_Guarded, tuple[int, ...]]:
+    """A lazy channel-last reader of a tifffile series' ``level`` (0: the image itself)
+    of the ``layout`` :func:`_tiff_layout` found, its failures one-line
+    :class:`InputError` s; and the file's chunks (tiles or strips, all axes)."""
+    import zarr
+
+    lv = series.levels[level] if level else series
+    axes, shape = lv.axes, tuple(int(s) for s in lv.shape)
+    ax, channel_first, _ = layout
+    z = zarr.open(series.aszarr(level=level), mode="r")
+    chunks = tuple(int(c) for c in z.chunks)
+    if len(z.shape) != len(ax):
+        z = _Squeezed(z, axes, shape)
+    return _Guarded(LazyBands(z, channel_first=True) if channel_first else z, path), chunks
 
 
 class _Squeezed:
@@ -1511,14 +1566,19 @@ def _read_zarr(path: Path, max_pixels: int, lazy: bool | None) -> Image:
     except Exception as exc:  # noqa: BLE001
         msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise _fail(path, f"not a readable zarr store ({msg})") from exc
+    levels = None
     if not hasattr(node, "shape"):
         names = sorted(k for k, v in node.members() if hasattr(v, "shape"))
         if "0" in names:
-            node = node["0"]
+            base = "0"
         elif len(names) == 1:
-            node = node[names[0]]
+            base = names[0]
         else:
             raise _fail(path, f"zarr group holds {len(names)} arrays; expected one (or '0')")
+        datasets = zarr_multiscales(node)
+        if datasets and datasets[0]["path"] == base:
+            levels = zarr_levels(path, base)
+        node = node[base]
     stored = node
     shape = tuple(int(s) for s in node.shape)
     if len(shape) == 3 and shape[2] == 1:
@@ -1537,6 +1597,7 @@ def _read_zarr(path: Path, max_pixels: int, lazy: bool | None) -> Image:
         _check_chunk_bytes(path, node.chunks, dtype, "zarr array stored in chunks",
                            "rechunk it to tiles of at most 4096 x 4096 pixels")
         arr = _Guarded(node, path)
+        arr.file_levels = levels
         _check_first_window(path, arr)
         return _with_file_mask(Image(arr, path, "zarr"), nodata, False)
     _check_in_memory(path, "zarr array", lay)
@@ -1716,6 +1777,13 @@ class _Rescaled:
 
     def __len__(self) -> int:
         return self.shape[0]
+
+    @property
+    def file_levels(self) -> FileLevels | None:
+        """The source file's reduced-resolution levels, rescaled the same way."""
+        fl = getattr(self.source, "file_levels", None)
+        return None if fl is None else fl.map(functools.partial(_Rescaled, lo=self.lo,
+                                                                hi=self.hi))
 
     def __getitem__(self, key) -> np.ndarray:
         a = np.asarray(self.source[key], dtype=np.float64)

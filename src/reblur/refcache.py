@@ -182,8 +182,11 @@ class _SharedOverviews(OverviewCache):
             divisors = [k0 for k0 in self._memo if k % k0 == 0]
             key = (k, self._keys[max(divisors)]) if divisors else (k, None)
             # computed the way the base class does it, from what this run holds
-            value = self._run.memo("overviews", key,
-                                   lambda: OverviewCache.block_means(self, k))
+            # (with where it came from: the file's levels or the full image)
+            value, source = self._run.memo(
+                "overviews", key,
+                lambda: (OverviewCache.block_means(self, k), self._sources[k]))
             self._memo[k] = value
+            self._sources[k] = source
             self._keys[k] = key
         return self._memo[k]

@@ -7,7 +7,11 @@ at low resolution, where the camera-shake blur is small (a 25 px blur is 3 px at
 
 1. :func:`overview` reads both images in horizontal strips and block-averages them to a
    grey overview whose longest side is at most ``max_side`` (the same integer factor for both
-   images), then a pyramid of halvings down to ``min_side`` (:mod:`.overviews`).
+   images), then a pyramid of halvings down to ``min_side`` (:mod:`.overviews`).  Through
+   an :class:`OverviewCache` (as the pipeline reads them), an image whose file carries its
+   own reduced-resolution levels (pyramidal TIFF, COG overviews, zarr multiscales) gives
+   its overview from one of them, without reading the full image; the result's
+   ``overviews`` says which.
 2. SIFT features on an overview level, a ratio test and a robust homography (MAGSAC /
    RANSAC; a 4-dof similarity when matches are few) (:mod:`.features`).  If that fails,
    phase correlation gives a translation to start from (:mod:`.ecc`).

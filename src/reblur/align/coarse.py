@@ -33,7 +33,7 @@ from ..grid import map_points
 from .blocks import Blocks, gradient_align, rotation_hypotheses
 from .ecc import ecc_refine, phase_init
 from .features import Features, match_features
-from .overviews import Level, block_factor, image_shape, overview_k, pyramid
+from .overviews import Level, block_factor, image_shape, overview_k, overview_source, pyramid
 from .params import AlignParams
 from .polish import REGION_PX, polish_and_verify
 from .result import Alignment, AlignmentError
@@ -64,7 +64,9 @@ def coarse_align(
     ----------
     reference, observed : array-like, (H, W) or (H, W, C)
         Sharp reference and blurred observation (numpy, zarr, ... any dtype; sizes and band
-        counts may differ).  Each is read once, strip by strip, into an overview.
+        counts may differ).  Each is read once, strip by strip, into an overview (an
+        :class:`OverviewCache` of a file with reduced-resolution levels reads one of
+        those instead).
     params : AlignParams, optional
         The options (default ``AlignParams()``): method, pyramid sizes, thresholds of the
         features, blocks, polish and checks.
@@ -232,6 +234,8 @@ class Prepared:
     levels: list[Level]
     hint: np.ndarray | None = None
     memo: dict = field(default_factory=dict)
+    #: where the overviews came from (:func:`~reblur.align.overviews.overview_source`)
+    sources: dict | None = None
 
     def cached(self, key: Hashable, compute: Callable[[], Any]) -> Any:
         """``compute()`` once per ``key``; an AlignmentError it raises is re-raised (a new
@@ -284,7 +288,9 @@ def _prepare(reference, observed, params: AlignParams, hint) -> Prepared:
             level_token = run.token(lv.ref)
             if level_token is not None:
                 lv.ref_memo = functools.partial(_reference_product, run, level_token)
-    return Prepared(ref_shape, obs_shape, scale0, levels, hint)
+    sources = {"reference": overview_source(reference, k),
+               "observation": overview_source(observed, k)}
+    return Prepared(ref_shape, obs_shape, scale0, levels, hint, sources=sources)
 
 
 def _reference_product(run, level_token, key, compute):
@@ -628,4 +634,5 @@ def _result(ctx: _Shake, est: _Estimate) -> Alignment:
         n_matches=f.n_matches if f else 0, n_inliers=f.n_inliers if f else 0,
         scale=ctx.prep.scale0, residual_px=residual, ecc=rho if np.isfinite(rho) else None,
         overlap=overlap, n_regions=est.n_regions, n_blocks=est.n_blocks,
+        overviews={k: dict(v) for k, v in (ctx.prep.sources or {}).items()},
     )

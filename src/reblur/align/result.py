@@ -44,6 +44,11 @@ class Alignment:
     n_blocks : int
         Gradient blocks whose correlation is confident and that agree with ``H`` (0 when
         the gradient blocks were not used).
+    overviews : dict or None
+        Where each image's overviews came from: ``{"reference": ..., "observation":
+        ...}``, each ``{"source": "file levels", "file": ..., "level": ...}`` (the
+        file's own reduced-resolution levels) or ``{"source": "block means of the full
+        image"}`` (see :meth:`~reblur.align.OverviewCache.overview_source`).
     """
 
     H: np.ndarray
@@ -56,6 +61,7 @@ class Alignment:
     overlap: float
     n_regions: int = 0
     n_blocks: int = 0
+    overviews: dict | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready description of the alignment."""
@@ -70,5 +76,6 @@ class Alignment:
             "overlap": float(self.overlap),
             "n_regions": int(self.n_regions),
             "n_blocks": int(self.n_blocks),
+            **({} if self.overviews is None else {"overviews": self.overviews}),
         }
 
