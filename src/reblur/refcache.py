@@ -183,10 +183,11 @@ class _SharedOverviews(OverviewCache):
             key = (k, self._keys[max(divisors)]) if divisors else (k, None)
             # computed the way the base class does it, from what this run holds
             # (with where it came from: the file's levels or the full image)
-            value, source = self._run.memo(
+            # (flat, so the cache hands out tokens of its arrays)
+            *value, source = self._run.memo(
                 "overviews", key,
-                lambda: (OverviewCache.block_means(self, k), self._sources[k]))
-            self._memo[k] = value
+                lambda: (*OverviewCache.block_means(self, k), self._sources[k]))
+            self._memo[k] = tuple(value)
             self._sources[k] = source
             self._keys[k] = key
         return self._memo[k]
