@@ -14,6 +14,14 @@ unchanged known pixels farther than 3 px from a change, ``recall`` the flagged s
 the changed known pixels; ``model`` is what auto kept, ``r est`` the estimated readout,
 ``s`` the run's wall seconds and ``cpu s`` its process CPU seconds (the machine is shared:
 compare the two models' times within one run).  Rows go to ``docs/rolling_runs.json``.
+
+``--gopro C:K,...`` runs real pairs instead: the GoPro HERO's CMOS sensor reads its rows
+out one after another, so the k-frame averages of
+:func:`reblur.testbed.gopro_pair` (sharp frame ``C`` against the mean of the ``K`` frames
+around it) carry a real rolling shutter.  There is no truth: per pair and model, the
+flagged share, the flagged share outside the moving people
+(:func:`benchmarks.alignment.moving_area`, derived from the raw frames), what auto kept
+and its estimated readout.  Rows go to ``docs/rolling_gopro_runs.json``.
 """
 
 from __future__ import annotations
@@ -28,6 +36,7 @@ from benchmarks.common import REPO
 
 BOUNDARY = 3
 RUNS = REPO / "docs" / "rolling_runs.json"
+GOPRO_RUNS = REPO / "docs" / "rolling_gopro_runs.json"
 
 
 def make(readout: float, changes: bool, size: int, seed: int = 0):
@@ -89,6 +98,57 @@ def matrix(size: int, readouts, shutters, bands: int | None = None,
     return rows
 
 
+def gopro_rows(pairs: list[tuple[int, int]], shutters) -> list[dict]:
+    """Real GoPro k-frame averages (``(centre, k)``), every model, scored against the
+    moving area."""
+    from benchmarks.alignment import moving_area
+    from benchmarks.failure_modes import _scores
+    from reblur.testbed import gopro_frame_indices, gopro_pair
+
+    rows = []
+    for c, k in pairs:
+        ref, obs = gopro_pair(c, k)
+        moving = moving_area(c, list(gopro_frame_indices(c, k)))
+        row = {"centre": c, "k": k, "moving_share": float(moving.mean())}
+        for sh in shutters:
+            import reblur
+
+            t, cpu = time.perf_counter(), time.process_time()
+            res = reblur.detect_changes(ref, obs, shutter=sh)
+            s = _scores(np.asarray(res.change, bool), np.asarray(res.unknown, bool),
+                        {"truth": moving, "valid": np.ones_like(moving)})
+            info = res.decision.get("shutter", {})
+            row[sh] = dict(flagged=s["flagged"], outside=s["far"],
+                           model=info.get("model", "global"), readout=info.get("readout"),
+                           readout_quartiles=info.get("readout_quartiles"),
+                           drop=info.get("criterion", {}).get("drop"),
+                           seconds=time.perf_counter() - t,
+                           cpu_seconds=time.process_time() - cpu)
+        print(json.dumps(row), flush=True)
+        rows.append(row)
+    return rows
+
+
+def gopro_table(rows: list[dict], shutters) -> str:
+    head = "| centre | k | moving area | " + " | ".join(
+        f"{s} flagged | outside moving | model | r est (quartiles) | RSS drop | s (cpu s)"
+        for s in shutters) + " |"
+    lines = [head, "|" + "---|" * (3 + 6 * len(shutters))]
+    for row in rows:
+        cells = [str(row["centre"]), str(row["k"]), f"{100 * row['moving_share']:.1f} %"]
+        for sh in shutters:
+            d = row[sh]
+            r = "-" if d.get("readout") is None else f"{d['readout']:.2f}"
+            if d.get("readout_quartiles"):
+                r += " ({:.2f}-{:.2f})".format(*d["readout_quartiles"])
+            drop = "-" if d.get("drop") is None else f"{100 * d['drop']:.0f} %"
+            cells += [f"{100 * d['flagged']:.2f} %", f"{100 * d['outside']:.2f} %",
+                      d["model"], r, drop,
+                      f"{d['seconds']:.0f} ({d['cpu_seconds']:.0f})"]
+        lines.append("| " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def _cell(d: dict) -> list[str]:
     rec = "-" if d["recall"] is None else f"{d['recall']:.3f}"
     r = "-" if d.get("readout") is None else f"{d['readout']:.2f}"
@@ -120,8 +180,17 @@ if __name__ == "__main__":
     ap.add_argument("--no-change-only", action="store_true", help="only the pairs without "
                     "changes")
     ap.add_argument("--no-save", action="store_true", help=f"do not write {RUNS.name}")
+    ap.add_argument("--gopro", default=None, metavar="C:K,...",
+                    help="real GoPro k-frame averages (centre:k) instead of the test bed")
     a = ap.parse_args()
     shutters = ["global", "auto"] + (["rolling"] if a.all else [])
+    if a.gopro:
+        pairs = [tuple(int(v) for v in p.split(":")) for p in a.gopro.split(",")]
+        rows = gopro_rows(pairs, shutters)
+        if not a.no_save:
+            GOPRO_RUNS.write_text(json.dumps(rows, indent=1))
+        print(gopro_table(rows, shutters))
+        raise SystemExit(0)
     rows = matrix(a.size, [float(v) for v in a.readouts.split(",")], shutters, a.bands,
                   (False,) if a.no_change_only else (False, True))
     if not a.no_save:
