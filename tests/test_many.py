@@ -242,6 +242,8 @@ def test_cli_many_observations(tmp_path):
     index = (out / "index.html").read_text()
     for r in rows[:3]:
         assert f'href="{r["name"]}/report.html"' in index
+        viewer = f'{r["name"]}/viewer/index.html'
+        assert f'href="{viewer}"' in index and (out / viewer).is_file()
     assert "failed: " in index and "broken" in index
     # the single run of the same pair writes the same change mask
     alone = tmp_path / "alone"

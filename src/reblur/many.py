@@ -473,15 +473,17 @@ vertical-align:top}tr.failed td{background:#fdd}img{max-width:200px;max-height:1
 
 def write_index_html(path: str | os.PathLike, rows: Sequence[dict[str, str]], *,
                      reference: str, totals: dict[str, Any] | None = None) -> Path:
-    """``index.html``: every observation with its overlay, key numbers and a link to its
-    report; a failed one with its reason.  Links are relative (the folder can move)."""
+    """``index.html``: every observation with its overlay, key numbers and links to its
+    report and its zoomable viewer; a failed one with its reason.  Links are relative
+    (the folder can move)."""
     head = ["observation", "overlay", "status", "flagged %", "regions", "top scores",
             "seconds", "source"]
     body = []
     for r in rows:
         name = html.escape(r["name"])
         if r["status"] == "ok":
-            link = f'<a href="{name}/report.html">{name}</a>'
+            link = (f'<a href="{name}/report.html">{name}</a> '
+                    f'(<a href="{name}/viewer/index.html">viewer</a>)')
             pic = f'<a href="{name}/report.html"><img src="{name}/overlay.png" alt=""></a>'
             status = "ok"
         else:
