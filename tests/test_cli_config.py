@@ -60,6 +60,10 @@ def pair(tmp_path_factory) -> tuple[Path, Path]:
     ("[rolling]\nn_bands = 0\n", "RollingParams.n_bands must be >= 1"),
     ("[select]\nextra = 1\n", "[select] unknown key 'extra'"),
     ("[decision\nmin_area = 50\n", "not valid TOML"),
+    # TOML's nan and inf are numbers, never settings (nan passed `smooth < 0` silently)
+    ("[decision]\nsmooth = nan\n", "[decision] smooth must be a finite number, got nan"),
+    ("[decision]\nmin_threshold = inf\n", "[decision] min_threshold must be a finite number"),
+    ("[rolling]\nmin_readout = -inf\n", "[rolling] min_readout must be a finite number"),
 ])
 def test_bad_config_is_one_line_and_exit_2(tmp_path, pair, text, words):
     cfg = tmp_path / "bad.toml"

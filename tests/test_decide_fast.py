@@ -506,3 +506,11 @@ def test_tile_completeness_and_stop_incomplete():
         outcomes.append((info["complete"], smask is None))
     assert (True, False) in outcomes and (False, True) in outcomes
     assert holes == {True, False}  # both ways of the final test
+
+
+@pytest.mark.parametrize("name", ["smooth", "min_threshold", "max_aspect", "strong_factor"])
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_decision_params_refuse_non_finite_settings(name, value):
+    """NaN passes every ``<`` check: ``smooth=nan`` ran and flagged 0.70 % against 1.08 %."""
+    with pytest.raises(ValueError, match=f"DecisionParams.{name} must be a finite number"):
+        DecisionParams(**{name: value})

@@ -113,6 +113,24 @@ def test_cache_of_another_reference_is_refused(pair_set):
         reblur.detect_changes(ref, observations[0], reference_cache=ReferenceCache(ref.copy()))
 
 
+@pytest.mark.parametrize("option", ["reblurred_out", "change_out", "work_dir"])
+def test_per_result_outputs_cannot_be_shared(pair_set, option, tmp_path):
+    """One buffer or folder for every observation would leave each result holding the
+    last one's arrays."""
+    ref, observations = pair_set
+    with pytest.raises(ValueError, match=f"{option} cannot be shared"):
+        next(detect_changes_many(ref, observations, **{option: tmp_path}))
+
+
+def test_cache_arrays_are_read_only(pair_set):
+    """Every later run shares what the cache holds: no run may change it in place."""
+    ref, observations = pair_set
+    cache = ReferenceCache(ref)
+    reblur.detect_changes(ref, observations[0], reference_cache=cache)
+    held = [a for a, _ in cache._held.values()]
+    assert held and not any(a.flags.writeable for a in held)
+
+
 def test_many_records_failures_and_goes_on():
     """A loader that raises and a too small observation fail on their own, with one-line
     reasons; bad options are refused before any observation."""

@@ -24,6 +24,7 @@ list for a tuple, ...) and then by the dataclass itself; any problem is one
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 import tomllib
 from dataclasses import dataclass, field
@@ -103,6 +104,8 @@ def _check_value(section: str, key: str, value: Any, default: Any,
         if isinstance(value, bool) or not isinstance(value, Real):
             none = ' (or "none")' if optional else ""
             raise ConfigError(f"{where} must be a number{none}, got {value!r}")
+        if not math.isfinite(value):  # TOML has nan and inf: never a setting
+            raise ConfigError(f"{where} must be a finite number, got {value!r}")
         return float(value)
     if isinstance(default, str):
         if not isinstance(value, str):

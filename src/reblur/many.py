@@ -64,7 +64,9 @@ VIDEO_SUFFIXES = frozenset({
 #: Names an observation's folder may not take (the files of the run's own listing).
 RESERVED_NAMES = frozenset({"index.html", "summary.csv"})
 #: Keywords of :func:`reblur.detect_changes` that cannot be shared by several observations.
-_NOT_SHARED = ("reference_cache", "change_out", "unknown_out")
+#: (each holds one result's arrays or files: shared, the last observation would overwrite
+#: the others')
+_NOT_SHARED = ("reference_cache", "change_out", "unknown_out", "reblurred_out", "work_dir")
 
 
 # ---------------------------------------------------------------------------- library

@@ -38,8 +38,9 @@ class ReferenceCache:
 
     What is kept: the reference's block-mean overviews (each ``1 / k^2`` of the image), the
     reference levels of the alignment pyramid and their no-data masks, and the SIFT
-    keypoints and descriptors of those levels.  That is a few overviews' worth of memory,
-    independent of the number of observations.
+    keypoints and descriptors of those levels: a few overviews' worth of memory for each
+    block factor the observations' sizes call for (observations of one size: one set,
+    whatever their number).  The arrays are read-only: every later run shares them.
 
     Parameters
     ----------
@@ -106,6 +107,7 @@ class ReferenceCache:
             self._store[full] = value
             for i, a in enumerate(value if isinstance(value, tuple) else (value,)):
                 if isinstance(a, np.ndarray):  # (an array held already keeps its token)
+                    a.flags.writeable = False  # shared by every later run: never changed
                     self._held.setdefault(id(a), (a, (full, i)))
         (self._reused if reused else self._computed)[kind] += 1
         if counts is not None:

@@ -12,6 +12,7 @@ strips.
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -140,6 +141,10 @@ class DecisionParams:
     geometry_reach: int = 0
 
     def __post_init__(self):
+        for f in dataclasses.fields(self):  # no NaN / inf setting: NaN passes every `<` test
+            v = getattr(self, f.name)
+            if isinstance(v, float) and not math.isfinite(v):
+                raise ValueError(f"DecisionParams.{f.name} must be a finite number, got {v}")
         lv = tuple(float(v) for v in self.levels)
         object.__setattr__(self, "levels", lv)
         lad = tuple((float(a), float(b)) for a, b in self.tolerance_ladder)
