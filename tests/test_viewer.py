@@ -235,6 +235,27 @@ def test_reblurred_in_fractions_is_shown_in_the_observations_stretch(tmp_path):
     assert np.abs(a - b).max() <= 1 and np.ptp(a) > 200  # stretched, and alike
 
 
+def test_write_viewer_refuses_a_folder_that_is_not_a_viewer(tmp_path):
+    res, obs = hand_built(64, 96)
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "thesis.txt").write_text("keep me")
+    with pytest.raises(ValueError, match="not an earlier viewer"):
+        write_viewer(mine, res, observed=Image.from_array(obs, "o.png"))
+    assert (mine / "thesis.txt").read_text() == "keep me"
+    assert sorted(p.name for p in mine.iterdir()) == ["thesis.txt"]
+    # an earlier viewer is replaced; an empty folder is used
+    opts = ViewerOptions(image_format="png", tile_size=64)
+    for folder in (tmp_path / "v", tmp_path / "v", tmp_path / "empty"):
+        folder.mkdir(exist_ok=True)
+        info = write_viewer(folder, res, observed=Image.from_array(obs, "o.png"),
+                            options=opts)
+        (folder / "tiles" / "stale.txt").write_text("old")
+        assert info.index == folder / "index.html" and info.index.exists()
+    write_viewer(tmp_path / "v", res, observed=Image.from_array(obs, "o.png"), options=opts)
+    assert not (tmp_path / "v" / "tiles" / "stale.txt").exists()
+
+
 def test_bad_options_are_refused():
     with pytest.raises(ValueError, match="image_format"):
         ViewerOptions(image_format="webp")
