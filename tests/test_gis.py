@@ -99,6 +99,24 @@ def test_cog_layout_overviews_georef_and_pixels(tmp_path):
     assert (half[:75, :100] == 1000).all()
 
 
+@pytest.mark.parametrize("overviews", ["average", "none"])
+def test_cog_colour_interpretation(tmp_path, overviews):
+    from rasterio.enums import ColorInterp as C
+
+    rng = np.random.default_rng(7)
+    cases = [((90, 70, 3), np.uint8, {}, (C.red, C.green, C.blue)),
+             ((90, 70, 3), np.uint16, {}, (C.red, C.green, C.blue)),
+             ((90, 70), np.uint8, {}, (C.gray,)),
+             ((90, 70, 4), np.uint8, {"alpha": True}, (C.red, C.green, C.blue, C.alpha)),
+             ((90, 70, 4), np.uint16, {}, (C.red, C.green, C.blue, C.undefined))]
+    for k, (size, dtype, kw, expect) in enumerate(cases):
+        img = rng.integers(0, 200, size).astype(dtype)
+        p = write_cog(tmp_path / f"c{k}.tif", img, None, block=32, overviews=overviews, **kw)
+        with rasterio.open(p) as src:
+            assert src.colorinterp == expect, (size, dtype, kw)
+            np.testing.assert_array_equal(src.read(), img.reshape(90, 70, -1).transpose(2, 0, 1))
+
+
 def test_cog_max_overviews_keep_every_change_pixel(tmp_path):
     m = np.zeros((500, 333), np.uint8)
     rng = np.random.default_rng(1)

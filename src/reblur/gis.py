@@ -94,6 +94,16 @@ def quantize(block: np.ndarray, dtype) -> np.ndarray:
     return np.clip(np.rint(b), info.min, info.max).astype(dtype)
 
 
+def _colour_names(count: int, alpha: bool) -> list[str]:
+    """GDAL colour interpretation of ``count`` bands: gray, RGB, then undefined (the last
+    band ``alpha`` when it is one)."""
+    names = ["Gray"] if count <= 2 else ["Red", "Green", "Blue"]
+    names += ["Undefined"] * (count - len(names))
+    if alpha and count in (2, 4):
+        names[-1] = "Alpha"
+    return names[:count]
+
+
 def _step(shape: tuple[int, ...], block: int, chunks) -> int:
     """Side of the windows read from a source: the block, or its chunk rounded up to whole
     blocks (so a chunked store decodes each chunk once)."""
@@ -103,9 +113,10 @@ def _step(shape: tuple[int, ...], block: int, chunks) -> int:
 
 def _write_level0(path: Path, data, shape: tuple[int, ...], dtype: np.dtype,
                   georef: dict[str, Any] | None, block: int,
-                  convert: Callable | None) -> None:
+                  convert: Callable | None, alpha: bool = False) -> None:
     """The full-size image as a tiled GeoTIFF, window by window (the COG's source)."""
     import rasterio
+    from rasterio.enums import ColorInterp
     from rasterio.windows import Window
 
     h, w = shape[:2]
@@ -115,10 +126,13 @@ def _write_level0(path: Path, data, shape: tuple[int, ...], dtype: np.dtype,
                    tiled=True, blockxsize=block, blockysize=block, compress="zstd",
                    zstd_level=1, BIGTIFF="IF_SAFER", crs=geo.get("crs"),
                    transform=geo.get("transform"))
-    if count == 3 and dtype == np.uint8:
+    if count in (3, 4):
         profile["photometric"] = "RGB"
+        if count == 4:
+            profile["alpha"] = "UNASSOCIATED" if alpha else "NO"
     step = _step(shape, block, getattr(data, "chunks", None))
     with rasterio.open(path, "w", **profile) as dst:
+        dst.colorinterp = [ColorInterp[n.lower()] for n in _colour_names(count, alpha)]
         for ys, xs in iter_windows(shape, step):
             b = np.asarray(data[ys, xs])
             if convert is not None:
@@ -182,7 +196,7 @@ def _write_level(src: Path, dst: Path, shape: tuple[int, int], block: int, how: 
 
 
 def _vrt(path: Path, levels: list[Path], shape: tuple[int, ...], dtype: np.dtype,
-         georef: dict[str, Any] | None) -> None:
+         georef: dict[str, Any] | None, alpha: bool = False) -> None:
     """A VRT of the full-size file whose overviews are the files of ``levels``."""
     h, w = shape[:2]
     count = 1 if len(shape) == 2 else shape[2]
@@ -193,9 +207,10 @@ def _vrt(path: Path, levels: list[Path], shape: tuple[int, ...], dtype: np.dtype
     if geo.get("transform") is not None:
         ET.SubElement(root, "GeoTransform").text = ", ".join(
             repr(float(v)) for v in geo["transform"].to_gdal())
-    for band in range(1, count + 1):
+    for band, colour in enumerate(_colour_names(count, alpha), 1):
         b = ET.SubElement(root, "VRTRasterBand", dataType=_GDAL_TYPES[dtype.name],
                           band=str(band))
+        ET.SubElement(b, "ColorInterp").text = colour
         for k, p in enumerate(levels):
             el = ET.SubElement(b, "SimpleSource" if k == 0 else "Overview")
             ET.SubElement(el, "SourceFilename", relativeToVRT="1").text = p.name
@@ -212,6 +227,7 @@ def write_cog(
     overviews: str = "average",
     convert: Callable[[np.ndarray], np.ndarray] | None = None,
     compression: str = "deflate",
+    alpha: bool = False,
 ) -> Path:
     """Write an image as a Cloud-Optimised GeoTIFF, atomically, window by window.
 
@@ -234,6 +250,9 @@ def write_cog(
         Applied to each window read from ``data`` (e.g. :func:`quantize`).
     compression : str
         GDAL compression of the COG (``"deflate"`` is readable everywhere).
+    alpha : bool
+        The last of 2 or 4 bands is alpha.  The bands' colour interpretation is gray for
+        1 or 2 bands, red, green, blue for 3 or more, any further band undefined (or alpha).
 
     Returns
     -------
@@ -266,7 +285,7 @@ def write_cog(
             warnings.simplefilter("ignore", NotGeoreferencedWarning)
             with rasterio.Env(GDAL_CACHEMAX=_GDAL_CACHE_MB, CPL_LOG="/dev/null"):
                 src = work / "level0.tif"
-                _write_level0(src, data, shape, dtype, georef, block, convert)
+                _write_level0(src, data, shape, dtype, georef, block, convert, alpha)
                 shapes = _level_shapes(*shape[:2], block) if overviews != "none" else []
                 if shapes:  # each level from the one above, window by window
                     levels = [src]
@@ -274,7 +293,7 @@ def write_cog(
                         levels.append(work / f"level{k}.tif")
                         _write_level(levels[-2], levels[-1], lv, block, overviews)
                     src = work / "pyramid.vrt"
-                    _vrt(src, levels, shape, dtype, georef)
+                    _vrt(src, levels, shape, dtype, georef, alpha)
                     opts["OVERVIEWS"] = "FORCE_USE_EXISTING"
                 with atomic_path(path) as tmp:
                     rasterio.shutil.copy(src, tmp, driver="COG", **opts)
