@@ -135,7 +135,8 @@ def test_report_files_and_contents(tmp_path):
 
     rb = tifffile.imread(out / "reblurred.tif")
     assert rb.dtype == np.uint8 and rb.shape == obs.shape
-    np.testing.assert_array_equal(rb, obs)  # float [0, 1] back to the observation's dtype
+    # float [0, 1] back to the observation's dtype; no data (0, masked) where unknown
+    np.testing.assert_array_equal(rb, np.where(res.unknown[:, :, None], 0, obs))
 
     ov = read_png(out / "overlay.png")
     assert ov.shape == (120, 160, 3)

@@ -117,6 +117,40 @@ def test_cog_colour_interpretation(tmp_path, overviews):
             np.testing.assert_array_equal(src.read(), img.reshape(90, 70, -1).transpose(2, 0, 1))
 
 
+def test_cog_masks_no_data_and_its_overviews_ignore_it(tmp_path):
+    """Integer output: an internal mask (0 where ``nodata_mask`` or the source is NaN), and
+    overview pixels the mean of the valid pixels only; float output: NaN, nodata NaN."""
+    h, w = 96, 80
+    src = np.full((h, w), 0.8, np.float32)  # 204 once quantized
+    src[:, :41] = 0.0  # dark, where there is no data: must not darken the overviews
+    nodata = np.zeros((h, w), bool)
+    nodata[:, :41] = True
+    src[5, 60] = np.nan  # NaN in the source: no data too
+    valid = ~nodata & ~np.isnan(src)
+    p = write_cog(tmp_path / "i.tif", src, None, block=16, nodata_mask=nodata,
+                  convert=lambda b: quantize(b, np.uint8))
+    _cog_layout(p)
+    with rasterio.open(p) as f:
+        assert f.mask_flag_enums[0] == [rasterio.enums.MaskFlags.per_dataset]
+        np.testing.assert_array_equal(f.read_masks(1), valid.astype(np.uint8) * 255)
+        np.testing.assert_array_equal(f.read(1)[valid], 204)
+        assert f.overviews(1) == [2, 4, 8]
+        for k in f.overviews(1):
+            ov = f.read(1, out_shape=(-(-h // k), -(-w // k)))
+            ovm = f.read_masks(1, out_shape=ov.shape)
+            cover = _block(valid.astype(float), k, np.max) > 0
+            np.testing.assert_array_equal(ovm > 0, cover, err_msg=str(k))
+            # 41 is odd: column 20 at level 2 averages a no-data and a valid column
+            np.testing.assert_array_equal(ov[cover], 204, err_msg=str(k))
+    p = write_cog(tmp_path / "f.tif", src, None, block=16, nodata_mask=nodata)
+    with rasterio.open(p) as f:
+        assert np.isnan(f.nodata)
+        a = f.read(1)
+        np.testing.assert_array_equal(np.isnan(a), ~valid)
+        ov = f.read(1, out_shape=(h // 2, w // 2))
+        np.testing.assert_allclose(ov[~np.isnan(ov)], 0.8, rtol=1e-6)
+
+
 def test_cog_max_overviews_keep_every_change_pixel(tmp_path):
     m = np.zeros((500, 333), np.uint8)
     rng = np.random.default_rng(1)
@@ -332,7 +366,8 @@ def test_report_writes_georeferenced_cogs_and_polygons(tmp_path, monkeypatch):
     assert {"changes.tif", "unknown.tif", "reblurred.tif", "changes.geojson"} <= set(files)
     # no temporaries left
     assert {p.name for p in out.iterdir()} == {v.split("/")[0] for v in files.values()}
-    expect = {"changes.tif": change, "unknown.tif": res.unknown, "reblurred.tif": obs}
+    expect = {"changes.tif": change, "unknown.tif": res.unknown,
+              "reblurred.tif": np.where(res.unknown, 0, obs)}
     for name, want in expect.items():
         _cog_layout(out / name)
         with rasterio.open(out / name) as src:
@@ -340,6 +375,9 @@ def test_report_writes_georeferenced_cogs_and_polygons(tmp_path, monkeypatch):
             assert src.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"
             assert src.crs == observed.geo["crs"] and src.transform == observed.geo["transform"]
             got = src.read(1)
+            if name == "reblurred.tif":  # the pixels the reference does not cover: masked
+                assert res.unknown.any() and not res.unknown.all()
+                np.testing.assert_array_equal(src.read_masks(1) == 0, res.unknown)
         np.testing.assert_array_equal(got, want.astype(np.uint8) * (255 if want.dtype == bool
                                                                     else 1))
     gj = json.loads((out / "changes.geojson").read_text())
