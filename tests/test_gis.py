@@ -34,7 +34,7 @@ from reblur.gis import (
     write_geopackage,
 )
 from reblur.io import write_geotiff
-from reblur.report import write_report
+from reblur.report import find_regions, write_report
 from reblur.result import ChangeResult, CropChoice, MotionEstimate
 
 GEO = dict(crs=rasterio.crs.CRS.from_epsg(32631), transform=from_origin(1000.0, 2000.0, 2, 2))
@@ -285,8 +285,8 @@ def test_polygons_carry_the_region_records():
     fc = change_features(mask, dict(crs=None, transform=from_origin(0, 64, 0.5, 0.5)),
                          regions, tile=32)
     p = [f["properties"] for f in fc["features"]]
-    assert [q["id"] for q in p] == [0, 1] and [q["rank"] for q in p] == [1, 2]
-    assert p[0] == dict(id=0, area=12.5, area_px=50, rank=1, score=3.5, polarity="darker",
+    assert [q["id"] for q in p] == [1, 2] and [q["rank"] for q in p] == [1, 2]
+    assert p[0] == dict(id=1, area=12.5, area_px=50, rank=1, score=3.5, polarity="darker",
                         mean_contrast=40.0, contrast=0.16, mean_stat=9.0, max_stat=12.0)
     assert p[1]["polarity"] == "brighter" and p[1]["area"] == 50.0
     g = shape(fc["features"][1]["geometry"])
@@ -384,6 +384,25 @@ def test_report_writes_georeferenced_cogs_and_polygons(tmp_path, monkeypatch):
     assert len(gj["features"]) == ndimage.label(change, EIGHT)[1]
     if "changes.gpkg" not in files:
         assert any("changes.gpkg not written" in n for n in summary["notes"])
+
+
+def test_region_ids_agree_in_the_geojson_and_the_viewer(tmp_path):
+    obs = np.random.default_rng(8).integers(0, 255, (120, 150), dtype=np.uint8)
+    write_geotiff(tmp_path / "obs.tif", obs, GEO)
+    res, change = _result(120, 150, obs.astype(np.float32) / 255)
+    res.regions = find_regions(change)  # as detect_changes lists them
+    out = tmp_path / "out"
+    write_report(res, out, observed=reblur.io.open_image(tmp_path / "obs.tif"))
+    feats = json.loads((out / "changes.geojson").read_text())["features"]
+    shown = json.loads((out / "viewer" / "regions.json").read_text())["regions"]
+    n = ndimage.label(change, EIGHT)[1]
+    assert len(feats) == n and len(shown) == min(n, 500) and n > 3
+    ids = sorted(f["properties"]["id"] for f in feats)
+    assert ids == list(range(1, n + 1))  # 1-based, like the ranks
+    by_id = {f["properties"]["id"]: f for f in feats}
+    for r in shown:  # the same region (same pixel count and rank) under the same id
+        p = by_id[r["id"]]["properties"]
+        assert p["rank"] == r["rank"] == r["id"] and p["area_px"] == r["area"]
 
 
 def test_report_without_the_geo_extra_skips_the_geopackage(tmp_path, monkeypatch):

@@ -585,7 +585,8 @@ def region_features(
     ``tolerance`` of the pixel edges), then mapped by the ``transform`` of ``georef``
     (pixel coordinates without it).
 
-    Properties: ``id`` (0, 1, ... in the listed order), ``area`` (in CRS units squared, or
+    Properties: ``id`` (1, 2, ... in the listed order: a region's ``rank`` when all have
+    one, and its id in the viewer's ``regions.json``), ``area`` (in CRS units squared, or
     pixels), ``area_px`` and, for the region's record in ``regions`` (matched by bounding
     box and pixel count: :func:`reblur.report.triage` records), its :data:`FEATURE_KEYS`.
     Features are listed by rank (then by area).
@@ -611,7 +612,7 @@ def region_features(
             props.update({k: rec[k] for k in FEATURE_KEYS if k in rec})
         feats.append(Feature(props, affinity.affine_transform(g, coeffs)))
     feats.sort(key=lambda f: (f.properties.get("rank", np.inf), -f.properties["area"]))
-    for i, f in enumerate(feats):
+    for i, f in enumerate(feats, 1):  # 1-based: the rank, and the viewer's region id
         f.properties = {"id": i, **f.properties}
     return feats
 
