@@ -465,8 +465,25 @@ def test_viewer_in_headless_chromium(tmp_path, served):
         details = browser.eval("document.getElementById('details').innerHTML")
         rect = browser.eval("document.body.dataset.imageRect")
         png = base64.b64decode(browser.send("Page.captureScreenshot", format="png")["data"])
+        # a mouse click in a region's box but off every outline (its hole or an empty
+        # corner) selects no region: the click tolerance is 6 screen pixels
+        x0, y0, w, h = (float(v) for v in rect.split(","))
+        s = w / known.shape[1]
+        far = ndimage.distance_transform_edt(~known)
+        boxed = np.zeros_like(known)
+        for sl in ndimage.find_objects(lab):
+            boxed[sl] = True
+        far[~boxed] = 0
+        cy, cx = np.unravel_index(int(np.argmax(far)), far.shape)
+        assert far[cy, cx] * s > 6 + 2 * s, (far[cy, cx], s)  # farther than the tolerance
+        for kind in ("mousePressed", "mouseReleased"):
+            browser.send("Input.dispatchMouseEvent", type=kind, x=x0 + (cx + 0.5) * s,
+                         y=y0 + (cy + 0.5) * s, button="left", clickCount=1)
+        browser.eval("new Promise(r => requestAnimationFrame(() => r(1)))")
+        off = browser.eval("document.getElementById('details').innerHTML")
     finally:
         browser.close()
+    assert "No region there" in off, off
     st = dict(kv.split(":") for kv in title.split())
     assert int(st["regions"]) == min(n, ViewerOptions().max_regions), title
     assert int(st["tiles"]) > 0 and st["failed"] == "0" and st["layers"] == "4", title
