@@ -500,12 +500,18 @@ def test_viewer_in_headless_chromium(tmp_path, served):
     assert seen.std() > 20  # not blank
     r = np.corrcoef(seen.mean(axis=2).ravel(), expect.mean(axis=2).ravel())[0, 1]
     assert r > 0.8, r  # the tiles drawn are the observation, in its place
-    save_readme_picture(img, ROOT / "docs" / "viewer.png")
+    if os.environ.get("REBLUR_UPDATE_README") == "1":
+        save_readme_picture(img, ROOT / "docs" / "viewer.png")
 
 
 def save_readme_picture(rgb: np.ndarray, dest: Path) -> None:
     """The screenshot for the README, in 256 colours (small); left as it is when the view
-    has not changed (renderings differ by a few grey levels from run to run)."""
+    has not changed (renderings differ by a few grey levels from run to run).  Written only
+    when the environment sets ``REBLUR_UPDATE_README=1`` (the file is tracked: a test run
+    leaves it alone)::
+
+        REBLUR_UPDATE_README=1 pytest tests/test_viewer.py -k chromium
+    """
     from PIL import Image as PILImage
 
     from reblur.io import atomic_path
