@@ -135,7 +135,8 @@ def test_report_files_and_contents(tmp_path):
 
     rb = tifffile.imread(out / "reblurred.tif")
     assert rb.dtype == np.uint8 and rb.shape == obs.shape
-    np.testing.assert_array_equal(rb, obs)  # float [0, 1] back to the observation's dtype
+    # float [0, 1] back to the observation's dtype; no data (0, masked) where unknown
+    np.testing.assert_array_equal(rb, np.where(res.unknown[:, :, None], 0, obs))
 
     ov = read_png(out / "overlay.png")
     assert ov.shape == (120, 160, 3)
@@ -379,6 +380,27 @@ def test_output_dir_clashes_with_inputs(tmp_path, good_pair):
         assert_one_line_error(res, "would overwrite the input")
     assert (d / "changes.png").read_bytes() == before
     assert [p.name for p in d.iterdir()] == ["changes.png"]
+
+
+def test_output_dir_refuses_inputs_inside_its_output_folders(tmp_path, good_pair):
+    """An input inside OUT/viewer/ (detect), or inside an output of an observation's
+    sub-folder (detect REF OBS OBS ...), would be deleted by --overwrite."""
+    ref, obs = good_pair
+    d = tmp_path / "res"
+    (d / "viewer").mkdir(parents=True)
+    (d / "a" / "viewer").mkdir(parents=True)
+    inside = d / "viewer" / "obs.png"
+    deeper = d / "a" / "viewer" / "obs.png"
+    for p in (inside, deeper):
+        p.write_bytes(obs.read_bytes())
+    for extra in ([], ["--overwrite"]):
+        res = run("detect", ref, inside, "--out", d, *extra)
+        assert_one_line_error(res, "would overwrite the input")
+        res = run("detect", ref, obs, deeper, "--out", d, *extra)
+        assert_one_line_error(res, "would overwrite the input")
+    assert inside.read_bytes() == deeper.read_bytes() == obs.read_bytes()
+    assert sorted(p.relative_to(d).as_posix() for p in d.rglob("*")) == [
+        "a", "a/viewer", "a/viewer/obs.png", "viewer", "viewer/obs.png"]
 
 
 def test_output_dir_holds_results(tmp_path, good_pair):

@@ -34,7 +34,7 @@ from reblur.gis import (
     write_geopackage,
 )
 from reblur.io import write_geotiff
-from reblur.report import write_report
+from reblur.report import find_regions, write_report
 from reblur.result import ChangeResult, CropChoice, MotionEstimate
 
 GEO = dict(crs=rasterio.crs.CRS.from_epsg(32631), transform=from_origin(1000.0, 2000.0, 2, 2))
@@ -97,6 +97,58 @@ def test_cog_layout_overviews_georef_and_pixels(tmp_path):
     ref = _block(img[:, :, 0].astype(float), 2, np.mean)
     assert np.abs(half - ref).max() <= 1  # averaged 2 x 2
     assert (half[:75, :100] == 1000).all()
+
+
+@pytest.mark.parametrize("overviews", ["average", "none"])
+def test_cog_colour_interpretation(tmp_path, overviews):
+    from rasterio.enums import ColorInterp as C
+
+    rng = np.random.default_rng(7)
+    cases = [((90, 70, 3), np.uint8, {}, (C.red, C.green, C.blue)),
+             ((90, 70, 3), np.uint16, {}, (C.red, C.green, C.blue)),
+             ((90, 70), np.uint8, {}, (C.gray,)),
+             ((90, 70, 4), np.uint8, {"alpha": True}, (C.red, C.green, C.blue, C.alpha)),
+             ((90, 70, 4), np.uint16, {}, (C.red, C.green, C.blue, C.undefined))]
+    for k, (size, dtype, kw, expect) in enumerate(cases):
+        img = rng.integers(0, 200, size).astype(dtype)
+        p = write_cog(tmp_path / f"c{k}.tif", img, None, block=32, overviews=overviews, **kw)
+        with rasterio.open(p) as src:
+            assert src.colorinterp == expect, (size, dtype, kw)
+            np.testing.assert_array_equal(src.read(), img.reshape(90, 70, -1).transpose(2, 0, 1))
+
+
+def test_cog_masks_no_data_and_its_overviews_ignore_it(tmp_path):
+    """Integer output: an internal mask (0 where ``nodata_mask`` or the source is NaN), and
+    overview pixels the mean of the valid pixels only; float output: NaN, nodata NaN."""
+    h, w = 96, 80
+    src = np.full((h, w), 0.8, np.float32)  # 204 once quantized
+    src[:, :41] = 0.0  # dark, where there is no data: must not darken the overviews
+    nodata = np.zeros((h, w), bool)
+    nodata[:, :41] = True
+    src[5, 60] = np.nan  # NaN in the source: no data too
+    valid = ~nodata & ~np.isnan(src)
+    p = write_cog(tmp_path / "i.tif", src, None, block=16, nodata_mask=nodata,
+                  convert=lambda b: quantize(b, np.uint8))
+    _cog_layout(p)
+    with rasterio.open(p) as f:
+        assert f.mask_flag_enums[0] == [rasterio.enums.MaskFlags.per_dataset]
+        np.testing.assert_array_equal(f.read_masks(1), valid.astype(np.uint8) * 255)
+        np.testing.assert_array_equal(f.read(1)[valid], 204)
+        assert f.overviews(1) == [2, 4, 8]
+        for k in f.overviews(1):
+            ov = f.read(1, out_shape=(-(-h // k), -(-w // k)))
+            ovm = f.read_masks(1, out_shape=ov.shape)
+            cover = _block(valid.astype(float), k, np.max) > 0
+            np.testing.assert_array_equal(ovm > 0, cover, err_msg=str(k))
+            # 41 is odd: column 20 at level 2 averages a no-data and a valid column
+            np.testing.assert_array_equal(ov[cover], 204, err_msg=str(k))
+    p = write_cog(tmp_path / "f.tif", src, None, block=16, nodata_mask=nodata)
+    with rasterio.open(p) as f:
+        assert np.isnan(f.nodata)
+        a = f.read(1)
+        np.testing.assert_array_equal(np.isnan(a), ~valid)
+        ov = f.read(1, out_shape=(h // 2, w // 2))
+        np.testing.assert_allclose(ov[~np.isnan(ov)], 0.8, rtol=1e-6)
 
 
 def test_cog_max_overviews_keep_every_change_pixel(tmp_path):
@@ -233,8 +285,8 @@ def test_polygons_carry_the_region_records():
     fc = change_features(mask, dict(crs=None, transform=from_origin(0, 64, 0.5, 0.5)),
                          regions, tile=32)
     p = [f["properties"] for f in fc["features"]]
-    assert [q["id"] for q in p] == [0, 1] and [q["rank"] for q in p] == [1, 2]
-    assert p[0] == dict(id=0, area=12.5, area_px=50, rank=1, score=3.5, polarity="darker",
+    assert [q["id"] for q in p] == [1, 2] and [q["rank"] for q in p] == [1, 2]
+    assert p[0] == dict(id=1, area=12.5, area_px=50, rank=1, score=3.5, polarity="darker",
                         mean_contrast=40.0, contrast=0.16, mean_stat=9.0, max_stat=12.0)
     assert p[1]["polarity"] == "brighter" and p[1]["area"] == 50.0
     g = shape(fc["features"][1]["geometry"])
@@ -314,7 +366,8 @@ def test_report_writes_georeferenced_cogs_and_polygons(tmp_path, monkeypatch):
     assert {"changes.tif", "unknown.tif", "reblurred.tif", "changes.geojson"} <= set(files)
     # no temporaries left
     assert {p.name for p in out.iterdir()} == {v.split("/")[0] for v in files.values()}
-    expect = {"changes.tif": change, "unknown.tif": res.unknown, "reblurred.tif": obs}
+    expect = {"changes.tif": change, "unknown.tif": res.unknown,
+              "reblurred.tif": np.where(res.unknown, 0, obs)}
     for name, want in expect.items():
         _cog_layout(out / name)
         with rasterio.open(out / name) as src:
@@ -322,12 +375,34 @@ def test_report_writes_georeferenced_cogs_and_polygons(tmp_path, monkeypatch):
             assert src.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"
             assert src.crs == observed.geo["crs"] and src.transform == observed.geo["transform"]
             got = src.read(1)
+            if name == "reblurred.tif":  # the pixels the reference does not cover: masked
+                assert res.unknown.any() and not res.unknown.all()
+                np.testing.assert_array_equal(src.read_masks(1) == 0, res.unknown)
         np.testing.assert_array_equal(got, want.astype(np.uint8) * (255 if want.dtype == bool
                                                                     else 1))
     gj = json.loads((out / "changes.geojson").read_text())
     assert len(gj["features"]) == ndimage.label(change, EIGHT)[1]
     if "changes.gpkg" not in files:
         assert any("changes.gpkg not written" in n for n in summary["notes"])
+
+
+def test_region_ids_agree_in_the_geojson_and_the_viewer(tmp_path):
+    obs = np.random.default_rng(8).integers(0, 255, (120, 150), dtype=np.uint8)
+    write_geotiff(tmp_path / "obs.tif", obs, GEO)
+    res, change = _result(120, 150, obs.astype(np.float32) / 255)
+    res.regions = find_regions(change)  # as detect_changes lists them
+    out = tmp_path / "out"
+    write_report(res, out, observed=reblur.io.open_image(tmp_path / "obs.tif"))
+    feats = json.loads((out / "changes.geojson").read_text())["features"]
+    shown = json.loads((out / "viewer" / "regions.json").read_text())["regions"]
+    n = ndimage.label(change, EIGHT)[1]
+    assert len(feats) == n and len(shown) == min(n, 500) and n > 3
+    ids = sorted(f["properties"]["id"] for f in feats)
+    assert ids == list(range(1, n + 1))  # 1-based, like the ranks
+    by_id = {f["properties"]["id"]: f for f in feats}
+    for r in shown:  # the same region (same pixel count and rank) under the same id
+        p = by_id[r["id"]]["properties"]
+        assert p["rank"] == r["rank"] == r["id"] and p["area_px"] == r["area"]
 
 
 def test_report_without_the_geo_extra_skips_the_geopackage(tmp_path, monkeypatch):

@@ -235,6 +235,27 @@ def test_reblurred_in_fractions_is_shown_in_the_observations_stretch(tmp_path):
     assert np.abs(a - b).max() <= 1 and np.ptp(a) > 200  # stretched, and alike
 
 
+def test_write_viewer_refuses_a_folder_that_is_not_a_viewer(tmp_path):
+    res, obs = hand_built(64, 96)
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "thesis.txt").write_text("keep me")
+    with pytest.raises(ValueError, match="not an earlier viewer"):
+        write_viewer(mine, res, observed=Image.from_array(obs, "o.png"))
+    assert (mine / "thesis.txt").read_text() == "keep me"
+    assert sorted(p.name for p in mine.iterdir()) == ["thesis.txt"]
+    # an earlier viewer is replaced; an empty folder is used
+    opts = ViewerOptions(image_format="png", tile_size=64)
+    for folder in (tmp_path / "v", tmp_path / "v", tmp_path / "empty"):
+        folder.mkdir(exist_ok=True)
+        info = write_viewer(folder, res, observed=Image.from_array(obs, "o.png"),
+                            options=opts)
+        (folder / "tiles" / "stale.txt").write_text("old")
+        assert info.index == folder / "index.html" and info.index.exists()
+    write_viewer(tmp_path / "v", res, observed=Image.from_array(obs, "o.png"), options=opts)
+    assert not (tmp_path / "v" / "tiles" / "stale.txt").exists()
+
+
 def test_bad_options_are_refused():
     with pytest.raises(ValueError, match="image_format"):
         ViewerOptions(image_format="webp")
@@ -444,8 +465,25 @@ def test_viewer_in_headless_chromium(tmp_path, served):
         details = browser.eval("document.getElementById('details').innerHTML")
         rect = browser.eval("document.body.dataset.imageRect")
         png = base64.b64decode(browser.send("Page.captureScreenshot", format="png")["data"])
+        # a mouse click in a region's box but off every outline (its hole or an empty
+        # corner) selects no region: the click tolerance is 6 screen pixels
+        x0, y0, w, h = (float(v) for v in rect.split(","))
+        s = w / known.shape[1]
+        far = ndimage.distance_transform_edt(~known)
+        boxed = np.zeros_like(known)
+        for sl in ndimage.find_objects(lab):
+            boxed[sl] = True
+        far[~boxed] = 0
+        cy, cx = np.unravel_index(int(np.argmax(far)), far.shape)
+        assert far[cy, cx] * s > 6 + 2 * s, (far[cy, cx], s)  # farther than the tolerance
+        for kind in ("mousePressed", "mouseReleased"):
+            browser.send("Input.dispatchMouseEvent", type=kind, x=x0 + (cx + 0.5) * s,
+                         y=y0 + (cy + 0.5) * s, button="left", clickCount=1)
+        browser.eval("new Promise(r => requestAnimationFrame(() => r(1)))")
+        off = browser.eval("document.getElementById('details').innerHTML")
     finally:
         browser.close()
+    assert "No region there" in off, off
     st = dict(kv.split(":") for kv in title.split())
     assert int(st["regions"]) == min(n, ViewerOptions().max_regions), title
     assert int(st["tiles"]) > 0 and st["failed"] == "0" and st["layers"] == "4", title
@@ -462,12 +500,18 @@ def test_viewer_in_headless_chromium(tmp_path, served):
     assert seen.std() > 20  # not blank
     r = np.corrcoef(seen.mean(axis=2).ravel(), expect.mean(axis=2).ravel())[0, 1]
     assert r > 0.8, r  # the tiles drawn are the observation, in its place
-    save_readme_picture(img, ROOT / "docs" / "viewer.png")
+    if os.environ.get("REBLUR_UPDATE_README") == "1":
+        save_readme_picture(img, ROOT / "docs" / "viewer.png")
 
 
 def save_readme_picture(rgb: np.ndarray, dest: Path) -> None:
     """The screenshot for the README, in 256 colours (small); left as it is when the view
-    has not changed (renderings differ by a few grey levels from run to run)."""
+    has not changed (renderings differ by a few grey levels from run to run).  Written only
+    when the environment sets ``REBLUR_UPDATE_README=1`` (the file is tracked: a test run
+    leaves it alone)::
+
+        REBLUR_UPDATE_README=1 pytest tests/test_viewer.py -k chromium
+    """
     from PIL import Image as PILImage
 
     from reblur.io import atomic_path

@@ -359,12 +359,27 @@ def _resolve(path: Path) -> Path:
             f"{_show(path)}: symlink loop: the path cannot be resolved") from exc
 
 
+def _clobbered(out_r: Path, p_r: Path, names: tuple[str, ...],
+               sub_names: tuple[str, ...]) -> bool:
+    """Whether the input ``p_r`` is (inside) an output ``OUT/NAME`` (``names``) or
+    ``OUT/FOLDER/NAME`` (``sub_names``, in any sub-folder) that a run replaces."""
+    try:
+        rel = p_r.relative_to(out_r).parts
+    except ValueError:
+        return False
+    return bool(rel) and (rel[0] in names or (len(rel) >= 2 and rel[1] in sub_names))
+
+
 def _check_output_dir(
-    out: Path, inputs: list[Path], names: tuple[str, ...], overwrite: bool
+    out: Path, inputs: list[Path], names: tuple[str, ...], overwrite: bool,
+    sub_names: tuple[str, ...] = (),
 ) -> Path:
     """Refuse output directories that are unusable, hold results, or would clobber inputs.
 
-    Writes nothing: a missing directory is created (to prove it can be) and removed again.
+    ``names`` are the outputs written into ``out``, ``sub_names`` those written into its
+    sub-folders (one per observation: their names are only known as the run goes, so an
+    input inside such an output of any sub-folder is refused).  Writes nothing: a missing
+    directory is created (to prove it can be) and removed again.
     """
     out_r = _resolve(out)
     for p in inputs:
@@ -372,7 +387,7 @@ def _check_output_dir(
         if _same_or_inside(out_r, p_r):
             raise click.ClickException(
                 f"{_show(out)}: output directory is (inside) the input {_show(p)}")
-        if p_r.parent == out_r and p_r.name in names:
+        if _clobbered(out_r, p_r, names, sub_names):
             raise click.ClickException(f"{_show(out)}: writing results there would overwrite "
                                        f"the input {_show(p)}; choose another --out")
     if out_r.exists():
@@ -856,7 +871,8 @@ def _detect_many(reference: Path, observed: tuple[Path, ...], sources: list, out
     from .report import OUTPUT_NAMES
 
     inputs = [reference, *observed, *(s.path for s in sources)]
-    out_dir = _check_output_dir(out, inputs, MANY_NAMES + OUTPUT_NAMES, overwrite)
+    out_dir = _check_output_dir(out, inputs, MANY_NAMES + OUTPUT_NAMES, overwrite,
+                                sub_names=OUTPUT_NAMES)
     ref = open_image(reference, max_pixels=plan.max_pixels, nodata=plan.nodata)
     for note in ref.notes:
         log.info("%s: %s", ref.name, note)

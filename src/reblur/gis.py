@@ -94,6 +94,16 @@ def quantize(block: np.ndarray, dtype) -> np.ndarray:
     return np.clip(np.rint(b), info.min, info.max).astype(dtype)
 
 
+def _colour_names(count: int, alpha: bool) -> list[str]:
+    """GDAL colour interpretation of ``count`` bands: gray, RGB, then undefined (the last
+    band ``alpha`` when it is one)."""
+    names = ["Gray"] if count <= 2 else ["Red", "Green", "Blue"]
+    names += ["Undefined"] * (count - len(names))
+    if alpha and count in (2, 4):
+        names[-1] = "Alpha"
+    return names[:count]
+
+
 def _step(shape: tuple[int, ...], block: int, chunks) -> int:
     """Side of the windows read from a source: the block, or its chunk rounded up to whole
     blocks (so a chunked store decodes each chunk once)."""
@@ -103,9 +113,13 @@ def _step(shape: tuple[int, ...], block: int, chunks) -> int:
 
 def _write_level0(path: Path, data, shape: tuple[int, ...], dtype: np.dtype,
                   georef: dict[str, Any] | None, block: int,
-                  convert: Callable | None) -> None:
-    """The full-size image as a tiled GeoTIFF, window by window (the COG's source)."""
+                  convert: Callable | None, alpha: bool = False,
+                  nodata_mask=None) -> None:
+    """The full-size image as a tiled GeoTIFF, window by window (the COG's source); where
+    ``nodata_mask`` is True or the source is NaN: NaN (float output) or 0 and an internal
+    mask (integer output)."""
     import rasterio
+    from rasterio.enums import ColorInterp
     from rasterio.windows import Window
 
     h, w = shape[:2]
@@ -115,19 +129,40 @@ def _write_level0(path: Path, data, shape: tuple[int, ...], dtype: np.dtype,
                    tiled=True, blockxsize=block, blockysize=block, compress="zstd",
                    zstd_level=1, BIGTIFF="IF_SAFER", crs=geo.get("crs"),
                    transform=geo.get("transform"))
-    if count == 3 and dtype == np.uint8:
+    if dtype.kind == "f":
+        profile["nodata"] = np.nan
+    if count in (3, 4):
         profile["photometric"] = "RGB"
+        if count == 4:
+            profile["alpha"] = "UNASSOCIATED" if alpha else "NO"
     step = _step(shape, block, getattr(data, "chunks", None))
     with rasterio.open(path, "w", **profile) as dst:
+        dst.colorinterp = [ColorInterp[n.lower()] for n in _colour_names(count, alpha)]
         for ys, xs in iter_windows(shape, step):
             b = np.asarray(data[ys, xs])
+            bad = None if nodata_mask is None else _no_data(nodata_mask, b, ys, xs)
             if convert is not None:
                 b = convert(b)
             win = Window(xs.start, ys.start, xs.stop - xs.start, ys.stop - ys.start)
+            if bad is not None:
+                b = np.where(bad if b.ndim == 2 else bad[:, :, None],
+                             np.nan if dtype.kind == "f" else 0, b).astype(dtype)
+                if dtype.kind != "f":
+                    dst.write_mask(np.where(bad, 0, 255).astype(np.uint8), window=win)
             if b.ndim == 2:
                 dst.write(b, 1, window=win)
             else:
                 dst.write(np.moveaxis(b, -1, 0), window=win)
+
+
+def _no_data(nodata_mask, b: np.ndarray, ys: slice, xs: slice) -> np.ndarray:
+    """Window ``ys, xs`` of ``nodata_mask``, or'ed with the NaN pixels of the source
+    window ``b``."""
+    bad = np.array(nodata_mask[ys, xs], dtype=bool)
+    if b.dtype.kind == "f":
+        nan = np.isnan(b)
+        bad |= nan.any(axis=2) if nan.ndim == 3 else nan
+    return bad
 
 
 def _level_shapes(h: int, w: int, block: int) -> list[tuple[int, int]]:
@@ -149,8 +184,8 @@ def _reduce2(a: np.ndarray, how: str) -> np.ndarray:
     if h % 2 or w % 2:
         a = np.pad(a, ((0, 0), (0, h % 2), (0, w % 2)), mode="edge")
     q = (a[:, 0::2, 0::2], a[:, 0::2, 1::2], a[:, 1::2, 0::2], a[:, 1::2, 1::2])
-    if how == "max":
-        return np.maximum(np.maximum(q[0], q[1]), np.maximum(q[2], q[3]))
+    if how == "max":  # NaN skipped
+        return np.fmax(np.fmax(q[0], q[1]), np.fmax(q[2], q[3]))
     ft = np.float64 if a.dtype.itemsize > 2 else np.float32
     if a.dtype.kind in "ui":
         m = (q[0].astype(ft) + q[1]) + (q[2].astype(ft) + q[3])
@@ -164,26 +199,48 @@ def _reduce2(a: np.ndarray, how: str) -> np.ndarray:
         return (total / n).astype(a.dtype)  # NaN where a block holds no value
 
 
+def _reduce2_valid(a: np.ndarray, valid: np.ndarray, how: str) -> tuple[np.ndarray,
+                                                                        np.ndarray]:
+    """:func:`_reduce2` of integer pixels over the ``valid`` ones only: the reduced pixels
+    (0 where a block holds no valid pixel) and their validity."""
+    ft = np.float64 if a.dtype.itemsize > 2 else np.float32
+    r = _reduce2(np.where(valid[None], a.astype(ft), np.nan), how)
+    ok = ~np.isnan(r[0])
+    info = np.iinfo(a.dtype)
+    with np.errstate(invalid="ignore"):
+        out = np.where(ok[None], np.clip(np.rint(r), info.min, info.max), 0).astype(a.dtype)
+    return out, ok
+
+
 def _write_level(src: Path, dst: Path, shape: tuple[int, int], block: int, how: str) -> None:
     """Overview level ``shape`` of ``src`` (the previous level) by 2 x 2 block reduction."""
     import rasterio
+    from rasterio.enums import MaskFlags
     from rasterio.windows import Window
 
     with rasterio.open(src) as s:
         profile = s.profile
         profile.update(height=shape[0], width=shape[1], transform=None, crs=None)
         whole = Window(0, 0, s.width, s.height)
+        masked = s.mask_flag_enums[0] == [MaskFlags.per_dataset]
         with rasterio.open(dst, "w", **profile) as d:
             for ys, xs in iter_windows(shape, block):
                 h, w = ys.stop - ys.start, xs.stop - xs.start
                 win = Window(2 * xs.start, 2 * ys.start, 2 * w, 2 * h).intersection(whole)
-                a = _reduce2(s.read(window=win), how)
-                d.write(a[:, :h, :w], window=Window(xs.start, ys.start, w, h))
+                out = Window(xs.start, ys.start, w, h)
+                if masked:  # the valid pixels only
+                    a, ok = _reduce2_valid(s.read(window=win), s.read_masks(1, window=win) > 0,
+                                           how)
+                    d.write_mask(np.where(ok[:h, :w], 255, 0).astype(np.uint8), window=out)
+                else:
+                    a = _reduce2(s.read(window=win), how)
+                d.write(a[:, :h, :w], window=out)
 
 
 def _vrt(path: Path, levels: list[Path], shape: tuple[int, ...], dtype: np.dtype,
-         georef: dict[str, Any] | None) -> None:
-    """A VRT of the full-size file whose overviews are the files of ``levels``."""
+         georef: dict[str, Any] | None, alpha: bool = False, masked: bool = False) -> None:
+    """A VRT of the full-size file whose overviews are the files of ``levels`` (and their
+    masks when ``masked``; float pixels: NaN is no data)."""
     h, w = shape[:2]
     count = 1 if len(shape) == 2 else shape[2]
     root = ET.Element("VRTDataset", rasterXSize=str(w), rasterYSize=str(h))
@@ -193,14 +250,25 @@ def _vrt(path: Path, levels: list[Path], shape: tuple[int, ...], dtype: np.dtype
     if geo.get("transform") is not None:
         ET.SubElement(root, "GeoTransform").text = ", ".join(
             repr(float(v)) for v in geo["transform"].to_gdal())
-    for band in range(1, count + 1):
+    for band, colour in enumerate(_colour_names(count, alpha), 1):
         b = ET.SubElement(root, "VRTRasterBand", dataType=_GDAL_TYPES[dtype.name],
                           band=str(band))
-        for k, p in enumerate(levels):
-            el = ET.SubElement(b, "SimpleSource" if k == 0 else "Overview")
-            ET.SubElement(el, "SourceFilename", relativeToVRT="1").text = p.name
-            ET.SubElement(el, "SourceBand").text = str(band)
+        ET.SubElement(b, "ColorInterp").text = colour
+        if dtype.kind == "f":
+            ET.SubElement(b, "NoDataValue").text = "nan"
+        _vrt_sources(b, levels, str(band))
+    if masked:
+        m = ET.SubElement(ET.SubElement(root, "MaskBand"), "VRTRasterBand", dataType="Byte")
+        _vrt_sources(m, levels, "mask,1")
     ET.ElementTree(root).write(path, encoding="utf-8")
+
+
+def _vrt_sources(band: ET.Element, levels: list[Path], source: str) -> None:
+    """Band ``source`` of ``levels``: the first the band's pixels, the others overviews."""
+    for k, p in enumerate(levels):
+        el = ET.SubElement(band, "SimpleSource" if k == 0 else "Overview")
+        ET.SubElement(el, "SourceFilename", relativeToVRT="1").text = p.name
+        ET.SubElement(el, "SourceBand").text = source
 
 
 def write_cog(
@@ -212,6 +280,8 @@ def write_cog(
     overviews: str = "average",
     convert: Callable[[np.ndarray], np.ndarray] | None = None,
     compression: str = "deflate",
+    alpha: bool = False,
+    nodata_mask=None,
 ) -> Path:
     """Write an image as a Cloud-Optimised GeoTIFF, atomically, window by window.
 
@@ -234,6 +304,14 @@ def write_cog(
         Applied to each window read from ``data`` (e.g. :func:`quantize`).
     compression : str
         GDAL compression of the COG (``"deflate"`` is readable everywhere).
+    alpha : bool
+        The last of 2 or 4 bands is alpha.  The bands' colour interpretation is gray for
+        1 or 2 bands, red, green, blue for 3 or more, any further band undefined (or alpha).
+    nodata_mask : array-like, (H, W) bool, optional
+        True where the image holds no data (read window by window); the source's NaN pixels
+        are no data too.  Integer outputs get an internal mask (GDAL's per-dataset mask, 0
+        there; the pixels are 0), float outputs NaN.  Overviews are made of the valid pixels
+        only.  Float outputs always declare NaN as their nodata value.
 
     Returns
     -------
@@ -254,6 +332,10 @@ def write_cog(
     if dtype.name not in _GDAL_TYPES:
         raise ValueError(f"write_cog writes {', '.join(_GDAL_TYPES)} pixels, got {dtype} "
                          "(convert bool masks to uint8 first)")
+    if nodata_mask is not None and tuple(nodata_mask.shape) != shape[:2]:
+        raise ValueError(f"nodata_mask is {tuple(nodata_mask.shape)}, the image "
+                         f"{shape[:2]}: give one (H, W) mask of the image's size")
+    masked = nodata_mask is not None and dtype.kind != "f"
     opts = dict(BLOCKSIZE=block, COMPRESS=compression.upper(), BIGTIFF="IF_SAFER",
                 NUM_THREADS=1, OVERVIEWS="NONE")
     if compression.lower() in ("deflate", "zstd", "lzw"):
@@ -264,9 +346,11 @@ def write_cog(
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", NotGeoreferencedWarning)
-            with rasterio.Env(GDAL_CACHEMAX=_GDAL_CACHE_MB, CPL_LOG="/dev/null"):
+            with rasterio.Env(GDAL_CACHEMAX=_GDAL_CACHE_MB, CPL_LOG="/dev/null",
+                              GDAL_TIFF_INTERNAL_MASK=True):
                 src = work / "level0.tif"
-                _write_level0(src, data, shape, dtype, georef, block, convert)
+                _write_level0(src, data, shape, dtype, georef, block, convert, alpha,
+                              nodata_mask)
                 shapes = _level_shapes(*shape[:2], block) if overviews != "none" else []
                 if shapes:  # each level from the one above, window by window
                     levels = [src]
@@ -274,7 +358,7 @@ def write_cog(
                         levels.append(work / f"level{k}.tif")
                         _write_level(levels[-2], levels[-1], lv, block, overviews)
                     src = work / "pyramid.vrt"
-                    _vrt(src, levels, shape, dtype, georef)
+                    _vrt(src, levels, shape, dtype, georef, alpha, masked)
                     opts["OVERVIEWS"] = "FORCE_USE_EXISTING"
                 with atomic_path(path) as tmp:
                     rasterio.shutil.copy(src, tmp, driver="COG", **opts)
@@ -501,7 +585,8 @@ def region_features(
     ``tolerance`` of the pixel edges), then mapped by the ``transform`` of ``georef``
     (pixel coordinates without it).
 
-    Properties: ``id`` (0, 1, ... in the listed order), ``area`` (in CRS units squared, or
+    Properties: ``id`` (1, 2, ... in the listed order: a region's ``rank`` when all have
+    one, and its id in the viewer's ``regions.json``), ``area`` (in CRS units squared, or
     pixels), ``area_px`` and, for the region's record in ``regions`` (matched by bounding
     box and pixel count: :func:`reblur.report.triage` records), its :data:`FEATURE_KEYS`.
     Features are listed by rank (then by area).
@@ -527,7 +612,7 @@ def region_features(
             props.update({k: rec[k] for k in FEATURE_KEYS if k in rec})
         feats.append(Feature(props, affinity.affine_transform(g, coeffs)))
     feats.sort(key=lambda f: (f.properties.get("rank", np.inf), -f.properties["area"]))
-    for i, f in enumerate(feats):
+    for i, f in enumerate(feats, 1):  # 1-based: the rank, and the viewer's region id
         f.properties = {"id": i, **f.properties}
     return feats
 

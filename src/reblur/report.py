@@ -16,7 +16,8 @@
     Observation pixels the aligned reference does not cover, 255 / 0.
 ``reblurred.tif``
     The reblurred reference in the observation's frame and dtype, a Cloud-Optimised
-    GeoTIFF with averaged overviews (georeferenced like the observation), written tile by
+    GeoTIFF with averaged overviews (georeferenced like the observation); the unknown
+    pixels hold no data (an internal mask, or NaN in a float image), written tile by
     tile from the result's array -- in memory, or on disk at any size
     (:class:`reblur.gis.ReblurredStore`); skipped, with a note in ``report.json``, when the
     result holds none.
@@ -989,8 +990,9 @@ def write_report(
     # reblurred reference
     if result.reblurred is not None:
         dtype = observed.dtype if observed is not None else np.dtype(np.float32)
+        # the pixels the reference does not cover hold no data (a mask, or NaN)
         write_cog(out / "reblurred.tif", result.reblurred, geo, block=COG_BLOCK,
-                  overviews="average", convert=_to_dtype(dtype))
+                  overviews="average", convert=_to_dtype(dtype), nodata_mask=unknown)
         files["reblurred.tif"] = "reblurred.tif"
     else:
         notes.append("reblurred.tif not written: the result holds no reblurred image "

@@ -209,6 +209,28 @@ def _copy_static(dest: Path) -> None:
     (dest / "index.html").write_bytes((src / "index.html").read_bytes())
 
 
+_MARKERS = ("index.html", "data.js", "tiles")
+
+
+def _clear_viewer_folder(out: Path) -> None:
+    """Empty ``out`` if it is an earlier viewer; refuse any other non-empty folder."""
+    if not out.exists() and not out.is_symlink():
+        return
+    if not out.is_dir() or out.is_symlink():
+        raise ValueError(f"{out} exists and is not a folder: give write_viewer a new or "
+                         "empty folder, or an earlier viewer's")
+    if not any(out.iterdir()):
+        return
+    if not all((out / m).exists() for m in _MARKERS):
+        raise ValueError(f"{out} is not empty and not an earlier viewer (no index.html, "
+                         "data.js and tiles/): give write_viewer a new or empty folder")
+    for p in out.iterdir():
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p)
+        else:
+            p.unlink()
+
+
 def write_viewer(
     out_dir: str | Path,
     result: Any,
@@ -224,7 +246,8 @@ def write_viewer(
     Parameters
     ----------
     out_dir : path
-        The viewer's folder (created; files in it are replaced).
+        The viewer's folder: new, empty or an earlier viewer (whose files are replaced);
+        any other non-empty folder is refused (ValueError), its files left as they are.
     result : ChangeResult
         What :func:`reblur.detect_changes` returned; its masks and reblurred image may be
         lazy (zarr): every image is read window by window.
@@ -251,9 +274,8 @@ def write_viewer(
     if observed is not None and tuple(observed.shape[:2]) != (H, W):
         raise ValueError(f"result is {W}x{H} but the observation is "
                          f"{observed.shape[1]}x{observed.shape[0]}")
-    if out.exists():
-        shutil.rmtree(out)
-    out.mkdir(parents=True)
+    _clear_viewer_folder(out)
+    out.mkdir(parents=True, exist_ok=True)
     layers, desc, notes, handles = _layers(
         result, observed, Path(reblurred_path) if reblurred_path else None, opts)
     try:

@@ -95,7 +95,7 @@ def image_layer(name: str, array: Any, stretch: Stretch, *, scale: float = 1.0,
         if as_is:
             return a.astype(np.float32)
         a = a.astype(np.float32) * np.float32(scale) if scale != 1.0 else a
-        return stretch.apply(a)
+        return np.nan_to_num(stretch.apply(a), copy=False, nan=0.0)  # no data: black
 
     return Layer(name, read, _encode_image, fmt=fmt, reduce="mean", quality=quality)
 

@@ -115,7 +115,8 @@ def region_records(mask: Any, regions: list[dict[str, Any]], *, max_regions: int
                    max_side: int = 2048, max_vertices: int = 200) -> list[dict[str, Any]]:
     """The first ``max_regions`` regions (the report's triage order) with their outlines.
 
-    Each record holds ``id`` (1 = first), the attributes of :data:`REGION_KEYS` it has,
+    Each record holds ``id`` (1 = first: the region's ``rank``, and its ``id`` in
+    ``changes.geojson``), the attributes of :data:`REGION_KEYS` it has,
     ``outline`` (rings, :func:`region_outline`) and ``exact``.
     """
     out = []

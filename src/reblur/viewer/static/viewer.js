@@ -206,14 +206,30 @@
     return c;
   }
 
+  function edgeDistance(rings, x, y) {
+    let d = Infinity;
+    for (const ring of rings) {
+      for (let i = 0, j = ring.length - 1; i < ring.length; j = i++) {
+        const [xi, yi] = ring[i];
+        const [xj, yj] = ring[j];
+        const ex = xj - xi, ey = yj - yi;
+        const len2 = ex * ex + ey * ey;
+        const t = len2 > 0 ? Math.min(1, Math.max(0, ((x - xi) * ex + (y - yi) * ey) / len2)) : 0;
+        d = Math.min(d, Math.hypot(x - xi - t * ex, y - yi - t * ey));
+      }
+    }
+    return d;
+  }
+
+  // the region whose outline holds the point (even-odd rule: not in its holes), else the
+  // one whose outline passes within tol image pixels
   function pick(x, y, tol) {
     let best = null;
     for (const r of D.regions) {
-      if (!r.bbox) continue;
+      if (!r.bbox || !r.outline) continue;
       const [y0, x0, y1, x1] = r.bbox;
-      const dx = Math.max(x0 - x, 0, x - x1);
-      const dy = Math.max(y0 - y, 0, y - y1);
-      const d = inside(r.outline, x, y) ? -1 : Math.hypot(dx, dy);
+      if (Math.max(x0 - x, 0, x - x1) > tol || Math.max(y0 - y, 0, y - y1) > tol) continue;
+      const d = inside(r.outline, x, y) ? -1 : edgeDistance(r.outline, x, y);
       if (d <= tol && (best === null || d < best.d)) best = { d: d, id: r.id };
     }
     return best ? best.id : null;
