@@ -292,6 +292,24 @@ def test_cli_many_refuses_bad_combinations(tmp_path):
         assert not (tmp_path / "o").exists()
 
 
+def test_cli_many_refuses_an_earlier_runs_folders_up_front(tmp_path):
+    """An earlier run stopped before its index.html left observation folders: without
+    --overwrite the run is refused at once, before any work (it used to detect every
+    other observation and fail those one by one)."""
+    ref = _reference()
+    write_png(tmp_path / "ref.png", ref)
+    write_png(tmp_path / "a.png", ref)
+    write_png(tmp_path / "b.png", ref)
+    (tmp_path / "o" / "a").mkdir(parents=True)
+    (tmp_path / "o" / "a" / "report.json").write_text("{}")
+    res = _run("detect", tmp_path / "ref.png", tmp_path / "a.png", tmp_path / "b.png",
+               "--out", tmp_path / "o")
+    assert res.returncode == 1, res.stderr
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and "already holds results (a/)" in lines[0], lines
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["a"]
+
+
 def test_cli_progress_lines_when_stderr_is_not_a_terminal(tmp_path):
     """Without a terminal, progress is log lines: every stage from 0 % to 100 % in steps
     of 10 %, the report's writing included, no bar control characters."""

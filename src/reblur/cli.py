@@ -394,6 +394,9 @@ def _check_output_dir(
         if not out_r.is_dir():
             raise click.ClickException(f"{_show(out)}: exists and is not a directory")
         found = [n for n in names if (out_r / n).exists()]
+        if sub_names:  # an earlier many-observation run's folders (stopped before its index)
+            found += sorted(f"{d.name}/" for d in out_r.iterdir()
+                            if d.is_dir() and (d / "report.json").exists())
         if found and not overwrite:
             raise click.ClickException(
                 f"{_show(out)}: already holds results ({', '.join(found[:3])}"
