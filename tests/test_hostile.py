@@ -119,8 +119,12 @@ def test_truncated_jpeg_with_end_marker_is_refused(tmp_path, good_pair, progress
 # ---------------------------------------------------------------------------- output sets
 #: ``python -c`` driver: runs the CLI with one report writer patched (argv[1] says how).
 DRIVER = """
-import errno, os, sys, time
+import errno, os, signal, sys, time
 import reblur.report as R
+
+# a shell starts background jobs with SIGINT ignored, and Python then keeps it ignored: the
+# Ctrl-C tests ask for the disposition a terminal gives (CI may run in the background)
+signal.signal(signal.SIGINT, signal.default_int_handler)
 
 mode, marker = sys.argv[1], sys.argv[2]
 if mode == "enospc":
