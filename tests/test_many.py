@@ -79,6 +79,10 @@ def test_reuse_gives_the_results_of_separate_runs(pair_set):
         assert np.array_equal(a.motion.weights, alone.motion.weights)
         assert a.threshold == alone.threshold
         assert "reference_cache" not in alone.decision
+        # where the overviews came from, recorded for a reused overview too
+        src = a.decision["alignment"]["overviews"]
+        assert src == alone.decision["alignment"]["overviews"]
+        assert src["reference"]["source"] == "block means of the full image"
     first, second = (m.result.decision["reference_cache"] for m in many)
     kinds = {"overviews", "pyramid levels", "reference features"}
     # the first run computes what the second reuses, and the second computes nothing new

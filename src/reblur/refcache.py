@@ -183,9 +183,9 @@ class _SharedOverviews(OverviewCache):
         if k not in self._memo:
             divisors = [k0 for k0 in self._memo if k % k0 == 0]
             key = (k, self._keys[max(divisors)]) if divisors else (k, None)
-            # computed the way the base class does it, from what this run holds
-            # (with where it came from: the file's levels or the full image)
-            # (flat, so the cache hands out tokens of its arrays)
+            # computed the way the base class does it, from what this run holds, and
+            # stored flat with where it came from (the cache hands out tokens of the
+            # arrays at the top level of a value)
             *value, source = self._run.memo(
                 "overviews", key,
                 lambda: (*OverviewCache.block_means(self, k), self._sources[k]))
