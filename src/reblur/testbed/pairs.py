@@ -351,10 +351,21 @@ def make_pair(
     """
     plan = plan_pair(scene, size=size, bits=bits, noise_dn=noise_dn, n_changes=n_changes,
                      seed=seed, **options)
+    return pair_from_plan(plan)
+
+
+def pair_from_plan(plan: PairPlan) -> RealismPair:
+    """Render every tile of ``plan`` into an in-memory :class:`RealismPair`.
+
+    Raises
+    ------
+    ValueError
+        When the pair is larger than :data:`MAX_IN_MEMORY_PX` (use :func:`write_pair`).
+    """
     h, w = plan.shape[:2]
     if h * w > MAX_IN_MEMORY_PX:
         raise ValueError(f"{h}x{w} is too large to hold in memory: use write_pair")
-    dt = output_dtype(bits)
+    dt = output_dtype(plan.sensor["bits"])
     ref = np.zeros(plan.shape, dtype=dt)
     obs = np.zeros(plan.shape, dtype=dt)
     truth = np.zeros((h, w), dtype=bool)

@@ -28,10 +28,9 @@ from typing import Any
 import numpy as np
 
 from .camera import shake_for
-from .pairs import MAX_IN_MEMORY_PX, TILE, PairPlan, RealismPair, plan_pair
+from .pairs import TILE, PairPlan, RealismPair, pair_from_plan, plan_pair
 from .render import Box, iter_tiles, render_window, valid_window
 from .scenes import truth_window
-from .sensor import output_dtype
 
 __all__ = [
     "READOUTS",
@@ -263,16 +262,4 @@ def make_rolling_pair(scene: Any, *, readout: float, **kwargs: Any) -> RealismPa
         ``info["n_exposure"]`` say which sub-poses each row integrates.
     """
     plan = plan_rolling_pair(scene, readout=readout, **kwargs)
-    h, w = plan.shape[:2]
-    if h * w > MAX_IN_MEMORY_PX:
-        raise ValueError(f"{h}x{w} is too large to hold in memory")
-    dt = output_dtype(plan.sensor["bits"])
-    ref = np.zeros(plan.shape, dtype=dt)
-    obs = np.zeros(plan.shape, dtype=dt)
-    truth = np.zeros((h, w), dtype=bool)
-    valid = np.zeros((h, w), dtype=bool)
-    for b in iter_tiles(plan.shape, TILE):
-        win = np.s_[b[0]:b[1], b[2]:b[3]]
-        ref[win], obs[win] = plan.reference_tile(b), plan.observed_tile(b)
-        truth[win], valid[win] = plan.truth_tile(b), plan.valid_tile(b)
-    return RealismPair(ref, obs, truth, valid, plan.homographies, plan.view, plan.info)
+    return pair_from_plan(plan)
