@@ -559,9 +559,10 @@ def readout_fraction(motion: RollingMotion) -> tuple[float, dict]:
     window and band pair gives the same value.  It does not bound the bias: on the test
     bed's curved 6-D paths fitted on the 3-D grid (``python -m benchmarks.rolling``), the
     median reads 0.16 / 0.35 / 0.23 for readouts 0.25 / 0.5 / 1 with quartiles
-    0.14-0.18 / 0.30-0.39 / 0.10-0.67 -- the fitted band kernels fit the windows (inlier
+    0.14-0.18 / 0.30-0.39 / 0.11-0.69 -- the fitted band kernels fit the windows (inlier
     RSS 65 % below the global model's at r = 1) without following the path's drift where
-    it is fastest (2-3 px per band there against 0.2-0.5 px fitted).
+    it is fastest (2.5-4.1 px per band there against 0.2-1.3 px fitted;
+    ``python -m benchmarks.rolling_readout``).
 
     Returns
     -------
