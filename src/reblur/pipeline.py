@@ -19,6 +19,7 @@ from typing import Any
 import cv2
 import numpy as np
 from scipy import ndimage
+from threadpoolctl import threadpool_limits
 
 from .align import AlignParams, OverviewCache, block_means, overview_matrix, refine_alignment
 from .align.field import estimate_field
@@ -30,7 +31,7 @@ from .decide import (
     tile_boxes,
 )
 from .decide.calibrate import calibrate_tolerance, marked_pixels, unchanged_pixels
-from .decide.photometry import with_model_error
+from .decide.photometry import FIT_BLAS_THREADS, with_model_error
 from .estimate import estimate_motion, intensity_scale
 from .grid import GridParams, PoseGrid
 from .io import chunk_cached
@@ -159,6 +160,7 @@ class Prefit:
         return exclude
 
 
+@threadpool_limits.wrap(limits=FIT_BLAS_THREADS, user_api="blas")
 def photometric_prefit(
     reference, observed, H0: np.ndarray, s_ref: float, s_obs: float, max_side: int = 512,
     sigma_px: float = 6.0,
