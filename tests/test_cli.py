@@ -14,11 +14,19 @@ import numpy as np
 import pytest
 import tifffile
 
+from reblur.align.field import DisplacementField
 from reblur.grid import PoseGrid
 from reblur.io import Image, open_image, write_geotiff, write_png
 from reblur.report import (
+    _FIELD_AT,
+    _FIELD_SIDE,
+    _KERNELS_AT,
+    _PANEL_PX,
+    _POSES_AT,
     OUTPUT_NAMES,
     blur_kernels,
+    field_figure,
+    motion_figure,
     overlay_image,
     write_report,
 )
@@ -264,6 +272,44 @@ def test_blur_kernels_translation_and_rotation():
     rad = np.hypot(150, 100) * np.deg2rad(2)
     ys, xs = np.nonzero(k[1] > 0.05)
     assert np.max(np.hypot(ys - r, xs - r)) == pytest.approx(rad, abs=1.5)
+
+
+def test_motion_figure_shows_the_pose_and_its_kernel(tmp_path):
+    grid = PoseGrid.from_ranges((201, 301), t_max=4, rz_max=2.0, rz_step=2.0)
+    w = np.zeros(grid.shape)
+    w[1, 4 - 1, 4 + 2] = 1.0  # rz = 0, tx = +2, ty = -1: one pose panel, one bright cell
+    png = read_png(motion_figure(MotionEstimate(w, grid), tmp_path / "m.png")).astype(int)
+    cell = _PANEL_PX / 9  # 9 x 9 translations
+
+    def at(origin, iy, ix, size):
+        return png[int(origin[1] + (iy + 0.5) * size), int(origin[0] + (ix + 0.5) * size)]
+
+    assert at(_POSES_AT, 3, 6, cell).sum() > 3 * 180  # magma's top: near white
+    assert at(_POSES_AT, 4, 4, cell).sum() < 3 * 40  # no weight: near black
+    _, r = blur_kernels(MotionEstimate(w, grid), np.zeros((1, 2)))
+    tap = _PANEL_PX / (2 * r + 1)
+    assert at(_KERNELS_AT, r - 1, r + 2, tap).max() < 40  # the displacement (+2, -1): black
+    assert at(_KERNELS_AT, r, r, tap).min() > 215  # no displacement: white
+
+
+def test_field_figure_draws_the_magnitude_and_the_arrows_downwards(tmp_path):
+    # 3 x 3 nodes over a 400 x 400 observation, d = (0, +1) at the centre node only:
+    # observed(p) ~ reblurred(p + (0, 1)), the content is found one pixel lower: its arrow
+    # points down (the other nodes do not move: no arrow)
+    d = np.zeros((3, 3, 2), np.float32)
+    d[1, 1, 1] = 1.0
+    png = read_png(field_figure(DisplacementField(0.0, 0.0, 200.0, d), (400, 400),
+                                tmp_path / "f.png")).astype(int)
+    s = _FIELD_SIDE / 400
+    x, y = (int(c + 200.5 * s) for c in _FIELD_AT)  # the centre node on the canvas
+    white = (png.min(axis=2) > 230)
+    assert white[y + 10:y + 120, x - 3:x + 4].sum() > 50  # the arrow, below its node
+    assert white[y - 120:y - 10, x - 3:x + 4].sum() == 0
+    x0, y0 = _FIELD_AT
+    r, g, b = png[y0 + 2, x0 + 2]  # node (0, 0): magnitude 0, viridis' dark purple
+    assert b > g and r < 100
+    r, g, b = png[y - 6, x + 6]  # next to the centre node, magnitude ~1: viridis' yellow
+    assert r > 200 and g > 200 and b < 100
 
 
 # ---------------------------------------------------------------------------- CLI: errors
