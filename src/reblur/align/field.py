@@ -200,10 +200,23 @@ class DisplacementField:
         (separable: a product of two small interpolation matrices per component)."""
         b = as_box(box)
         ny, nx = self.d.shape[:2]
-        wx = self._weights(np.arange(b.x0, b.x1), self.x0, nx)
-        wy = self._weights(np.arange(b.y0, b.y1), self.y0, ny)
+        y0, y1, ty = self._taps(np.arange(b.y0, b.y1), self.y0, ny)
+        x0, x1, tx = self._taps(np.arange(b.x0, b.x1), self.x0, nx)
         d = self.d.astype(np.float64)
-        return tuple((wy @ d[..., c] @ wx.T).astype(np.float32) for c in (0, 1))
+        out = []
+        for c in (0, 1):
+            rows = d[y0, :, c] * (1.0 - ty)[:, None] + d[y1, :, c] * ty[:, None]
+            out.append((rows[:, x0] * (1.0 - tx) + rows[:, x1] * tx).astype(np.float32))
+        return out[0], out[1]
+
+    def _taps(self, coord: np.ndarray, origin: float, n: int
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The two nodes and the weight of the second of :meth:`_weights`' rows (the
+        interpolation as two taps: a product with the weight matrices would go through
+        BLAS, whose threads cost more than the product on a tile)."""
+        f = np.clip((np.asarray(coord, np.float64) - origin) / self.step, 0.0, n - 1.0)
+        i0 = np.minimum(np.floor(f).astype(int), max(n - 2, 0))
+        return i0, np.minimum(i0 + 1, n - 1), f - i0
 
     def bound(self, box) -> float:
         """Largest ``|dx|`` or ``|dy|`` the field takes on an observation window (the node
