@@ -1,0 +1,96 @@
+"""CPU and wall time per stage of one ``reblur detect`` run, in process
+(``python -m benchmarks.stage_cpu REF OBS [--out DIR]``).
+
+On a shared host the wall times of ``report.json`` hold the other jobs' share of the
+cores; the CPU time (``time.process_time``: every thread of the process) of a stage does
+not.  The run is the CLI's (``reblur.cli.main``), with timers wrapped around the functions
+of :data:`STAGES` (a stage called several times adds up; nested stages count in both).
+Prints one line per stage, slowest first, then the import of ``reblur.cli`` and the whole
+run.  Cases of ``python -m benchmarks.cost`` are in its cache folder
+(``$TMPDIR/reblur-cost/1mp_unchanged/ref.tif`` ...).
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import importlib
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+#: ``module:function`` timed by default: the stages of ``detect_changes`` and the writing.
+STAGES = (
+    "reblur.pipeline:align_coarse",
+    "reblur.align.coarse:match_features",
+    "reblur.align.coarse:gradient_align",
+    "reblur.align.coarse:ecc_refine",
+    "reblur.align.coarse:polish_and_verify",
+    "reblur.pipeline:photometric_prefit",
+    "reblur.pipeline:select_windows",
+    "reblur.pipeline:refine_alignment",
+    "reblur.pipeline:estimate_field",
+    "reblur.pipeline:reblur_and_decide",
+    "reblur.pipeline:fit_photometry",
+    "reblur.pipeline:run_tiles",
+    "reblur.report:write_report",
+    "reblur.report:motion_figure",
+    "reblur.report:field_figure",
+    "reblur.report:_write_viewer",
+)
+
+
+def _timed(spec: str, acc: dict[str, list[float]]) -> None:
+    """Replace ``module:function`` by a wrapper adding its wall and CPU time to ``acc``."""
+    mod_name, name = spec.split(":")
+    mod = importlib.import_module(mod_name)
+    f = getattr(mod, name)
+
+    @functools.wraps(f)
+    def wrapper(*args, **kwargs):
+        w, c = time.perf_counter(), time.process_time()
+        try:
+            return f(*args, **kwargs)
+        finally:
+            row = acc.setdefault(spec, [0, 0.0, 0.0])
+            row[0] += 1
+            row[1] += time.perf_counter() - w
+            row[2] += time.process_time() - c
+
+    setattr(mod, name, wrapper)
+
+
+def main(argv: list[str] | None = None) -> dict[str, list[float]]:
+    """Run ``reblur detect REF OBS --out OUT -q`` in process; return ``{stage: [calls,
+    wall, cpu]}`` (also printed)."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("reference", type=Path)
+    ap.add_argument("observed", type=Path)
+    ap.add_argument("--out", type=Path, default=None,
+                    help="output folder (default: a temporary one, removed)")
+    ap.add_argument("--stages", default=",".join(STAGES),
+                    help="comma-separated module:function to time")
+    a = ap.parse_args(argv)
+    w0, c0 = time.perf_counter(), time.process_time()
+    import reblur.cli
+
+    acc: dict[str, list[float]] = {"import reblur.cli": [1, time.perf_counter() - w0,
+                                                         time.process_time() - c0]}
+    for spec in a.stages.split(","):
+        _timed(spec, acc)
+    with tempfile.TemporaryDirectory() as tmp:
+        out = a.out or Path(tmp) / "out"
+        try:
+            reblur.cli.main(["detect", str(a.reference), str(a.observed), "--out", str(out),
+                             "-q", "--overwrite"], standalone_mode=False)
+        finally:
+            acc["whole run"] = [1, time.perf_counter() - w0, time.process_time() - c0]
+    print(f"{'stage':45s} {'calls':>5s} {'wall s':>7s} {'CPU s':>7s}")
+    for spec, (n, wall, cpu) in sorted(acc.items(), key=lambda kv: -kv[1][2]):
+        print(f"{spec:45s} {n:5d} {wall:7.2f} {cpu:7.2f}")
+    return acc
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
