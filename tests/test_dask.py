@@ -378,3 +378,25 @@ def test_masked_views_travel_by_path(tmp_path):
     np.testing.assert_array_equal(np.isnan(got), np.isnan(want))
     assert np.isnan(want).sum() >= 100 * 200
     np.testing.assert_array_equal(np.nan_to_num(got), np.nan_to_num(want))
+
+
+def test_tile_tasks_carry_keys_not_the_job(tmp_path):
+    """Each tile task of the graph names the shared job and readers by key: its pickled size
+    stays under 2 kB whatever the image or the job weighs, and the job's bytes enter the
+    graph once (a job of 1 MB, 16 and 256 tiles: the graph is 1 MB plus a constant per
+    tile, not 16 or 256 MB)."""
+    import types
+
+    from reblur.dask_backend import tile_graph
+
+    blob = np.ones(1 << 17)  # 1 MiB standing for the pose weights and models
+    for side in (1000, 4000):
+        job = types.SimpleNamespace(image_shape=(side, side), blob=blob)
+        z = zarr.create_array(str(tmp_path / f"img{side}"), shape=(side, side),
+                              chunks=(256, 256), dtype=np.uint8)
+        graph = dict(tile_graph(job, z, z, 256).__dask_graph__())
+        n_tiles = (-(-side // 256)) ** 2
+        tiles = [v for k, v in graph.items() if isinstance(k, tuple)]
+        assert len(tiles) == n_tiles and len(graph) == n_tiles + 3
+        assert max(len(pickle.dumps(t)) for t in tiles) < 2000
+        assert len(pickle.dumps(graph)) < blob.nbytes + 2000 * (n_tiles + 3)
