@@ -30,6 +30,7 @@ import argparse
 import datetime
 import hashlib
 import importlib
+import itertools
 import json
 import os
 import shutil
@@ -171,17 +172,28 @@ class _StageClock:
 
 
 def _stream_summary(records: list[dict]) -> dict:
-    """Per-worker compute seconds and the transfer / serialisation seconds of the tasks
-    (``distributed.get_task_stream``)."""
-    out: dict = {"tasks_run": len(records), "compute_s": {}, "other_s": {}}
+    """From ``distributed.get_task_stream``: per worker, the seconds its tasks computed and
+    the seconds it waited between two tile tasks (the round trip to the scheduler for the
+    next one); and the seconds spent on anything but computing (transfers, disk)."""
+    out: dict = {"tasks_run": len(records)}
+    compute: dict[str, float] = {}
+    spans: dict[str, list[tuple[float, float]]] = {}
+    other = 0.0
     for r in records:
         w = str(r.get("worker"))
         for ss in r.get("startstops", ()):
-            d = float(ss["stop"]) - float(ss["start"])
-            key = "compute_s" if ss["action"] == "compute" else "other_s"
-            out[key][w] = out[key].get(w, 0.0) + d
-    out["compute_s"] = sorted(out["compute_s"].values())
-    out["other_s"] = sum(out["other_s"].values())
+            a, b = float(ss["start"]), float(ss["stop"])
+            if ss["action"] == "compute":
+                compute[w] = compute.get(w, 0.0) + b - a
+                if "reblur-tile" in str(r.get("key")):
+                    spans.setdefault(w, []).append((a, b))
+            else:
+                other += b - a
+    gaps = []
+    for sp in spans.values():
+        sp.sort()
+        gaps.append(sum(max(0.0, c - b) for (_, b), (c, _) in itertools.pairwise(sp)))
+    out.update(compute_s=sorted(compute.values()), other_s=other, gaps_s=sorted(gaps))
     return out
 
 
@@ -308,6 +320,15 @@ def _cell(rs: list[dict], key: str, fmt: str = "{:.1f}") -> str:
     return f"{fmt.format(float(np.median(v)))} ({fmt.format(min(v))}-{fmt.format(max(v))})"
 
 
+def _waits(rs: list[dict]) -> str:
+    """A sentence on the workers' waits between tile tasks (task stream), if recorded."""
+    gaps = [g for r in rs for g in r.get("gaps_s", [])]
+    if not gaps:
+        return ""
+    return (f"  Each worker waited {min(gaps):.1f}-{max(gaps):.1f} s in all between its tile "
+            "tasks (the round trip to the scheduler for the next one).")
+
+
 def markdown(rows: list[dict]) -> str:
     """The section: the newest commit's rows, median (range) over its runs."""
     if not rows:
@@ -323,33 +344,47 @@ def markdown(rows: list[dict]) -> str:
         "`cluster`: a `distributed.LocalCluster` of 2 single-thread worker processes "
         "(`memory_limit` per worker as given), started before the clock.  CPU: the client "
         "and every process under it.  Worker RSS: each worker's `VmHWM`.  Median (range) "
-        "over the runs.",
+        "over the runs.  Page faults: minor faults during the run, client / each worker.  "
+        "Graph: the tile pass's tasks and their pickled size (the shared job, the largest "
+        "entry, enters it once).",
         "",
-        "| mode | runs | wall (s) | CPU (s) | client CPU (s) | stages (s) | client peak RSS "
-        "(MB) | workers' peak RSS (MB) | tasks, largest task (kB) | masks | load |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| mode | runs | wall (s) | CPU (s) | estimate: wall / CPU (s) | decision's fit: "
+        "wall / CPU (s) | tile pass: wall / CPU (s), client's CPU | client peak RSS (MB) | "
+        "workers' peak RSS (MB) | page faults (k) | graph: tasks, bytes | masks | load |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     ref = by["local"][0] if by["local"] else None
+
+    def stage(rs: list[dict], name: str, client: bool = False) -> str:
+        rs = [r for r in rs if name in r.get("stages", {})]
+        if not rs:
+            return "-"
+        med = {k: float(np.median([r["stages"][name].get(k, np.nan) for r in rs]))
+               for k in ("wall_s", "cpu_s", "client_cpu_s")}
+        out = f"{med['wall_s']:.1f} / {med['cpu_s']:.1f}"
+        return out + (f", {med['client_cpu_s']:.1f}" if client else "")
+
     for mode in MODES:
         rs = by[mode]
         if not rs:
             continue
-        tm = rs[0]["timings"]
-        stages = ", ".join(f"{k} {float(np.median([r['timings'].get(k, 0) for r in rs])):.1f}"
-                           for k in ("align", "estimate", "reblur_decide") if k in tm)
         workers = ("-" if mode == "local" else
                    ", ".join(f"{max(r['worker_mb'][i] for r in rs):.0f}"
                              for i in range(len(rs[0]["worker_mb"]))))
-        tasks = ("-" if mode == "local" else
-                 f"{rs[0]['n_tasks']}, {max(r['task_bytes_max'] for r in rs) / 1e3:.1f}")
+        faults = "/".join(f"{float(np.median([r['page_faults'][k] for r in rs])) / 1e3:.0f}"
+                          for k in sorted(rs[0].get("page_faults", {})))
+        graph = ("-" if mode == "local" else
+                 f"{rs[0]['n_tasks']}, {rs[0]['graph_bytes'] / 1e3:.0f} k (largest entry "
+                 f"{rs[0]['task_bytes_max'] / 1e3:.0f} k)")
         same = ("-" if ref is None or mode == "local" else
                 "same" if all((r["change"], r["unknown"]) == (ref["change"], ref["unknown"])
                               for r in rs) else "DIFFER")
         loads = [r["load"] for r in rs]
         lines.append(
             f"| {mode} | {len(rs)} | {_cell(rs, 'time_s')} | {_cell(rs, 'cpu_s')} | "
-            f"{_cell(rs, 'client_cpu_s')} | {stages} | {_cell(rs, 'client_mb', '{:.0f}')} | "
-            f"{workers} | {tasks} | {same} | {min(loads):.1f}-{max(loads):.1f} |")
+            f"{stage(rs, 'estimate')} | {stage(rs, 'fit')} | {stage(rs, 'tiles', True)} | "
+            f"{_cell(rs, 'client_mb', '{:.0f}')} | {workers} | {faults or '-'} | {graph} | "
+            f"{same} | {min(loads):.1f}-{max(loads):.1f} |")
     if by["local"] and by["cluster"]:
         ratio = (float(np.median([r["time_s"] for r in by["cluster"]]))
                  / float(np.median([r["time_s"] for r in by["local"]])))
@@ -362,8 +397,9 @@ def markdown(rows: list[dict]) -> str:
             f"Cluster / local: wall {ratio:.2f}x, CPU {cpu:.2f}x; largest worker "
             f"{worst:.0f} MB (memory_limit {by['cluster'][0]['memory_limit']}).  Targets "
             f"(issue #28): wall <= {MAX_RATIO}x, <= {MAX_WORKER_MB:.0f} MB per worker: "
-            f"{'met' if ok else 'NOT met'}.  Cluster start-up (not timed above): "
-            f"{_cell(by['cluster'], 'startup_s')} s.",
+            f"{'met' if ok else 'NOT met'}.  Cluster start-up, with the workers' import of "
+            f"reblur (not timed above): {_cell(by['cluster'], 'startup_s')} s."
+            + _waits(by["cluster"]),
         ]
     lines += ["", f"Commit {last}, {rows[-1]['date']}; load: the 1-minute load average at "
               "the end of each case (2 cores; above 2, something else shared them)."]
