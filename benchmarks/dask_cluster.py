@@ -329,11 +329,34 @@ def _waits(rs: list[dict]) -> str:
             "tasks (the round trip to the scheduler for the next one).")
 
 
+def _earlier(rows: list[dict], n: int = 3) -> list[str]:
+    """One line per earlier commit (the ``n`` newest): median wall and tile-pass CPU."""
+    order = list(dict.fromkeys(r["commit"] for r in reversed(rows)))[:n]
+    out = []
+    for c in order:
+        cells = []
+        for mode in MODES:
+            rs = [r for r in rows if r["commit"] == c and r["mode"] == mode]
+            if not rs:
+                continue
+            cell = f"{mode} {float(np.median([r['time_s'] for r in rs])):.1f} s"
+            tiles = [r["stages"]["tiles"]["cpu_s"] for r in rs if "tiles" in r.get("stages", {})]
+            if tiles:
+                cell += f" (tile pass {float(np.median(tiles)):.1f} s CPU)"
+            cells.append(cell)
+        if cells:
+            out.append(f"Earlier, {c} ({rs[0]['date']}, load up to "
+                       f"{max(r['load'] for r in rows if r['commit'] == c):.1f}): "
+                       + ", ".join(cells) + ".")
+    return [""] + out if out else []
+
+
 def markdown(rows: list[dict]) -> str:
     """The section: the newest commit's rows, median (range) over its runs."""
     if not rows:
         return "## Dask LocalCluster against the local path\n\nNo runs recorded."
     last = rows[-1]["commit"]
+    earlier = _earlier([r for r in rows if r["commit"] != last])
     rows = [r for r in rows if r["commit"] == last]
     by = {m: [r for r in rows if r["mode"] == m] for m in MODES}
     lines = [
@@ -371,8 +394,12 @@ def markdown(rows: list[dict]) -> str:
         workers = ("-" if mode == "local" else
                    ", ".join(f"{max(r['worker_mb'][i] for r in rs):.0f}"
                              for i in range(len(rs[0]["worker_mb"]))))
-        faults = "/".join(f"{float(np.median([r['page_faults'][k] for r in rs])) / 1e3:.0f}"
-                          for k in sorted(rs[0].get("page_faults", {})))
+        faults = "-"
+        if all("page_faults" in r for r in rs):  # client, then each worker (by count)
+            per = [[r["page_faults"]["client"]] + sorted(
+                v for k, v in r["page_faults"].items() if k != "client") for r in rs]
+            faults = " / ".join(f"{float(np.median(col)) / 1e3:.0f}"
+                                for col in zip(*per, strict=True))
         graph = ("-" if mode == "local" else
                  f"{rs[0]['n_tasks']}, {rs[0]['graph_bytes'] / 1e3:.0f} k (largest entry "
                  f"{rs[0]['task_bytes_max'] / 1e3:.0f} k)")
@@ -383,7 +410,7 @@ def markdown(rows: list[dict]) -> str:
         lines.append(
             f"| {mode} | {len(rs)} | {_cell(rs, 'time_s')} | {_cell(rs, 'cpu_s')} | "
             f"{stage(rs, 'estimate')} | {stage(rs, 'fit')} | {stage(rs, 'tiles', True)} | "
-            f"{_cell(rs, 'client_mb', '{:.0f}')} | {workers} | {faults or '-'} | {graph} | "
+            f"{_cell(rs, 'client_mb', '{:.0f}')} | {workers} | {faults} | {graph} | "
             f"{same} | {min(loads):.1f}-{max(loads):.1f} |")
     if by["local"] and by["cluster"]:
         ratio = (float(np.median([r["time_s"] for r in by["cluster"]]))
@@ -402,7 +429,7 @@ def markdown(rows: list[dict]) -> str:
             + _waits(by["cluster"]),
         ]
     lines += ["", f"Commit {last}, {rows[-1]['date']}; load: the 1-minute load average at "
-              "the end of each case (2 cores; above 2, something else shared them)."]
+              "the end of each case (2 cores; above 2, something else shared them).", *earlier]
     return "\n".join(lines)
 
 
