@@ -330,6 +330,23 @@ def test_label_statistics_from_components():
                                       _label_median(S, cc.lab, cc.n))
 
 
+def test_label_median_sort_keys_against_numpy_median():
+    """The float32 median through 64-bit sort keys against ``np.median`` label by label, on
+    values with both signs, signed zeros, ties and one-pixel labels."""
+    rng = np.random.default_rng(12)
+    for _ in range(8):
+        shape = (int(rng.integers(30, 90)), int(rng.integers(30, 90)))
+        cc = _components(rng.random(shape) > 0.5)
+        S = rng.choice(np.array([-3.5, -1e-30, -0.0, 0.0, 1e-30, 0.25, 2.0, 7e20], np.float32),
+                       shape) * rng.integers(1, 4, shape).astype(np.float32)
+        noisy = rng.random(shape) < 0.5
+        S[noisy] = rng.standard_normal(int(noisy.sum())).astype(np.float32)
+        got = _label_median(S, cc.lab, cc.n, cc)
+        ref = [np.median(S[cc.lab == k].astype(np.float64)) for k in range(1, cc.n + 1)]
+        np.testing.assert_array_equal(got, ref)
+        assert (cc.area[1:] == 1).any() and (cc.area[1:] > 20).any()
+
+
 @pytest.mark.parametrize("pi", range(len(PARAMS)))
 def test_decide_core_matches_reference(pi):
     p = PARAMS[pi]
