@@ -25,11 +25,21 @@ from .decide import DecisionParams, Photometry, decide_tile
 from .tiled import SparsePoses, reblur_tile
 from .warp import as_box, read_window
 
-__all__ = ["TileJob", "grow_tile", "load_tile", "run_tile", "pad_box", "tune_worker_malloc"]
+__all__ = ["TileJob", "grow_tile", "load_tile", "max_region_extent", "run_tile", "pad_box",
+           "tune_worker_malloc"]
 
 #: Tries per tile: the first halo, then doubled where a region reaches the edge, and 8x the
 #: first halo on every edge for the last try.
 _ATTEMPTS = 4
+
+
+def max_region_extent(halo: int, local_radius: int) -> int:
+    """Largest region (bounding-box side, px) the re-runs of :func:`run_tile` decide exactly
+    with a first-try ``halo``: the last try's halo, ``halo << (_ATTEMPTS - 1)``, less the
+    reach of the pixel-local steps.  A region seen larger than this in a padded tile is
+    decided there, without growing the halo (``decide_tile``'s ``max_extent``)."""
+    return max((int(halo) << (_ATTEMPTS - 1)) - int(local_radius), 0)
+
 
 #: Serialises in-process writes into outputs whose chunks straddle tiles.
 _WRITE_LOCK = threading.Lock()
@@ -234,7 +244,11 @@ def run_tile(
     the halo's edge -- with a twice larger halo on the edges it reaches, and on the last of
     at most three re-runs eight times the first halo on every edge -- reading, reblurring
     and computing the statistic only on what the halo adds (:func:`grow_tile`), and its
-    core written into the job's outputs.
+    core written into the job's outputs.  Only regions that the last halo can hold
+    (:func:`max_region_extent`) ask for a re-run: a region already larger than that in the
+    padded tile (an area-wide change, a large false region) is decided on the tile as it
+    is and counted in ``oversize``.  The work per tile is at most four attempts, the last
+    on the core grown by eight times the first halo, however many regions it holds.
 
     Parameters
     ----------
@@ -248,7 +262,10 @@ def run_tile(
     -------
     dict
         ``core`` (box), ``regions`` (list of dict, full-image coordinates), ``complete``
-        (bool: the result equals the whole-image decision).
+        (bool: the result equals the whole-image decision), ``oversize`` (regions reaching
+        the last attempt's edge that no halo of the schedule holds), ``attempts`` (number of
+        :func:`~reblur.decide.decide_tile` calls), ``pixels`` (padded pixels decided, over
+        the attempts).
     """
     if os.getpid() != job.client_pid:
         if cv2.getNumThreads() != 1:
@@ -262,6 +279,8 @@ def run_tile(
     sides = ("top", "bottom", "left", "right")
     halo = dict.fromkeys(sides, int(job.halo))
     loaded, prev, stat = None, padded, None
+    max_extent = max_region_extent(job.halo, job.params.local_radius)
+    pixels = 0
     for attempt in range(_ATTEMPTS):
         last = attempt == _ATTEMPTS - 1
         if loaded is None:
@@ -280,10 +299,11 @@ def run_tile(
         mask, info = decide_tile(
             obs, reb, unk, threshold=job.threshold, photometry=job.photometry, box=padded,
             core=core, params=job.params, image_shape=(H, W), stop_incomplete=not last,
-            statistic=stat, keep_statistic=not last, reach=reach,
+            statistic=stat, keep_statistic=not last, reach=reach, max_extent=max_extent,
         )
+        pixels += padded[2] * padded[3]
         stat = info.pop("statistic", None)
-        if info["complete"] or last:
+        if not info["reach"] or last:  # complete, or only oversize regions reach the edge
             break
         if attempt + 1 == _ATTEMPTS - 1:  # the last try: the largest halo on every side
             halo = dict.fromkeys(sides, int(job.halo) << attempt + 1)
@@ -308,4 +328,5 @@ def run_tile(
     finally:
         if job.lock_writes:
             _WRITE_LOCK.release()
-    return {"core": core, "regions": info["regions"], "complete": bool(info["complete"])}
+    return {"core": core, "regions": info["regions"], "complete": bool(info["complete"]),
+            "oversize": int(info["oversize"]), "attempts": attempt + 1, "pixels": pixels}

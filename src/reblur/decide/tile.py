@@ -10,7 +10,10 @@ edge that is not an image border.  Hence the halo requirement
 of ``S > threshold`` after the opening) reaches out of the core.  ``R`` depends on the data:
 take the largest change object expected (``params.halo(R)``) and check
 ``info["complete"]``; False means a region came too close to the tile edge, and the tile
-should be re-run with a larger halo.
+should be re-run with a larger halo (``info["reach"]``: on which edges).  A caller whose
+halo has a ceiling passes ``max_extent``: a region already larger than that in the tile
+(an area-wide change) asks for no larger halo -- none would complete it -- and is decided
+on the tile (``info["oversize"]``), so the work per tile stays bounded.
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ from .photometry import Photometry, fit_photometry
 from .regions import (
     _Components,
     _decide_core,
-    _reaching,
+    _edge_regions,
     _region_records,
     persistence_test,
 )
@@ -137,6 +140,7 @@ def decide_tile(
     statistic: tuple[np.ndarray, Any] | None = None,
     keep_statistic: bool = False,
     reach: np.ndarray | None = None,
+    max_extent: int | None = None,
 ) -> tuple[np.ndarray | None, dict[str, Any]]:
     """Decide change on one padded tile and return its core.
 
@@ -176,6 +180,12 @@ def decide_tile(
     reach : (h, w) integer ndarray, optional
         Per-pixel geometric reach of the statistic's tolerance over the padded tile (the
         local displacement field's uncertainty; at most ``params.geometry_reach``).
+    max_extent : int, optional
+        Largest region (bounding box side, in pixels) a larger halo is meant to complete:
+        a region reaching the edge band whose part in this tile is already taller or wider
+        is *oversize* (``info["oversize"]``): it never lands in ``reach``, never stops the
+        tile (``stop_incomplete``), and is decided on this tile's window.  Default: every
+        region may be completed.
 
     Returns
     -------
@@ -185,8 +195,10 @@ def decide_tile(
         no candidate region reaching the core comes within ``params.local_radius`` of a
         tile edge that is not an image border; otherwise re-run with a larger halo),
         ``reach`` (the edges, of ``"top"``, ``"bottom"``, ``"left"``, ``"right"``, that
-        such a region comes within that distance of: where the halo must grow; empty when
-        complete),
+        such a region comes within that distance of: where the halo must grow; oversize
+        regions excluded; empty when complete),
+        ``oversize`` (how many regions reaching the band are larger than ``max_extent``;
+        the tile is then incomplete but no halo can complete it),
         ``regions`` (regions whose first pixel in raster order lies in the core, full-image
         coordinates: each region is listed by one tile), ``counts`` (candidates accepted /
         dropped, over the padded tile), ``threshold``, ``strong_threshold``, ``n_unknown``.
@@ -227,32 +239,32 @@ def decide_tile(
     core_sl = (slice(ly, ly + ch), slice(lx, lx + cw))
     n_unknown = int(np.count_nonzero(~known[core_sl]))
 
-    cand_reach: list[list[int]] = [[]]
+    cand_reach: list[tuple[list[int], int]] = [([], 0)]
 
     def level0(cc: _Components) -> bool:
         # the test on the level-0 candidates, from their components: a candidate region
         # joining the core to the band makes the tile incomplete (mask | cand, tested
-        # below, is a superset of the candidates)
-        cand_reach[0] = _reaching(None, band, core_sl, cc)
-        return stop_incomplete and bool(cand_reach[0])
+        # below, is a superset of the candidates); an oversize one does not stop it
+        cand_reach[0] = _edge_regions(None, band, core_sl, cc, max_extent)
+        return stop_incomplete and bool(cand_reach[0][0])
 
     mask, cand, counts = _decide_core(
         S, known, float(threshold), p, stop=level0,
         persists=persistence_test(o, matched, known, photometry, p, float(threshold)))
     kept = {"statistic": (S, (by0, bx0, bh, bw))} if keep_statistic else {}
     if mask is None:
-        return None, {"complete": False, "reach": [names[i] for i in cand_reach[0]],
-                      "threshold": float(threshold),
+        return None, {"complete": False, "reach": [names[i] for i in cand_reach[0][0]],
+                      "oversize": cand_reach[0][1], "threshold": float(threshold),
                       "strong_threshold": float(p.strong_factor * threshold),
                       "n_unknown": n_unknown, **kept}
     if np.any(mask & ~cand):  # filled holes: mask | cand has components of its own
-        reach = _reaching(mask | cand, band, core_sl)
+        edge, n_over = _edge_regions(mask | cand, band, core_sl, None, max_extent)
     else:  # mask | cand == cand: the test is the one on the candidates
-        reach = cand_reach[0]
-    complete = not reach
+        edge, n_over = cand_reach[0]
     info = {
-        "complete": complete,
-        "reach": [names[i] for i in reach],
+        "complete": not edge and not n_over,
+        "reach": [names[i] for i in edge],
+        "oversize": n_over,
         "threshold": float(threshold),
         "strong_threshold": float(p.strong_factor * threshold),
         "counts": counts,
