@@ -1,5 +1,5 @@
 """Where the rolling-shutter readout estimate goes wrong, and what the choice costs
-(``python -m benchmarks.rolling_readout [--size 512] [--readouts 0.25,0.5,1]``).
+(``python -m benchmarks.rolling_readout [--size 512] [--readouts 0.25,0.5,1] [--grid 6d]``).
 
 For each test-bed pair of :func:`benchmarks.rolling.make` (no change):
 
@@ -93,14 +93,16 @@ def _own_rows(pair, m, base) -> None:
               f"(true / fitted px): {steps}")
 
 
-def run(readout: float, size: int) -> None:
+def run(readout: float, size: int, grid: str = "3d") -> None:
     import reblur
     import reblur.rolling as R
     from benchmarks.rolling import make
+    from reblur.grid import GridParams
 
     pair = make(readout, False, size)
     c0 = time.process_time()
-    res = reblur.detect_changes(pair.reference, pair.observed, shutter="global")
+    res = reblur.detect_changes(pair.reference, pair.observed, shutter="global",
+                                grid=GridParams(kind="6d") if grid == "6d" else None)
     cpu_global = time.process_time() - c0
     fits = []
     fit = R._fit
@@ -123,7 +125,8 @@ def run(readout: float, size: int) -> None:
     centres = m.bands.centres / m.bands.height
     pts = np.array([[x0 + (w - 1) / 2.0, y0 + (h - 1) / 2.0] for y0, x0, h, w in m.boxes])
     r_true, r_fit = [], []
-    print(f"readout {readout}: global pipeline {cpu_global:.1f} s CPU; choice "
+    print(f"readout {readout} ({grid} grid {res.motion.grid.shape}): global pipeline "
+          f"{cpu_global:.1f} s CPU; choice "
           f"{cpu_choice:.1f} s CPU ("
           + ", ".join(f"{b} band(s) {s:.1f} s, {n} outer" for b, s, n in fits)
           + f"); kept {choice.model}")
@@ -146,6 +149,8 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=512)
     ap.add_argument("--readouts", default="0.25,0.5,1")
+    ap.add_argument("--grid", default="3d", choices=("3d", "6d"),
+                    help="the pose grid (6d: also scale change and tilt)")
     a = ap.parse_args()
     for r in a.readouts.split(","):
-        run(float(r), a.size)
+        run(float(r), a.size, a.grid)
