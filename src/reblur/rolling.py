@@ -713,12 +713,18 @@ class ShutterChoice:
     ----------
     model : {"global", "rolling"}
     global_ : RollingMotion
-        The global fit on the same windows and sub-grid (one band).
+        The global fit (one band) on the windows the choice was made on (their central
+        parts with ``RollingParams.coarse``) and the same sub-grid.
     rolling : RollingMotion
+        The band model: refitted on the full windows when it was kept, else the fit on
+        the parts.
     criterion : dict
-        ``n`` (pixels compared), ``rss_global``, ``rss_rolling`` (inlier residual sums of
-        squares), ``k_global``, ``k_rolling`` (weights in use), ``bic_global``,
-        ``bic_rolling``, ``drop`` (relative RSS drop), ``readout``, ``rule``.
+        On the windows the choice was made on (``windows``): ``n`` (pixels compared),
+        ``rss_global``, ``rss_rolling`` (inlier residual sums of squares), ``k_global``,
+        ``k_rolling`` (weights in use), ``bic_global``, ``bic_rolling``, ``drop``
+        (relative RSS drop), ``readout`` (the parts' band fit), ``rule``; ``fits`` (every
+        window fit: bands, outer iterations, ``full`` for the full-window refit) and
+        ``readout_final`` (:attr:`rolling`'s readout).
     """
 
     model: str
