@@ -794,16 +794,7 @@ def _shutter_stage(reference, view, grid, H0, weights, shutter, params, lam, pos
                 rolling=choice.rolling.to_dict())
     if model == "rolling":
         m = choice.rolling
-        fld = getattr(poses, "field", None)
-        poses = RollingPoses(m, H0)
-        if fld is not None:
-            # the field was measured through the global model's reblur, whose misfit of a
-            # rolling shutter (a shear growing down the rows) it then holds: measured
-            # again through the band model, which explains that shear itself
-            fe = estimate_field(reference, view, poses,
-                                ref_scale=intensity_scale(reference.dtype))
-            poses.field = fe.field
-            info["field"] = fe.info
+        poses = RollingPoses(m, H0, field=getattr(poses, "field", None))
         calibration = [(tuple(b), c, None) for b, c in zip(m.boxes, m.chi, strict=True)]
     return poses, calibration, info
 
