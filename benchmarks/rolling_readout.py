@@ -1,5 +1,5 @@
 """Where the rolling-shutter readout estimate goes wrong, and what the choice costs
-(``python -m benchmarks.rolling_readout [--size 512] [--readouts 0.25,0.5,1]``).
+(``python -m benchmarks.rolling_readout [--size 512] [--readouts 0.25,0.5,1] [--grid 6d]``).
 
 For each test-bed pair of :func:`benchmarks.rolling.make` (no change):
 
@@ -10,7 +10,12 @@ For each test-bed pair of :func:`benchmarks.rolling.make` (no change):
    band kernels (each band centre row's share of the path's sub-poses,
    :func:`reblur.testbed.rolling.row_slice_weights`) and to the fitted band weights, at the
    same window centres; and the centroid drift between neighbouring bands, true and
-   fitted, is printed per window.
+   fitted, is printed per window;
+4. where the kernels were fitted: at every window's centre, the centroid of the true
+   kernel of its row against that of the band model's kernel of the row
+   (:meth:`~reblur.rolling.RollingMotion.row_weights`, composed with the alignment), and
+   the change of both between consecutive windows on the same side of the image (rows
+   a band apart: time drift and the geometry's change across the rows together).
 
 The observation is read at its own scale (no photometric gain or offset: the pipeline's
 choice runs on its photometrically corrected view, so its figures differ slightly).
@@ -58,14 +63,46 @@ def _readout(moments, centres) -> list[float]:
     return rs
 
 
-def run(readout: float, size: int) -> None:
+def _own_rows(pair, m, base) -> None:
+    """Item 4 of the module docstring: true and fitted centroids at each window's own row
+    and centre (total displacement: pose composed with the alignment ``base``)."""
+    from reblur.grid import map_points
+    from reblur.testbed.rolling import row_slice_weights
+
+    hs, info = pair.homographies, pair.info
+    rows = []
+    for y0, x0, h, w in m.boxes:
+        pt = np.array([x0 + (w - 1) / 2.0, y0 + (h - 1) / 2.0])
+        a = row_slice_weights(pt[1:], m.bands.height, info["readout"], info["n_exposure"],
+                              len(hs))[0]
+        src = np.array([map_points(np.linalg.inv(hm), pt[None])[0] for hm in hs]) - pt
+        k = m.row_weights(pt[1])
+        poses = m.grid.nonzero(k)
+        d = np.array([map_points(np.linalg.inv(m.grid.homography((b, i, j)) @ base),
+                                 pt[None])[0] - pt for b, i, j, _ in poses])
+        v = np.array([q[3] for q in poses])
+        rows.append((pt, a @ src / a.sum(), v @ d / v.sum()))
+    err = [float(np.linalg.norm(t - f)) for _, t, f in rows]
+    print(f"  at the windows' own rows: |fitted - true| centroid median {np.median(err):.2f} "
+          f"px (max {max(err):.2f})")
+    for side in (0, 1):
+        pairs = list(zip(rows[side::2][:-1], rows[side::2][1:], strict=True))
+        steps = ", ".join(f"{np.linalg.norm(b[1] - a[1]):.2f} / "
+                          f"{np.linalg.norm(b[2] - a[2]):.2f}" for a, b in pairs)
+        print(f"  change between consecutive windows, x = {rows[side][0][0]:.0f} "
+              f"(true / fitted px): {steps}")
+
+
+def run(readout: float, size: int, grid: str = "3d") -> None:
     import reblur
     import reblur.rolling as R
     from benchmarks.rolling import make
+    from reblur.grid import GridParams
 
     pair = make(readout, False, size)
     c0 = time.process_time()
-    res = reblur.detect_changes(pair.reference, pair.observed, shutter="global")
+    res = reblur.detect_changes(pair.reference, pair.observed, shutter="global",
+                                grid=GridParams(kind="6d") if grid == "6d" else None)
     cpu_global = time.process_time() - c0
     fits = []
     fit = R._fit
@@ -88,7 +125,8 @@ def run(readout: float, size: int) -> None:
     centres = m.bands.centres / m.bands.height
     pts = np.array([[x0 + (w - 1) / 2.0, y0 + (h - 1) / 2.0] for y0, x0, h, w in m.boxes])
     r_true, r_fit = [], []
-    print(f"readout {readout}: global pipeline {cpu_global:.1f} s CPU; choice "
+    print(f"readout {readout} ({grid} grid {res.motion.grid.shape}): global pipeline "
+          f"{cpu_global:.1f} s CPU; choice "
           f"{cpu_choice:.1f} s CPU ("
           + ", ".join(f"{b} band(s) {s:.1f} s, {n} outer" for b, s, n in fits)
           + f"); kept {choice.model}")
@@ -104,12 +142,15 @@ def run(readout: float, size: int) -> None:
     print(f"  readout formula: on the true kernels {np.median(r_true):.2f}, on the fitted "
           f"{np.median(r_fit):.2f} (reported {m.info['readout']:.2f}, quartiles "
           + "{:.2f}-{:.2f})".format(*m.info["readout_fit"]["quartiles"]), flush=True)
+    _own_rows(pair, m, res.alignment)
 
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--size", type=int, default=512)
     ap.add_argument("--readouts", default="0.25,0.5,1")
+    ap.add_argument("--grid", default="3d", choices=("3d", "6d"),
+                    help="the pose grid (6d: also scale change and tilt)")
     a = ap.parse_args()
     for r in a.readouts.split(","):
-        run(float(r), a.size)
+        run(float(r), a.size, a.grid)

@@ -256,3 +256,54 @@ def test_solver_gram_skips_only_zero_columns(n_new):
     np.testing.assert_allclose(G, A.T @ (D[:, None] * A), rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(b, A.T @ (D * gv), rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(d, A.T @ s, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("readout", [0.0, 0.5])
+def test_choice_decides_on_central_parts_and_refits_only_a_kept_band_model(scene, readout,
+                                                                           monkeypatch):
+    """The choice's work, counted in window fits and their pixels: with ``coarse`` both
+    models are fitted on the windows' central parts (a fraction of the pixels, the same
+    centres); a global-shutter pair (r = 0) then costs no full-window fit at all, a
+    rolling one (r = 0.5) one band fit on the full windows instead of the two fits of
+    ``coarse=False``.  Both settings keep the same model, and the kept band model reads
+    the known readout (within 0.05) either way."""
+    import reblur.rolling as R
+
+    hs = _translation_path(scene.shape, 64, readout)
+    obs, _ = render_rolling_tiled(scene, hs, readout=readout, n_exposure=64)
+    grid = PoseGrid(scene.shape, tx=np.arange(-8, 9), ty=np.arange(-4, 5))
+    boxes = rolling_windows(scene.shape, 6, 128)
+    full_px = sum(h * w for _, _, h, w in boxes)
+    w = estimate_motion(scene, obs, grid, boxes=boxes, lam=1e-3, occlusion=False).weights
+    fit = R._fit
+    runs = {}
+    for coarse in (False, True):
+        fits = []
+
+        def counted(ops, gs, bands, *args, fits=fits):
+            out = fit(ops, gs, bands, *args)
+            fits.append((bands.n_bands, sum(op.box.h * op.box.w for op in ops),
+                         [op.box.as_tuple() for op in ops], out[1]["n_outer"]))
+            return out
+
+        monkeypatch.setattr(R, "_fit", counted)
+        p = RollingParams(n_bands=6, side=128, coarse=coarse)
+        runs[coarse] = (choose_shutter(scene, obs, grid, w_start=w, lam=1e-3,
+                                       occlusion=False, params=p), fits)
+    (full, fits_full), (coarse, fits_coarse) = runs[False], runs[True]
+    assert full.model == coarse.model == ("rolling" if readout else "global")
+    assert [(b, px) for b, px, _, _ in fits_full] == [(1, full_px), (6, full_px)]
+    on_parts = fits_coarse[:2]
+    assert [b for b, _, _, _ in on_parts] == [1, 6]
+    for _, px, parts, _ in on_parts:
+        assert px <= full_px / 2
+        centres = [(y + h / 2, x + w / 2) for y, x, h, w in parts]
+        np.testing.assert_allclose(centres, [(y + h / 2, x + w / 2) for y, x, h, w in boxes],
+                                   atol=1.0)
+    if readout:
+        assert [(b, px) for b, px, _, _ in fits_coarse[2:]] == [(6, full_px)]
+        for choice in (full, coarse):
+            assert abs(choice.rolling.info["readout"] - readout) <= 0.05
+        assert [f["n_outer"] for f in coarse.criterion["fits"]] == [f[3] for f in fits_coarse]
+    else:
+        assert len(fits_coarse) == 2
