@@ -5,7 +5,9 @@ The run is the CLI's (``reblur.cli.main``); every :func:`reblur.estimate.estimat
 call that :func:`reblur.select.select_windows` makes is recorded with its arguments and
 result, then run again ``--repeat`` times, each timed by CPU (``time.process_time``, every
 thread: other jobs on a shared host do not count) and wall time.  Prints one line per call:
-its windows, the solver's outer iterations, CPU and wall (the best of the repeats), and
+its windows, the solver's outer iterations, CPU and wall (the best of the repeats), the
+coarse-to-fine levels of the last repeat (stride, window side, poses, outer iterations,
+wall seconds), and
 with ``--compare FILE.npz`` the largest absolute difference of the weights, of the change
 terms and of the occluded shares from those saved there by ``--save FILE.npz`` (e.g. by
 another checkout: ``PYTHONPATH=OLD/src``).  ``--profile`` adds a cProfile of the first
@@ -83,7 +85,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
                 prof.disable()
             best = (min(best[0], c1 - c0), min(best[1], w1 - w0))
         row = dict(call=i, boxes=est.info["windows"], n_outer=int(est.info["n_outer"]),
-                   cpu_s=best[0], wall_s=best[1], occluded=list(est.info["occluded"]))
+                   cpu_s=best[0], wall_s=best[1], occluded=list(est.info["occluded"]),
+                   levels=[(lv["stride"], lv["side"], lv["n_angles"] * lv["n_t"],
+                            lv["n_outer"], round(lv["time_s"], 3))
+                           for lv in est.info.get("levels", [])])
         arrays = _arrays(est)
         keep.update({f"{i}_{k}": v for k, v in arrays.items()})
         if saved is not None:
