@@ -6,15 +6,19 @@ cores; the CPU time (``time.process_time``: every thread of the process) of a st
 not.  The run is the CLI's (``reblur.cli.main``), with timers wrapped around the functions
 of :data:`STAGES` (a stage called several times adds up; nested stages count in both).
 Prints one line per stage, slowest first, then the import of ``reblur.cli`` and the whole
-run.  Cases of ``python -m benchmarks.cost`` are in its cache folder
+run; ``--profile module:function`` adds a cProfile of that function (threads other than
+the caller's are not profiled: their work shows as waits).  Cases of
+``python -m benchmarks.cost`` are in its cache folder
 (``$TMPDIR/reblur-cost/1mp_unchanged/ref.tif`` ...).
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
 import functools
 import importlib
+import pstats
 import sys
 import tempfile
 import time
@@ -71,6 +75,9 @@ def main(argv: list[str] | None = None) -> dict[str, list[float]]:
                     help="output folder (default: a temporary one, removed)")
     ap.add_argument("--stages", default=",".join(STAGES),
                     help="comma-separated module:function to time")
+    ap.add_argument("--profile", default=None, metavar="MODULE:FUNCTION",
+                    help="also profile this function (cProfile) and print its top entries")
+    ap.add_argument("--top", type=int, default=30, help="entries of the profile printed")
     a = ap.parse_args(argv)
     w0, c0 = time.perf_counter(), time.process_time()
     import reblur.cli
@@ -79,6 +86,7 @@ def main(argv: list[str] | None = None) -> dict[str, list[float]]:
                                                          time.process_time() - c0]}
     for spec in a.stages.split(","):
         _timed(spec, acc)
+    prof = _profiled(a.profile) if a.profile else None
     with tempfile.TemporaryDirectory() as tmp:
         out = a.out or Path(tmp) / "out"
         try:
@@ -89,7 +97,31 @@ def main(argv: list[str] | None = None) -> dict[str, list[float]]:
     print(f"{'stage':45s} {'calls':>5s} {'wall s':>7s} {'CPU s':>7s}")
     for spec, (n, wall, cpu) in sorted(acc.items(), key=lambda kv: -kv[1][2]):
         print(f"{spec:45s} {n:5d} {wall:7.2f} {cpu:7.2f}")
+    if prof is not None:
+        print(f"\nprofile of {a.profile} (internal time, then cumulative):")
+        for key in ("tottime", "cumulative"):
+            pstats.Stats(prof).sort_stats(key).print_stats(a.top)
     return acc
+
+
+def _profiled(spec: str) -> cProfile.Profile:
+    """Replace ``module:function`` by a wrapper that runs it under one shared profiler
+    (its callers' references to it included: it is looked up at call time)."""
+    mod_name, name = spec.split(":")
+    mod = importlib.import_module(mod_name)
+    f = getattr(mod, name)
+    prof = cProfile.Profile()
+
+    @functools.wraps(f)
+    def wrapper(*args, **kwargs):
+        prof.enable()
+        try:
+            return f(*args, **kwargs)
+        finally:
+            prof.disable()
+
+    setattr(mod, name, wrapper)
+    return prof
 
 
 if __name__ == "__main__":

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from reblur.robust import huber_line, mad
+from reblur.robust import huber_line, mad, median
 
 
 def _irls_lstsq(x, y, n_iter=20):
@@ -43,3 +43,24 @@ def test_huber_line_degenerate_inputs():
     assert huber_line(np.array([1.0]), np.array([2.0])) == (1.0, 1.0)
     x = np.linspace(0, 1, 101)
     assert np.allclose(huber_line(x, 2 * x - 1), (2.0, -1.0))  # exact line: MAD 0 stops
+
+
+@pytest.mark.parametrize("n", [1000, 65_536, 65_537, 300_001])
+@pytest.mark.parametrize("kind", ["normal", "ties", "sorted", "half-constant", "nan", "float32"])
+def test_median_equals_numpy(n, kind):
+    """The bracketed selection returns exactly ``np.median``'s value: odd and even counts,
+    many ties, sorted data (a strided sample sees its order), a constant half, NaN."""
+    rng = np.random.default_rng(n)
+    x = rng.standard_normal(n)
+    if kind == "ties":
+        x = np.round(x, 1)
+    elif kind == "sorted":
+        x = np.sort(x)
+    elif kind == "half-constant":
+        x[: n // 2] = 0.25
+    elif kind == "nan":
+        x[n // 3] = np.nan
+    elif kind == "float32":
+        x = rng.standard_cauchy(n).astype(np.float32)
+    got, want = median(x), float(np.median(x))
+    assert got == want or (np.isnan(got) and np.isnan(want)), (got, want)

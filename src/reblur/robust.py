@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-__all__ = ["MAD_TO_SIGMA", "huber_line", "inlier_scale", "lqs_line", "mad", "robust_line"]
+__all__ = ["MAD_TO_SIGMA", "huber_line", "inlier_scale", "lqs_line", "mad", "median",
+           "robust_line"]
 
 #: MAD -> standard deviation for a Gaussian.
 MAD_TO_SIGMA = 1.4826
@@ -13,7 +14,45 @@ MAD_TO_SIGMA = 1.4826
 
 def mad(x: np.ndarray) -> float:
     """Median absolute deviation scaled to a Gaussian's standard deviation (NaN if empty)."""
-    return float(MAD_TO_SIGMA * np.median(np.abs(x - np.median(x)))) if x.size else float("nan")
+    if not x.size:
+        return float("nan")
+    return float(MAD_TO_SIGMA * median(np.abs(x - median(x))))
+
+
+#: Samples from which :func:`median` brackets the middle of a large array.
+_MEDIAN_SAMPLE = 4096
+
+
+def median(x: np.ndarray) -> float:
+    """``np.median`` of ``x`` (all its values), the same value, faster on large arrays.
+
+    ``np.median`` selects the middle of the whole array (introselect: ~10 ns per value on
+    ~10^6 values).  Here a strided sample of :data:`_MEDIAN_SAMPLE` values brackets the
+    middle ranks; one pass counts the values below the bracket and gathers those inside
+    (a few per cent of them), and the selection runs on those alone.  The counts prove
+    that the bracket holds the middle ranks; when it does not (a sample that misses them,
+    NaN), ``np.median`` decides.  The two middle values of an even count are averaged as
+    ``np.median`` averages them.
+    """
+    x = np.asarray(x).reshape(-1)
+    n = x.size
+    if n < 16 * _MEDIAN_SAMPLE or x.dtype.kind != "f":
+        return float(np.median(x))
+    smp = np.sort(x[:: n // _MEDIAN_SAMPLE])
+    m = smp.size
+    h = int(4.0 * np.sqrt(m)) + 1  # ranks of the sample: 8 standard errors of the middle
+    lo, hi = smp[max(m // 2 - h, 0)], smp[min(m // 2 + h, m - 1)]
+    k0, k1 = (n - 1) // 2, n // 2  # the middle ranks
+    lt = x < lo
+    below = int(np.count_nonzero(lt))
+    sel = x <= hi
+    sel ^= lt  # lo <= x <= hi (lo <= hi)
+    inside = x[sel]
+    if not (below <= k0 and k1 < below + inside.size) or np.isnan(x).any():
+        return float(np.median(x))
+    mid = np.partition(inside, [k0 - below, k1 - below])
+    a, b = mid[k0 - below], mid[k1 - below]
+    return float(a) if k0 == k1 else float(np.mean(np.array([a, b])))
 
 
 @threadpool_limits.wrap(limits=1, user_api="blas")

@@ -42,6 +42,11 @@ from .operator import BlurOperator
 
 #: Pixels per block when building explicit active columns (bounds the solver's memory).
 _CHUNK = 32768
+#: Share of valid pixels from which a row block of the Gram products copies all of its
+#: pixels (the masked ones then add zeros) rather than gathering the valid ones: a gather
+#: by boolean mask costs ~4x a plain copy per pixel (10 against 2.5-3 ns per column and
+#: pixel on the 1 MP cost pairs, whose windows are a few per cent invalid or excluded).
+_DENSE_BLOCK = 0.3
 #: New columns per GEMM when many enter the Gram at once (a warm start): the products
 #: then skip the lower triangle of the symmetric new-by-new block, all but a group's
 #: diagonal block (a warm start of 260 poses: 60 % of the full product's arithmetic).
@@ -159,11 +164,18 @@ class _Window:
         return self.m3 & (self.s * r > self.delta)
 
     def partition(self, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Inlier mask and outlier signs of the residual ``r``."""
+        """Inlier mask and outlier signs of the residual ``r``.  The inliers are the
+        mask's pixels of sign 0 (an outlier's residual is beyond ``delta >= 0``, so not
+        0): the solver keeps ``inl == m3 & (sgn == 0)`` for every partition it holds."""
+        sgn = self.signs(r)
+        return self.m3 & (sgn == 0), sgn
+
+    def signs(self, r: np.ndarray) -> np.ndarray:
+        """Outlier signs of the residual ``r`` (int8; 0: inlier or off the mask)."""
         out = self.outliers(r)
         if out is None:
-            return self.m3.copy(), np.zeros(self.op.dimsd, np.int8)
-        return self.m3 & ~out, np.where(out, np.sign(r), 0).astype(np.int8)
+            return np.zeros(self.op.dimsd, np.int8)
+        return np.where(out, np.sign(r), 0).astype(np.int8)
 
     def loss(self, r: np.ndarray) -> float:
         """Data term of the objective at residual ``r`` (valid pixels)."""
@@ -248,12 +260,15 @@ class _Window:
         ``G``, ``b`` and ``d`` (see :meth:`block_products`)."""
         w, C = self.op.box.w, self.op.dimsd[2]
         n_all = len(views)
-        if mk.all():
+        if mk.mean() >= _DENSE_BLOCK:
+            # every pixel of the block, the masked ones included: they are outside the
+            # inlier set (``inl``) and carry no sign, so the new columns are zeroed there
+            # below and add nothing; ``gm`` is ``g`` zeroed off the mask (no NaN)
             n_pix = (r1 - r0) * w * C
             At = buf[:n_all, :n_pix]
             for j, v in enumerate(views):
                 np.copyto(At[j].reshape(r1 - r0, w, C), v[r0:r1])
-            gb = self.g[r0:r1].reshape(-1)
+            gb = self.gm[r0:r1].reshape(-1)
             ib = self.inl[r0:r1].reshape(-1)
             sb = self.sgn[r0:r1].reshape(-1)
         else:
@@ -285,10 +300,12 @@ class _Window:
         the changes they make to the cached ``G, b, d`` (None when none changes)."""
         if self.delta is None:
             return 0, None
-        inl, sgn = self.partition(r)
-        changed = (inl != self.inl) | (sgn != self.sgn)
+        # the partition is its signs (see partition): a pixel changes with its sign
+        sgn = self.signs(r)
+        changed = sgn != self.sgn
         if not changed.any():
             return 0, None
+        inl = self.m3 & (sgn == 0)
         k = len(active)
         G, b, d = np.zeros((k, k)), np.zeros(k), np.zeros(k)
         rows_all, cols_all, chans_all = np.nonzero(changed)
@@ -640,6 +657,58 @@ def _nnls_gram(G: np.ndarray, b: np.ndarray) -> np.ndarray:
     return w
 
 
+class _Slope:
+    """One window's share of the line search's ``phi'(t)`` and ``phi''(t)`` on [0, 1].
+
+    ``r - t D`` is linear in ``t`` and each piece of the loss (inlier; outlier of either
+    sign) is an interval of the residual, so a pixel in the same piece at ``t = 0`` and
+    ``t = 1`` stays in it throughout: those pixels' shares are fixed sums, computed once
+    (inliers ``-2 (sum r D - t sum D^2)``, outliers ``-2 delta sum sign D``), and only the
+    pixels that change piece on the way (few, near the optimum) are evaluated at each
+    ``t``.  ``r`` and ``D`` are zero off the window's mask.
+    """
+
+    def __init__(self, win, r: np.ndarray, D: np.ndarray):
+        self.delta = win.delta
+        if win.delta is None:  # squared loss: every pixel an inlier
+            self.rd, self.dd, self.cs = float(np.vdot(r, D)), float(np.vdot(D, D)), 0.0
+            self.idx = None
+            return
+        p0 = _piece(win, r)
+        p1 = _piece(win, r - D)
+        same = p0 == p1
+        Dm = np.where(same & (p0 == 0), D, 0.0)
+        self.rd, self.dd = float(np.vdot(r, Dm)), float(np.vdot(Dm, Dm))
+        self.cs = float(np.vdot(np.where(same, p0, 0.0), D))
+        idx = np.flatnonzero(~same)
+        self.idx = idx
+        self.r, self.D = r.reshape(-1)[idx], D.reshape(-1)[idx]
+        sg = getattr(win, "s", None)
+        self.s = None if sg is None else np.asarray(sg).reshape(-1)[idx]
+
+    def at(self, t: float) -> tuple[float, float]:
+        """This window's share of the slope at ``t`` and of its derivative."""
+        s = -2.0 * (self.rd - t * self.dd)
+        c = 2.0 * self.dd
+        if self.delta is None:
+            return s, c
+        s -= 2.0 * self.delta * self.cs
+        if self.idx.size:
+            rt = self.r - t * self.D
+            out = (np.abs(rt) if self.s is None else self.s * rt) > self.delta
+            psi = np.where(out, 2.0 * self.delta * np.sign(rt), 2.0 * rt)
+            Di = np.where(out, 0.0, self.D)
+            s -= float(np.vdot(psi, self.D))
+            c += 2.0 * float(np.vdot(Di, Di))
+        return s, c
+
+
+def _piece(win, r: np.ndarray) -> np.ndarray:
+    """The loss's piece at every pixel of ``r``: 0 inlier (or off the mask), the sign of
+    ``r`` where an outlier."""
+    return np.where(win.outliers(r), np.sign(r), 0.0)
+
+
 def _line_search(ws, res, deltas, dw_sum, lam, iters: int = 40) -> float:
     """Exact step ``t`` in [0, 1] minimising the (convex) objective along a direction.
 
@@ -649,23 +718,16 @@ def _line_search(ws, res, deltas, dw_sum, lam, iters: int = 40) -> float:
     bracket of its sign change lands on the root once in the root's linear piece; a step
     outside the bracket is replaced by the secant of the bracket, and a step that does not
     halve the bracket is followed by a bisection.  A few evaluations reach what ``iters``
-    bisections give (the root to ``2^-iters``, or a slope ``1e-10`` of the start's).
+    bisections give (the root to ``2^-iters``, or a slope ``1e-10`` of the start's).  Each
+    window's pixels are read in full once (:class:`_Slope`); the evaluations then visit
+    only the pixels that change piece between ``t = 0`` and ``t = 1``.
     """
-
-    def part(win, r, D, t: float) -> tuple[float, float]:
-        """One window's share of the slope at ``t`` and of its derivative."""
-        rt = r - t * D
-        out = win.outliers(rt)
-        if out is None:
-            # D is 0 off the mask
-            return -2.0 * float(np.vdot(rt, D)), 2.0 * float(np.vdot(D, D))
-        psi = np.where(out, 2.0 * win.delta * np.sign(rt), 2.0 * rt)
-        Di = np.where(out, 0.0, D)
-        return -float(np.vdot(psi, D)), 2.0 * float(np.vdot(Di, Di))
+    parts = ws.map(_Slope, res, deltas)
 
     def slope(t: float) -> tuple[float, float]:
         s, c = lam * dw_sum, 0.0
-        for ds, dc in ws.map(lambda win, r, D: part(win, r, D, t), res, deltas):
+        for p in parts:  # in window order
+            ds, dc = p.at(t)
             s += ds
             c += dc
         return s, c
