@@ -307,3 +307,30 @@ def test_choice_decides_on_central_parts_and_refits_only_a_kept_band_model(scene
         assert [f["n_outer"] for f in coarse.criterion["fits"]] == [f[3] for f in fits_coarse]
     else:
         assert len(fits_coarse) == 2
+
+
+def test_field_measured_through_the_band_model(scene):
+    """A pair rendered with a band model whose bands drift 2 px apart (top to bottom):
+    measured through the global model of the mean weights, the tie points see the rows'
+    shear (and a field is fitted to it); measured through the band model itself
+    (``reblur.tiled.reblur_tile`` of :class:`RollingPoses`, as the pipeline does when it
+    keeps the band model), they see nothing to correct."""
+    from reblur.align.field import estimate_field
+
+    grid = PoseGrid(scene.shape, tx=np.arange(-4, 5), ty=[0])
+    W = np.zeros((4, *grid.shape))
+    for b in range(4):  # a 3 px box whose start moves 2/3 px per band (2 px in all)
+        W[b, 0, 0, 2:5] = 1 / 3 * (1 - b / 3)
+        W[b, 0, 0, 4:7] += 1 / 3 * (b / 3)
+    motion = RollingMotion(W, grid, RowBands(256, 4))
+    obs, _ = reblur_rolling(scene, motion)
+    poses = RollingPoses(motion)
+    box = (30, 40, 100, 90)
+    np.testing.assert_array_equal(reblur_tile(poses, scene, box)[0],
+                                  reblur_rolling_tile(poses, scene, box)[0])
+    through_bands = estimate_field(scene, obs, poses).info
+    through_mean = estimate_field(scene, obs, SparsePoses(W.mean(axis=0), grid)).info
+    assert through_bands["rms_before_px"] < 0.05, through_bands
+    assert not through_bands["applied"]
+    assert through_mean["rms_before_px"] > 0.3, through_mean
+    assert through_mean["applied"]

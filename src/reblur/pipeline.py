@@ -784,7 +784,7 @@ def _windows_of(motion) -> list[tuple[tuple[int, ...], np.ndarray | None, np.nda
 
 
 def _shutter_stage(reference, view, grid, H0, weights, shutter, params, lam, poses,
-                   calibration):
+                   calibration, local_field):
     """The rolling-shutter model (``shutter="rolling"``) or the choice (``"auto"``):
     the poses and calibration windows to decide with, and the record of the choice."""
     choice = choose_shutter(reference, view, grid, w_start=weights, base=H0, lam=lam,
@@ -796,7 +796,16 @@ def _shutter_stage(reference, view, grid, H0, weights, shutter, params, lam, pos
                 rolling=choice.rolling.to_dict())
     if model == "rolling":
         m = choice.rolling
-        poses = RollingPoses(m, H0, field=getattr(poses, "field", None))
+        poses = RollingPoses(m, H0)
+        if local_field:
+            # the global model's field was measured through its reblur, whose misfit of a
+            # rolling shutter (a shear growing down the rows) it holds: measured again
+            # through the band model, which explains that shear itself, and kept only if it
+            # lowers the tie points' residual through the band model (estimate_field's test)
+            fe = estimate_field(reference, view, poses,
+                                ref_scale=intensity_scale(reference.dtype))
+            poses.field = fe.field
+            info["field"] = fe.info
         calibration = [(tuple(b), c, None) for b, c in zip(m.boxes, m.chi, strict=True)]
     return poses, calibration, info
 
@@ -1039,7 +1048,7 @@ def detect_changes(
         t_sh = time.perf_counter()
         poses, calibration, shutter_info = _shutter_stage(
             reference, ScaledView(observed, s_obs, gain, offset), grid, H0, motion.weights,
-            shutter, rolling, lam, poses, calibration)
+            shutter, rolling, lam, poses, calibration, local_field)
         timings["shutter"] = time.perf_counter() - t_sh
         t = time.perf_counter()
     keep = (Ho * Wo <= KEEP_REBLURRED_PIXELS) if keep_reblurred is None else keep_reblurred
@@ -1047,7 +1056,7 @@ def detect_changes(
     dec = reblur_and_decide(
         reference, observed, poses, s_ref=s_ref, s_obs=s_obs, gain=gain, offset=offset,
         tile_size=tile_size, threshold=threshold, workers=workers,
-        params=_decision_params(decision, illumination, est.field),
+        params=_decision_params(decision, illumination, getattr(poses, "field", None)),
         keep_reblurred=keep, change_out=change_out, unknown_out=unknown_out,
         reblurred_out=reblurred_out, scheduler=scheduler, work_dir=work_dir,
         progress=(lambda f: report("reblur + decide", f)) if progress else None,

@@ -67,6 +67,8 @@ def reblur_tile(poses: SparsePoses, reference, box, *, dtype=np.float32):
         True where every non-zero pose reads real reference pixels.
     """
     box = as_box(box)
+    if hasattr(poses, "reblur_tile"):  # the band model (reblur.rolling.RollingPoses)
+        return poses.reblur_tile(reference, box, dtype=dtype)
     fld = getattr(poses, "field", None)
     if fld is None:
         return _reblur_poses(poses, reference, box, dtype)
