@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -509,6 +510,22 @@ def test_detect_no_align_no_refine(tmp_path, good_pair, monkeypatch):
     assert res.exit_code == 1 and "_Called" in res.output, res.output
     assert seen["align"] is False and seen["refine"] is False and seen["align_hint"] is None
     assert seen["local_field"] is False
+
+
+def test_detect_workers_default_to_the_usable_cpus(tmp_path, good_pair, monkeypatch):
+    """Without --workers the tiles run on the CPUs this process may use (its affinity
+    mask), at most 4; --workers N is passed on as given."""
+    seen = _spy_detect(monkeypatch)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1, 2}, raising=False)
+    res = _invoke("detect", *good_pair, "--out", tmp_path / "res", "-q")
+    assert res.exit_code == 1 and "_Called" in res.output, res.output
+    assert seen["workers"] == 3
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(64)), raising=False)
+    res = _invoke("detect", *good_pair, "--out", tmp_path / "res", "-q")
+    assert seen["workers"] == 4
+    res = _invoke("detect", *good_pair, "--out", tmp_path / "res", "--workers", "7", "-q")
+    assert res.exit_code == 1 and "_Called" in res.output, res.output
+    assert seen["workers"] == 7
 
 
 @pytest.mark.parametrize("text", [
