@@ -92,6 +92,17 @@ def run_case(module: str, *args: str, timeout: float = 1800,
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def release(client, cluster, work: Path) -> None:
+    """Close a Dask client and cluster (either may be None) and remove a work folder."""
+    import shutil
+
+    if client is not None:
+        client.close()
+    if cluster is not None:
+        cluster.close()
+    shutil.rmtree(work, ignore_errors=True)
+
+
 def commit() -> str:
     """Short hash of ``HEAD``, with ``+dirty`` when ``src`` has uncommitted changes."""
 

@@ -33,14 +33,13 @@ import importlib
 import itertools
 import json
 import os
-import shutil
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import REPO, commit, load_runs, peak_rss_mb, run_case, save_runs
+from benchmarks.common import REPO, commit, load_runs, peak_rss_mb, release, run_case, save_runs
 
 RUNS = REPO / "docs" / "dask_cluster_runs.json"
 MODES = ("local", "cluster")
@@ -267,11 +266,7 @@ def case(d: Path, mode: str, memory_limit: str = "1GB", tile: int = 1024) -> dic
                        **(spy.seen[0] if spy.seen else {}), **_stream_summary(stream.data))
         return row
     finally:
-        if client is not None:
-            client.close()
-        if cluster is not None:
-            cluster.close()
-        shutil.rmtree(work, ignore_errors=True)
+        release(client, cluster, work)
 
 
 def main(mp: float = 100, repeat: int = 1, memory_limit: str = "1GB",

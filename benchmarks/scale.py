@@ -49,7 +49,7 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import REPO, commit, load_runs, run_case, save_runs
+from benchmarks.common import REPO, commit, load_runs, release, run_case, save_runs
 
 SIZES_MP = (25, 100, 400, 1000)
 PLOT = REPO / "docs" / "images" / "scale.png"
@@ -220,11 +220,7 @@ def detect_case(d: Path, mode: str, tile: int = 1024) -> dict:
                     incomplete=res.decision.get("incomplete_tiles"),
                     load=os.getloadavg()[0], **rs.summary())
     finally:
-        if client is not None:
-            client.close()
-        if cluster is not None:
-            cluster.close()
-        shutil.rmtree(work, ignore_errors=True)
+        release(client, cluster, work)
 
 
 # ---------------------------------------------------------------------------- alignment
