@@ -87,6 +87,16 @@ def _minflt() -> int:
     return int(resource.getrusage(resource.RUSAGE_SELF).ru_minflt)
 
 
+def _read_mb() -> float:
+    """Megabytes this process has read through ``read()`` calls so far, page cache
+    included (``rchar`` of ``/proc/self/io``; self-contained: runs in workers too)."""
+    with open("/proc/self/io") as f:
+        for line in f:
+            if line.startswith("rchar:"):
+                return int(line.split()[1]) / 2**20
+    return float("nan")
+
+
 class _GraphSpy:
     """Records the tile graph :func:`reblur.dask_backend.decide_tiles` computes: its task
     count and pickled size (what the client ships; the job and the readers enter it once)."""
@@ -233,6 +243,7 @@ def case(d: Path, mode: str, memory_limit: str = "1GB", tile: int = 1024) -> dic
         procs = [me, *me.children(recursive=True)]
         cpu0 = _tree_cpu(procs)
         flt0 = {"client": _minflt(), **(client.run(_minflt) if client is not None else {})}
+        rd0 = {"client": _read_mb(), **(client.run(_read_mb) if client is not None else {})}
         stream = None
         clock = _StageClock(procs, cluster=client is not None)
         with RssSampler() as rs, _GraphSpy() as spy, clock:
@@ -250,6 +261,8 @@ def case(d: Path, mode: str, memory_limit: str = "1GB", tile: int = 1024) -> dic
         cpu = {pid: cpu1[pid] - cpu0.get(pid, 0.0) for pid in cpu1}
         flt1 = {"client": _minflt(), **(client.run(_minflt) if client is not None else {})}
         extra["page_faults"] = {k: flt1[k] - flt0.get(k, 0) for k in sorted(flt1)}
+        rd1 = {"client": _read_mb(), **(client.run(_read_mb) if client is not None else {})}
+        extra["read_mb"] = {k: rd1[k] - rd0.get(k, 0.0) for k in sorted(rd1)}
         wpids = extra.pop("worker_pids", [])
         extra["workers_cpu_s"] = [round(cpu.get(p, 0.0), 2) for p in wpids]
         extra["others_cpu_s"] = round(sum(v for p, v in cpu.items()
@@ -267,6 +280,18 @@ def case(d: Path, mode: str, memory_limit: str = "1GB", tile: int = 1024) -> dic
         return row
     finally:
         release(client, cluster, work)
+
+
+def _per_process(rs: list[dict], key: str, scale: float) -> str:
+    """``client / worker / worker`` medians of the per-process counts ``r[key]`` (workers
+    by count, largest last), times ``scale``; "-" where a run lacks them."""
+    if not all(key in r for r in rs):
+        return "-"
+    per = [[r[key]["client"]] + sorted(v for k, v in r[key].items() if k != "client")
+           for r in rs]
+    if len({len(p) for p in per}) != 1:
+        return "-"
+    return " / ".join(f"{float(np.median(col)) * scale:.0f}" for col in zip(*per, strict=True))
 
 
 def main(mp: float = 100, repeat: int = 1, memory_limit: str = "1GB",
@@ -362,14 +387,16 @@ def markdown(rows: list[dict]) -> str:
         "`cluster`: a `distributed.LocalCluster` of 2 single-thread worker processes "
         "(`memory_limit` per worker as given), started before the clock.  CPU: the client "
         "and every process under it.  Worker RSS: each worker's `VmHWM`.  Median (range) "
-        "over the runs.  Page faults: minor faults during the run, client / each worker.  "
+        "over the runs.  Page faults: minor faults during the run, client / each worker; read: "
+        "the bytes they read from files (`rchar`, page cache included), workers by count.  "
         "Graph: the tile pass's tasks and their pickled size (the shared job, the largest "
         "entry, enters it once).",
         "",
         "| mode | runs | wall (s) | CPU (s) | estimate: wall / CPU (s) | decision's fit: "
         "wall / CPU (s) | tile pass: wall / CPU (s), client's CPU | client peak RSS (MB) | "
-        "workers' peak RSS (MB) | page faults (k) | graph: tasks, bytes | masks | load |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "workers' peak RSS (MB) | page faults (k) | read (MB) | graph: tasks, bytes | masks | "
+        "load |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     ref = by["local"][0] if by["local"] else None
 
@@ -389,12 +416,8 @@ def markdown(rows: list[dict]) -> str:
         workers = ("-" if mode == "local" else
                    ", ".join(f"{max(r['worker_mb'][i] for r in rs):.0f}"
                              for i in range(len(rs[0]["worker_mb"]))))
-        faults = "-"
-        if all("page_faults" in r for r in rs):  # client, then each worker (by count)
-            per = [[r["page_faults"]["client"]] + sorted(
-                v for k, v in r["page_faults"].items() if k != "client") for r in rs]
-            faults = " / ".join(f"{float(np.median(col)) / 1e3:.0f}"
-                                for col in zip(*per, strict=True))
+        faults = _per_process(rs, "page_faults", 1e-3)
+        read = _per_process(rs, "read_mb", 1.0)
         graph = ("-" if mode == "local" else
                  f"{rs[0]['n_tasks']}, {rs[0]['graph_bytes'] / 1e3:.0f} k (largest entry "
                  f"{rs[0]['task_bytes_max'] / 1e3:.0f} k)")
@@ -405,7 +428,7 @@ def markdown(rows: list[dict]) -> str:
         lines.append(
             f"| {mode} | {len(rs)} | {_cell(rs, 'time_s')} | {_cell(rs, 'cpu_s')} | "
             f"{stage(rs, 'estimate')} | {stage(rs, 'fit')} | {stage(rs, 'tiles', True)} | "
-            f"{_cell(rs, 'client_mb', '{:.0f}')} | {workers} | {faults} | {graph} | "
+            f"{_cell(rs, 'client_mb', '{:.0f}')} | {workers} | {faults} | {read} | {graph} | "
             f"{same} | {min(loads):.1f}-{max(loads):.1f} |")
     if by["local"] and by["cluster"]:
         ratio = (float(np.median([r["time_s"] for r in by["cluster"]]))

@@ -20,7 +20,7 @@ import tifffile
 import zarr
 
 import reblur
-from reblur.dask_backend import TiffSource, portable, scheduler_kind
+from reblur.dask_backend import TiffSource, portable, scheduler_kind, tile_bands
 from reblur.simulate import make_pair
 
 TILE = 256
@@ -98,6 +98,52 @@ def test_local_cluster_two_workers_matches_local_path(pair, local, tmp_path):
     # small image: masks came back as numpy and the work store was removed
     assert isinstance(res.change, np.ndarray)
     assert not (tmp_path / "work").exists() or not any((tmp_path / "work").iterdir())
+
+
+@pytest.mark.parametrize("ny,n", [(1, 1), (1, 4), (3, 2), (10, 3), (7, 7), (100, 6)])
+def test_tile_bands_partition_the_rows_into_contiguous_near_equal_bands(ny, n):
+    bands = tile_bands(ny, n)
+    assert len(bands) == min(ny, n)
+    assert [r for b in bands for r in b] == list(range(ny))  # contiguous, in order, all
+    sizes = [len(b) for b in bands]
+    assert max(sizes) - min(sizes) <= 1 and min(sizes) >= 1
+    with pytest.raises(ValueError, match="worker"):
+        tile_bands(ny, 0)
+
+
+class _RecordingClient:
+    """A client that records what it is asked to compute, and where."""
+
+    def __init__(self, workers):
+        self.workers = workers
+        self.calls = []
+
+    def scheduler_info(self):
+        return {"workers": {w: {} for w in self.workers}}
+
+    def compute(self, blocks, workers=None, allow_other_workers=False):
+        self.calls.append((list(blocks), workers, allow_other_workers))
+        return list(blocks)
+
+
+def test_tiles_go_to_workers_in_bands_of_rows_with_a_loose_preference():
+    from reblur.dask_backend import _submit_in_bands
+
+    blocks = np.empty((5, 4), object)
+    for i in range(5):
+        for j in range(4):
+            blocks[i, j] = (i, j)
+    client = _RecordingClient(["tcp://b:2", "tcp://a:1", "tcp://c:3"])
+    futures = _submit_in_bands(client, blocks)
+    assert sorted(futures) == sorted(blocks.ravel().tolist())  # every tile, once
+    rows = [sorted({i for i, _ in c[0]}) for c in client.calls]
+    assert rows == [[0, 1], [2], [3, 4]]  # contiguous bands, near equal
+    assert [c[1] for c in client.calls] == [["tcp://a:1"], ["tcp://b:2"], ["tcp://c:3"]]
+    assert all(c[2] for c in client.calls)  # idle workers may still take tiles
+    # one worker (or none yet): no preference
+    client = _RecordingClient(["tcp://a:1"])
+    _submit_in_bands(client, blocks)
+    assert [(len(c[0]), c[1]) for c in client.calls] == [(20, None)]
 
 
 def test_large_outputs_stay_in_zarr(pair, local, tmp_path, monkeypatch):

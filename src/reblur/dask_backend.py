@@ -72,6 +72,7 @@ __all__ = [
     "portable",
     "run_once",
     "scheduler_kind",
+    "tile_bands",
     "tile_graph",
 ]
 
@@ -596,6 +597,35 @@ def tile_graph(job: TileJob, reference, observed, tile_size: int):
     )
 
 
+def tile_bands(ny: int, n_workers: int) -> list[range]:
+    """Contiguous bands of tile rows, one per worker (as equal as the rows allow; empty
+    bands dropped).
+
+    A tile reads its core and a halo around it, so neighbouring tiles decode the same
+    chunks of the inputs; a worker keeps the chunks it decoded (:class:`reblur.io.ChunkCache`),
+    so giving it a band of rows decodes most chunks once on the cluster, where tiles handed
+    out in turn would have every worker decode nearly every chunk.
+    """
+    if ny < 1 or n_workers < 1:
+        raise ValueError(f"need at least one tile row and one worker, got {ny} and {n_workers}")
+    edges = np.linspace(0, ny, min(ny, n_workers) + 1).round().astype(int)
+    return [range(a, b) for a, b in zip(edges[:-1], edges[1:], strict=True) if b > a]
+
+
+def _submit_in_bands(client, blocks: np.ndarray) -> list:
+    """Futures of the ``(ny, nx)`` delayed ``blocks``, a band of tile rows preferred on each
+    of the cluster's workers (:func:`tile_bands`); the preference is loose, so an idle worker
+    still takes (steals) tiles from a busy one.  Without workers yet, no preference."""
+    workers = sorted(client.scheduler_info().get("workers", {}))
+    if len(workers) < 2:
+        return client.compute(blocks.ravel().tolist())
+    futures = []
+    for addr, rows in zip(workers, tile_bands(blocks.shape[0], len(workers)), strict=False):
+        futures += client.compute(blocks[rows.start:rows.stop].ravel().tolist(),
+                                  workers=[addr], allow_other_workers=True)
+    return futures
+
+
 def _compute(graph, kind: str, scheduler, workers: int,
              progress: Callable[[float], None] | None) -> list[dict[str, Any]]:
     """Compute the blocks of :func:`tile_graph` on ``scheduler``, reporting progress."""
@@ -605,10 +635,9 @@ def _compute(graph, kind: str, scheduler, workers: int,
     if kind == "distributed":
         import distributed
 
-        blocks = graph.to_delayed().ravel().tolist()
         results: list[dict[str, Any]] = []
         with _client(scheduler) as client:
-            futures = client.compute(blocks)
+            futures = _submit_in_bands(client, graph.to_delayed())
             # the client's own loop: as_completed would otherwise look for a default
             # client, and the one opened here is not made the default
             for k, fut in enumerate(distributed.as_completed(futures, loop=client.loop), 1):
