@@ -67,6 +67,20 @@ def test_shifts_match_the_analytic_displacement(reference):
     assert max(errs) < 0.05 and np.median(errs) < 0.02, errs
 
 
+def test_threaded_shifts_equal_the_serial_ones(reference):
+    # the probes are measured side by side; each is computed alone, so the threads'
+    # result is the one-thread result, bit for bit (the serial loop is the reference)
+    err = pose_homography(0.3, -0.2, 3e-4, 0.0, 0.0, 0.02, center=C)
+    obs, grid, w = _observe(reference, err)
+    boxes = probe_boxes((H, W), size=128, n=8)
+    poses = SparsePoses(w, grid)
+    serial = measure_shifts(reference, obs, poses, boxes, workers=1)
+    assert sum(s.measured for s in serial) >= 20
+    assert measure_shifts(reference, obs, poses, boxes, workers=3) == serial
+    with pytest.raises(ValueError, match="workers"):
+        measure_shifts(reference, obs, poses, boxes, workers=0)
+
+
 def test_refinement_removes_a_residual_scale_error(reference):
     err = pose_homography(0.4, -0.3, 2e-4, 0.0, 0.0, 0.015, center=C)
     obs, grid, w = _observe(reference, err)

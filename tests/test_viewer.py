@@ -91,6 +91,33 @@ def block_mean(a: np.ndarray, s: int) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------- pyramid
+def test_pyramids_built_by_threads_equal_the_serial_build(tmp_path):
+    # leaves are built side by side; the files must be those of the one-thread build
+    rng = np.random.default_rng(3)
+    img = textured(rng, 300, 420)
+    m = np.zeros(img.shape[:2], bool)
+    m[40:90, 100:260] = True
+
+    def layers():
+        return [image_layer("img", img, sample_stretch(img, img.dtype), fmt="jpg"),
+                mask_layer("m", m, (255, 0, 0), alpha=0.8, reduce="max")]
+
+    def files(root):
+        return {p.relative_to(root): p.read_bytes() for p in root.rglob("*") if p.is_file()}
+
+    one = build_pyramids(tmp_path / "one", layers(), img.shape[:2], tile_size=32, block=64,
+                         workers=1)
+    many = build_pyramids(tmp_path / "many", layers(), img.shape[:2], tile_size=32, block=64,
+                          workers=3)
+    assert one == many
+    a, b = files(tmp_path / "one"), files(tmp_path / "many")
+    assert len(a) == 2 * one.n_tiles() + 2  # every tile of both layers, and two .dzi
+    assert a == b
+    with pytest.raises(ValueError, match="workers"):
+        build_pyramids(tmp_path / "bad", layers(), img.shape[:2], tile_size=32, workers=0)
+    assert not (tmp_path / "bad").exists()
+
+
 def test_pyramid_levels_are_block_means_of_the_full_size(tmp_path):
     rng = np.random.default_rng(0)
     img = textured(rng, 200, 300)  # uint8: displayed as it is

@@ -59,11 +59,13 @@ import shutil
 import sys
 import time
 from collections.abc import Callable, Iterable
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from ._memory import available_cpus
 from .gis import (
     FEATURE_KEYS,
     change_features,
@@ -954,6 +956,77 @@ def _write_viewer(result: ChangeResult, out: Path, observed: Image | None,
     summary["timings_s"]["viewer"] = info.time_s
 
 
+def _write_masks(result: ChangeResult, out: Path, observed: Image | None,
+                 geo) -> tuple[dict[str, str], list[str]]:
+    """``changes.png`` / ``unknown.png`` (up to the PNG limit), the masks' COGs (large or
+    georeferenced images) and the polygons (georeferenced); returns (files, notes)."""
+    change, unknown = result.change, result.unknown
+    H, W = change.shape[:2]
+    files: dict[str, str] = {}
+    notes: list[str] = []
+    if H * W <= PNG_MAX_PIXELS:
+        write_png(out / "changes.png", _mask_u8(change, unknown))
+        files["changes.png"] = "changes.png"
+        write_png(out / "unknown.png", _mask_u8(unknown))
+        files["unknown.png"] = "unknown.png"
+    else:
+        notes.append(f"image of {H * W:,} pixels: masks written as TIFF only (PNG limit)")
+    if H * W > BIG_MASK_PIXELS or geo is not None or H * W > PNG_MAX_PIXELS:
+        for name, view in (("changes.tif", _MaskView(change, unknown)),
+                           ("unknown.tif", _MaskView(unknown))):
+            write_cog(out / name, view, geo, block=COG_BLOCK, overviews="max")
+            files[name] = name
+    if geo is not None:
+        feats = region_features(_MaskView(change, unknown), geo,
+                                triage(list(result.regions), observed))
+        write_geojson(out / "changes.geojson", feats, geo)
+        files["changes.geojson"] = "changes.geojson"
+        if geopackage_available():
+            write_geopackage(out / "changes.gpkg", feats, geo)
+            files["changes.gpkg"] = "changes.gpkg"
+        else:
+            notes.append("changes.gpkg not written: GeoPackage output needs the geo extra "
+                         "(pip install 'reblur[geo]'); changes.geojson holds the same polygons")
+    return files, notes
+
+
+def _write_reblurred(result: ChangeResult, out: Path, observed: Image | None,
+                     geo) -> tuple[dict[str, str], list[str]]:
+    """``reblurred.tif`` (a COG in the observation's dtype); returns (files, notes)."""
+    if result.reblurred is None:
+        return {}, ["reblurred.tif not written: the result holds no reblurred image "
+                    "(detect_changes keeps it in memory up to 64 MP, and writes it to "
+                    "reblurred_out at any size)"]
+    dtype = observed.dtype if observed is not None else np.dtype(np.float32)
+    # the pixels the reference does not cover hold no data (a mask, or NaN)
+    write_cog(out / "reblurred.tif", result.reblurred, geo, block=COG_BLOCK,
+              overviews="average", convert=_to_dtype(dtype), nodata_mask=result.unknown)
+    return {"reblurred.tif": "reblurred.tif"}, []
+
+
+def _write_pictures(result: ChangeResult, out: Path, observed: Image | None,
+                    geo) -> tuple[dict[str, str], list[str]]:
+    """``overlay.png``, ``motion.png`` and, where the result has them, ``field.png`` and
+    ``rolling.png``; returns (files, notes)."""
+    change, unknown = result.change, result.unknown
+    obs_arr = observed.array if observed is not None else None
+    if obs_arr is None:
+        obs_arr = result.reblurred if result.reblurred is not None else _MaskView(change)
+    # level 3: a photograph compresses 1 % less than at the default 6, in a third of the time
+    write_png(out / "overlay.png", overlay_image(obs_arr, change, unknown), compression=3)
+    files = {"overlay.png": "overlay.png"}
+    motion_figure(result.motion, out / "motion.png")
+    files["motion.png"] = "motion.png"
+    if getattr(result, "field", None) is not None:
+        field_figure(result.field, result.change.shape[:2], out / "field.png")
+        files["field.png"] = "field.png"
+    shutter = result.decision.get("shutter", {})
+    if shutter.get("model") == "rolling" and "rolling" in shutter:
+        rolling_figure(shutter, out / "rolling.png")
+        files["rolling.png"] = "rolling.png"
+    return files, []
+
+
 def write_report(
     result: ChangeResult,
     out_dir: str | os.PathLike,
@@ -1004,8 +1077,7 @@ def write_report(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     notes = list(notes) + model_notes(result)
-    change, unknown = result.change, result.unknown
-    H, W = change.shape[:2]
+    H, W = result.change.shape[:2]
     if observed is not None and tuple(observed.shape[:2]) != (H, W):
         raise ValueError(
             f"result is {W}x{H} but the observation is {observed.width}x{observed.height}"
@@ -1022,63 +1094,16 @@ def write_report(
 
     done(0.0)
 
-    # masks
-    if H * W <= PNG_MAX_PIXELS:
-        write_png(out / "changes.png", _mask_u8(change, unknown))
-        files["changes.png"] = "changes.png"
-        write_png(out / "unknown.png", _mask_u8(unknown))
-        files["unknown.png"] = "unknown.png"
-    else:
-        notes.append(f"image of {H * W:,} pixels: masks written as TIFF only (PNG limit)")
-    if H * W > BIG_MASK_PIXELS or geo is not None or H * W > PNG_MAX_PIXELS:
-        for name, view in (("changes.tif", _MaskView(change, unknown)),
-                           ("unknown.tif", _MaskView(unknown))):
-            write_cog(out / name, view, geo, block=COG_BLOCK, overviews="max")
-            files[name] = name
-    if geo is not None:
-        feats = region_features(_MaskView(change, unknown), geo,
-                                triage(list(result.regions), observed))
-        write_geojson(out / "changes.geojson", feats, geo)
-        files["changes.geojson"] = "changes.geojson"
-        if geopackage_available():
-            write_geopackage(out / "changes.gpkg", feats, geo)
-            files["changes.gpkg"] = "changes.gpkg"
-        else:
-            notes.append("changes.gpkg not written: GeoPackage output needs the geo extra "
-                         "(pip install 'reblur[geo]'); changes.geojson holds the same polygons")
-    done(0.3)
-
-    # reblurred reference
-    if result.reblurred is not None:
-        dtype = observed.dtype if observed is not None else np.dtype(np.float32)
-        # the pixels the reference does not cover hold no data (a mask, or NaN)
-        write_cog(out / "reblurred.tif", result.reblurred, geo, block=COG_BLOCK,
-                  overviews="average", convert=_to_dtype(dtype), nodata_mask=unknown)
-        files["reblurred.tif"] = "reblurred.tif"
-    else:
-        notes.append("reblurred.tif not written: the result holds no reblurred image "
-                     "(detect_changes keeps it in memory up to 64 MP, and writes it to "
-                     "reblurred_out at any size)")
-    done(0.6)
-
-    # pictures
-    obs_arr = observed.array if observed is not None else None
-    if obs_arr is None:
-        obs_arr = result.reblurred if result.reblurred is not None else _MaskView(change)
-    # level 3: a photograph compresses 1 % less than at the default 6, in a third of the time
-    write_png(out / "overlay.png", overlay_image(obs_arr, change, unknown), compression=3)
-    files["overlay.png"] = "overlay.png"
-    done(0.8)
-    motion_figure(result.motion, out / "motion.png")
-    files["motion.png"] = "motion.png"
-    done(0.9)
-    if getattr(result, "field", None) is not None:
-        field_figure(result.field, result.change.shape[:2], out / "field.png")
-        files["field.png"] = "field.png"
-    shutter = result.decision.get("shutter", {})
-    if shutter.get("model") == "rolling" and "rolling" in shutter:
-        rolling_figure(shutter, out / "rolling.png")
-        files["rolling.png"] = "rolling.png"
+    # the three groups of files are independent (each streams its own source window by
+    # window) and run side by side; their files and notes are merged in this order
+    jobs = ((_write_masks, 0.3), (_write_reblurred, 0.6), (_write_pictures, 0.9))
+    with ThreadPoolExecutor(min(len(jobs), available_cpus())) as ex:
+        futures = [ex.submit(job, result, out, observed, geo) for job, _ in jobs]
+        for fut, (_, fraction) in zip(futures, jobs, strict=True):
+            got_files, got_notes = fut.result()
+            files.update(got_files)
+            notes.extend(got_notes)
+            done(fraction)
 
     timings = dict(timings or {})
     timings["report"] = time.perf_counter() - t0

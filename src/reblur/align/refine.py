@@ -34,6 +34,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from .._memory import available_cpus, thread_map
 from ..grid import PoseGrid, map_points
 from ..tiled import SparsePoses, reblur_tile
 from ..warp import Box, read_window
@@ -183,6 +184,7 @@ def measure_shifts(
     obs_scale: float = 1.0,
     min_valid: float = 0.95,
     min_texture: float = 1e-4,
+    workers: int | None = None,
 ) -> list[ProbeShift]:
     """Sub-pixel displacement between the reblurred reference and the observation per window.
 
@@ -203,6 +205,11 @@ def measure_shifts(
         (intensities in [0, 1]): flat windows cannot be registered and are skipped.  It
         is low enough for smooth (upsampled, clean 16-bit) imagery: ECC's convergence
         and the correlation gate of the fit judge the rest.
+    workers : int, optional
+        Threads measuring probes side by side (OpenCV single-threaded in each); default
+        the CPUs available to the process.  Each probe is measured alone, so the result
+        does not depend on it.  The 576 probes of a 100 MP field lattice took 5.0 s CPU
+        on one thread (reblur 2.8 s, ECC 1.3 s).
 
     Returns
     -------
@@ -210,8 +217,11 @@ def measure_shifts(
         One per probe, in the order of ``boxes``; those that could not be measured
         carry the reason (:attr:`ProbeShift.reason`).
     """
-    return [_measure_one(reference, observed, poses, b, ref_scale, obs_scale, min_valid,
-                         min_texture) for b in boxes]
+    n = available_cpus() if workers is None else int(workers)
+    if n < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    return thread_map(lambda b: _measure_one(reference, observed, poses, b, ref_scale,
+                                             obs_scale, min_valid, min_texture), boxes, n)
 
 
 def _measure_one(reference, observed, poses: SparsePoses, b: Box, ref_scale: float,

@@ -16,11 +16,14 @@ Memory holds one block per layer plus four tiles per level of the path being wal
 from __future__ import annotations
 
 import math
+import threading
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from .._memory import available_cpus, thread_map
 
 __all__ = ["Layer", "DziLayout", "build_pyramids", "halve", "dzi_xml"]
 
@@ -162,6 +165,8 @@ class _Writer:
         self.written = 0
         self._blank: dict[tuple, bytes] = {}
         self._made: set[Path] = set()
+        self._lock = threading.Lock()
+        self.workers = 1
         for layer in self.layers:
             (root / f"{layer.name}.dzi").write_text(dzi_xml(layout, layer.fmt), encoding="utf-8")
 
@@ -189,7 +194,8 @@ class _Writer:
         d = self.root / f"{layer.name}_files" / str(level)
         if d not in self._made:
             d.mkdir(parents=True, exist_ok=True)
-            self._made.add(d)
+            with self._lock:
+                self._made.add(d)
         if not tile.any():  # a blank mask tile: encoded once per shape
             key = (k, tile.shape)
             if key not in self._blank:
@@ -198,7 +204,8 @@ class _Writer:
         else:
             data = self._bytes(layer, layer.encode(tile))
         (d / f"{col}_{row}.{layer.fmt}").write_bytes(data)
-        self.written += 1
+        with self._lock:
+            self.written += 1
 
 
 def _leaf(w: _Writer, level: int, row: int, col: int) -> list[np.ndarray]:
@@ -225,14 +232,25 @@ def _leaf(w: _Writer, level: int, row: int, col: int) -> list[np.ndarray]:
     return out
 
 
+def _is_leaf(lay: DziLayout, level: int, block: int) -> bool:
+    """Whether a tile of ``level`` is built from one window read (at most ``block`` px)."""
+    return lay.tile_size * lay.scale(level) <= block or level == lay.max_level
+
+
 def _node(w: _Writer, level: int, row: int, col: int, block: int) -> list[np.ndarray]:
     """Write the tile ``(level, row, col)`` and every finer tile below it; return it."""
     lay = w.layout
-    if lay.tile_size * lay.scale(level) <= block or level == lay.max_level:
+    if _is_leaf(lay, level, block):
         return _leaf(w, level, row, col)
     rows, cols = lay.grid(level + 1)
-    kids = {(dr, dc): _node(w, level + 1, 2 * row + dr, 2 * col + dc, block)
-            for dr in (0, 1) for dc in (0, 1) if 2 * row + dr < rows and 2 * col + dc < cols}
+    at = [(dr, dc) for dr in (0, 1) for dc in (0, 1)
+          if 2 * row + dr < rows and 2 * col + dc < cols]
+    # leaves (a window read, its tiles encoded and written) run side by side: reading,
+    # encoding and writing release the GIL; at most four windows are held at once
+    workers = w.workers if _is_leaf(lay, level + 1, block) else 1
+    got = thread_map(lambda rc: _node(w, level + 1, 2 * row + rc[0], 2 * col + rc[1], block),
+                     at, workers)
+    kids = dict(zip(at, got, strict=True))
     out = []
     T = lay.tile_size
     for k, layer in enumerate(w.layers):
@@ -250,7 +268,8 @@ def _node(w: _Writer, level: int, row: int, col: int, block: int) -> list[np.nda
 
 
 def build_pyramids(root: str | Path, layers: Sequence[Layer], shape: tuple[int, int], *,
-                   tile_size: int = 256, block: int = 1024) -> DziLayout:
+                   tile_size: int = 256, block: int = 1024,
+                   workers: int | None = None) -> DziLayout:
     """Write one Deep Zoom pyramid per layer into ``root``, reading windows of at most
     ``block`` x ``block`` full-size pixels.
 
@@ -266,6 +285,10 @@ def build_pyramids(root: str | Path, layers: Sequence[Layer], shape: tuple[int, 
         Side of the tiles.
     block : int
         Side of the largest window read from a source (a multiple of ``tile_size`` is best).
+    workers : int, optional
+        Threads building the windows of the same parent tile side by side (OpenCV
+        single-threaded in each); default the CPUs available to the process.  The
+        pyramids do not depend on it.
 
     Returns
     -------
@@ -273,12 +296,16 @@ def build_pyramids(root: str | Path, layers: Sequence[Layer], shape: tuple[int, 
     """
     if block < tile_size:
         raise ValueError(f"block ({block}) must be at least tile_size ({tile_size})")
+    n_workers = available_cpus() if workers is None else int(workers)
+    if n_workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
     if len({layer.name for layer in layers}) != len(layers):
         raise ValueError("every layer needs its own name")
     layout = DziLayout(int(shape[1]), int(shape[0]), int(tile_size))
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
     w = _Writer(root, layers, layout)
+    w.workers = n_workers
     _node(w, 0, 0, 0, int(block))
     if w.written != layout.n_tiles() * len(layers):  # pragma: no cover - a bug if it happens
         raise RuntimeError(f"wrote {w.written} tiles, the layout has "
