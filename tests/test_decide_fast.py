@@ -384,6 +384,26 @@ def test_hull_pixels_match_convex_hull_image():
     assert n > 300
 
 
+def test_shape_test_matches_reference():
+    """``_shape_ok`` (rows' spans before the hull) against the hull-first reference on the
+    components of seeded masks, with both outcomes of the solidity test present."""
+    from reblur.decide.regions import _shape_ok
+
+    rng = np.random.default_rng(32)
+    p = DecisionParams()
+    outcomes = set()
+    for _ in range(40):
+        m = ndi.binary_opening(rng.random((120, 160)) < rng.uniform(0.3, 0.8))
+        lab, n = ndi.label(m, structure=_EIGHT)
+        for i, sl in enumerate(ndi.find_objects(lab)):
+            sub = lab[sl] == i + 1
+            area = int(sub.sum())
+            want = _ref_shape_ok(sub, area, p)
+            assert _shape_ok(sub, area, p) == want
+            outcomes.add(want)
+    assert outcomes == {True, False}
+
+
 @pytest.mark.parametrize("pi", range(len(PARAMS)))
 def test_decide_core_matches_reference(pi):
     p = PARAMS[pi]

@@ -87,6 +87,13 @@ def _shape_ok(sub: np.ndarray, area: int, p: DecisionParams) -> bool:
     # the hull lies inside the bounding box: area / box >= min_solidity settles the
     # solidity test without the hull
     if p.min_solidity > 0 and area < p.min_solidity * sub.size:
+        # the hull holds every pixel between the first and the last of a row (their centres
+        # lie on a segment between two of the region's): a region whose rows' spans
+        # already hold too many pixels fails without the hull
+        first = np.argmax(sub, axis=1)
+        last = sub.shape[1] - np.argmax(sub[:, ::-1], axis=1)
+        if area < p.min_solidity * int(np.sum((last - first)[sub.any(axis=1)])):
+            return False
         hull = _hull_pixels(sub)
         if hull and area / hull < p.min_solidity:
             return False
