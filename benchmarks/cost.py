@@ -183,7 +183,7 @@ def run_case(case: Path, src: Path | None = None) -> dict:
     # the tile pass's work: decisions, padded pixels decided, tiles left incomplete
     res["tile_work"] = {**dec.get("backend", {}).get("work", {}),
                         "tiles": dec.get("n_tiles"), "incomplete": dec.get("incomplete_tiles")}
-    res["align_tries"] = rep.get("alignment", {}).get("details", {}).get("tries")
+    res["align_method"] = rep.get("alignment", {}).get("details", {}).get("method")
     return res
 
 
