@@ -179,6 +179,11 @@ def run_case(case: Path, src: Path | None = None) -> dict:
     res["flagged"] = ch.get("changed_fraction")
     res["n_regions"] = ch.get("n_regions")
     res["notes"] = len(rep.get("notes", []))
+    dec = rep.get("decision", {})
+    # the tile pass's work: decisions, padded pixels decided, tiles left incomplete
+    res["tile_work"] = {**dec.get("backend", {}).get("work", {}),
+                        "tiles": dec.get("n_tiles"), "incomplete": dec.get("incomplete_tiles")}
+    res["align_method"] = rep.get("alignment", {}).get("details", {}).get("method")
     return res
 
 

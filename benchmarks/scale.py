@@ -15,7 +15,8 @@ into zarr arrays on disk (nothing full-size in memory):
 * ``dask`` -- the same with ``scheduler="processes"`` (Dask's local process pool, 2
   processes); ``cluster`` -- a ``distributed.LocalCluster`` of 2 single-thread workers;
 * ``inmemory`` -- both images loaded into numpy and decided as one tile (the whole-image
-  path), measured at the smallest size only and extrapolated per pixel.
+  path), measured at the smallest size only, when that is at most
+  :data:`INMEMORY_MAX_MP`, and extrapolated per pixel.
 
 Peak RSS is sampled (psutil, every 0.2 s) for every process of the case: the main process
 and each worker.  The explicit-F column is the memory of the paper's dense F over the
@@ -53,6 +54,11 @@ from benchmarks.common import REPO, commit, load_runs, release, run_case, save_r
 
 SIZES_MP = (25, 100, 400, 1000)
 PLOT = REPO / "docs" / "images" / "scale.png"
+#: Largest size of the ``inmemory`` case: the whole-image decision holds ~66 MB per MP
+#: (1650 MB at 25 MP, ``docs/scale_runs.json``), so at 1 Gpx it would need ~66 GB, more
+#: than this machine's 24 GB: the kernel killed the case after the 1 Gpx run
+#: (``--sizes 1000`` made 1 Gpx the smallest size, where the case ran).
+INMEMORY_MAX_MP = 25
 #: Every case ever run (with its commit); the tables show the newest per (mode, size), so
 #: a size can be re-run alone (``--sizes 100``) without losing the others.
 RUNS = REPO / "docs" / "scale_runs.json"
@@ -443,8 +449,11 @@ def main(sizes=SIZES_MP, dask_up_to: float = 400, cluster_sizes=(100,)) -> str:
                 modes.append("dask")
             if mp in cluster_sizes:
                 modes.append("cluster")
-            if mp == min(sizes):
+            if mp == min(sizes) and mp <= INMEMORY_MAX_MP:
                 modes.append("inmemory")
+            elif mp == min(sizes):
+                print(f"[scale] {mp} MP: no in-memory case (it runs at sizes up to "
+                      f"{INMEMORY_MAX_MP} MP; the table extrapolates the newest one)", flush=True)
             for mode in modes:
                 r = run_case("benchmarks.scale", "--case", str(d), "--mode", mode,
                              timeout=3 * 3600, blas_threads=None)

@@ -78,6 +78,8 @@ def main(argv: list[str] | None = None) -> dict[str, list[float]]:
     ap.add_argument("--profile", default=None, metavar="MODULE:FUNCTION",
                     help="also profile this function (cProfile) and print its top entries")
     ap.add_argument("--top", type=int, default=30, help="entries of the profile printed")
+    ap.add_argument("--workers", type=int, default=None,
+                    help="reblur detect's --workers (1: every tile in the profiled thread)")
     a = ap.parse_args(argv)
     w0, c0 = time.perf_counter(), time.process_time()
     import reblur.cli
@@ -89,9 +91,12 @@ def main(argv: list[str] | None = None) -> dict[str, list[float]]:
     prof = _profiled(a.profile) if a.profile else None
     with tempfile.TemporaryDirectory() as tmp:
         out = a.out or Path(tmp) / "out"
+        args = ["detect", str(a.reference), str(a.observed), "--out", str(out), "-q",
+                "--overwrite"]
+        if a.workers is not None:
+            args += ["--workers", str(a.workers)]
         try:
-            reblur.cli.main(["detect", str(a.reference), str(a.observed), "--out", str(out),
-                             "-q", "--overwrite"], standalone_mode=False)
+            reblur.cli.main(args, standalone_mode=False)
         finally:
             acc["whole run"] = [1, time.perf_counter() - w0, time.process_time() - c0]
     print(f"{'stage':45s} {'calls':>5s} {'wall s':>7s} {'CPU s':>7s}")

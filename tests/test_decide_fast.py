@@ -27,6 +27,7 @@ from reblur.decide import (
     fit_model_error,
     gaussian_zero,
 )
+from reblur.decide.regions import _hull_pixels
 
 _EIGHT = np.ones((3, 3), bool)
 _FOUR = ndi.generate_binary_structure(2, 1)
@@ -345,6 +346,62 @@ def test_label_median_sort_keys_against_numpy_median():
         ref = [np.median(S[cc.lab == k].astype(np.float64)) for k in range(1, cc.n + 1)]
         np.testing.assert_array_equal(got, ref)
         assert (cc.area[1:] == 1).any() and (cc.area[1:] > 20).any()
+
+
+def test_hull_pixels_match_convex_hull_image():
+    """The row-by-row integer count of the hull's pixels against scikit-image's
+    ``convex_hull_image`` (point-in-polygon over the whole box), on seeded shapes: noise of
+    every density, opened noise (blobs), discs with gaps, thin diagonal strips, single rows
+    and columns, single pixels."""
+    rng = np.random.default_rng(31)
+    shapes = []
+    for _ in range(400):
+        h, w = (int(v) for v in rng.integers(1, 70, 2))
+        m = rng.random((h, w)) < rng.uniform(0.02, 0.9)
+        if rng.random() < 0.4:
+            m = ndi.binary_opening(m)
+        shapes.append(m)
+    for r in (3, 17, 40):
+        disc = np.zeros((2 * r + 3, 2 * r + 9), np.uint8)
+        cv2.ellipse(disc, (r + 4, r + 1), (r + 3, r), 17, 0, 360, 1, -1)
+        disc[::5] = 0
+        shapes.append(disc.astype(bool))
+    for k in (1, 2, 7):
+        strip = np.zeros((90, 60), bool)
+        for i in range(90):
+            strip[i, (i * 2) // 3 : (i * 2) // 3 + k] = True
+        shapes.append(strip)
+    shapes += [np.ones((1, 9), bool), np.ones((13, 1), bool), np.ones((1, 1), bool)]
+    n = 0
+    for m in shapes:
+        lab, k = ndi.label(m, structure=_EIGHT)
+        if k == 0:
+            continue
+        sl = ndi.find_objects(lab)[0]
+        sub = lab[sl] == 1
+        assert _hull_pixels(sub) == int(np.count_nonzero(convex_hull_image(sub)))
+        n += 1
+    assert n > 300
+
+
+def test_shape_test_matches_reference():
+    """``_shape_ok`` (rows' spans before the hull) against the hull-first reference on the
+    components of seeded masks, with both outcomes of the solidity test present."""
+    from reblur.decide.regions import _shape_ok
+
+    rng = np.random.default_rng(32)
+    p = DecisionParams()
+    outcomes = set()
+    for _ in range(40):
+        m = ndi.binary_opening(rng.random((120, 160)) < rng.uniform(0.3, 0.8))
+        lab, n = ndi.label(m, structure=_EIGHT)
+        for i, sl in enumerate(ndi.find_objects(lab)):
+            sub = lab[sl] == i + 1
+            area = int(sub.sum())
+            want = _ref_shape_ok(sub, area, p)
+            assert _shape_ok(sub, area, p) == want
+            outcomes.add(want)
+    assert outcomes == {True, False}
 
 
 @pytest.mark.parametrize("pi", range(len(PARAMS)))

@@ -61,7 +61,7 @@ import numpy as np
 from .decide import DecisionParams, Photometry
 from .io import chunk_cached
 from .tiled import SparsePoses
-from .tilejob import TileJob, pad_box, run_tile, tune_worker_malloc
+from .tilejob import TileJob, pad_box, run_tile, tile_work, tune_worker_malloc
 
 __all__ = [
     "NUMPY_MAX_PIXELS",
@@ -529,7 +529,8 @@ def decide_tiles(
     regions = [r for res in results for r in res["regions"]]
     regions.sort(key=lambda r: (r["bbox"][0], r["bbox"][1]) if "bbox" in r else (0, 0))
     incomplete = sum(0 if res["complete"] else 1 for res in results)
-    info: dict[str, Any] = {"scheduler": str(scheduler), "kind": kind}
+    info: dict[str, Any] = {"scheduler": str(scheduler), "kind": kind,
+                            "work": tile_work(results)}
     change, unknown, reblurred = change_out, unknown_out, reblurred_out
     if created and H * W <= NUMPY_MAX_PIXELS:
         change = np.asarray(change[...]) if "change" in created else change

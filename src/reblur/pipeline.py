@@ -41,7 +41,7 @@ from .robust import inlier_scale, robust_line
 from .rolling import RollingParams, RollingPoses, choose_shutter
 from .select import SelectParams, select_windows
 from .tiled import SparsePoses, run_tiles
-from .tilejob import TileJob, load_tile, pad_box, run_tile
+from .tilejob import TileJob, load_tile, pad_box, run_tile, tile_work
 
 __all__ = ["detect_changes", "ScaledView"]
 
@@ -484,7 +484,8 @@ def reblur_and_decide(
         run_tiles(run, tiles, workers)
         regions = [r for res in results for r in res["regions"]]
         incomplete = sum(0 if res["complete"] else 1 for res in results)
-        backend = {"scheduler": None, "kind": "local threads", "workers": int(workers)}
+        backend = {"scheduler": None, "kind": "local threads", "workers": int(workers),
+                   "work": tile_work(results)}
     regions.sort(key=lambda r: (r["bbox"][0], r["bbox"][1]) if "bbox" in r else (0, 0))
     info = dict(
         threshold_info=tinfo,

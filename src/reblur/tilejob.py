@@ -26,7 +26,7 @@ from .tiled import SparsePoses, reblur_tile
 from .warp import as_box, read_window
 
 __all__ = ["TileJob", "grow_tile", "load_tile", "max_region_extent", "run_tile", "pad_box",
-           "tune_worker_malloc"]
+           "tile_work", "tune_worker_malloc"]
 
 #: Tries per tile: the first halo, then doubled where a region reaches the edge, and 8x the
 #: first halo on every edge for the last try.
@@ -39,6 +39,14 @@ def max_region_extent(halo: int, local_radius: int) -> int:
     reach of the pixel-local steps.  A region seen larger than this in a padded tile is
     decided there, without growing the halo (``decide_tile``'s ``max_extent``)."""
     return max((int(halo) << (_ATTEMPTS - 1)) - int(local_radius), 0)
+
+
+def tile_work(results: Sequence[dict[str, Any]]) -> dict[str, int]:
+    """The work of a tile pass from :func:`run_tile`'s results: decisions (``attempts``, and
+    the most any tile took) and padded pixels decided, summed over the tiles."""
+    return {"attempts": sum(int(r["attempts"]) for r in results),
+            "max_attempts": max((int(r["attempts"]) for r in results), default=0),
+            "pixels": sum(int(r["pixels"]) for r in results)}
 
 
 #: Serialises in-process writes into outputs whose chunks straddle tiles.
