@@ -178,7 +178,7 @@ def test_choice_keeps_the_shutter_that_made_the_pair(scene, readout):
     obs, _ = render_rolling_tiled(scene, hs, readout=readout, n_exposure=64)
     grid = PoseGrid(scene.shape, tx=np.arange(-8, 9), ty=np.arange(-4, 5))
     p = RollingParams(n_bands=6, side=64)
-    boxes = rolling_windows(scene.shape, p.n_bands, p.side)
+    boxes = rolling_windows(scene.shape, p.n_bands, p.side, p.columns)
     w = estimate_motion(scene, obs, grid, boxes=boxes, lam=1e-3, occlusion=False).weights
     choice = choose_shutter(scene, obs, grid, w_start=w, lam=1e-3, occlusion=False, params=p)
     assert choice.model == ("rolling" if readout else "global"), choice.criterion
@@ -272,7 +272,7 @@ def test_choice_decides_on_central_parts_and_refits_only_a_kept_band_model(scene
     hs = _translation_path(scene.shape, 64, readout)
     obs, _ = render_rolling_tiled(scene, hs, readout=readout, n_exposure=64)
     grid = PoseGrid(scene.shape, tx=np.arange(-8, 9), ty=np.arange(-4, 5))
-    boxes = rolling_windows(scene.shape, 6, 128)
+    boxes = rolling_windows(scene.shape, 6, 128, RollingParams().columns)
     full_px = sum(h * w for _, _, h, w in boxes)
     w = estimate_motion(scene, obs, grid, boxes=boxes, lam=1e-3, occlusion=False).weights
     fit = R._fit
@@ -334,3 +334,115 @@ def test_field_measured_through_the_band_model(scene):
     assert not through_bands["applied"]
     assert through_mean["rms_before_px"] > 0.3, through_mean
     assert through_mean["applied"]
+
+
+def test_windows_spread_across_the_width():
+    """Three columns: left edge, centre, right edge per band; two: the edges only (the
+    first layout, written out here); one: centred; invalid counts raise."""
+    H, W, side = 300, 640, 100
+    bands = RowBands(H, 3)
+    rows = [int(np.clip(round(c - side / 2), 0, H - side)) for c in bands.centres]
+    three = rolling_windows((H, W), 3, side, 3)
+    assert three == [(y, x, side, side) for y in rows for x in (20, 270, 520)]
+    assert rolling_windows((H, W), 3, side) == three
+    assert rolling_windows((H, W), 3, side, 2) == [(y, x, side, side) for y in rows
+                                                 for x in (20, 520)]
+    assert rolling_windows((H, W), 3, side, 1) == [(y, 270, side, side) for y in rows]
+    five = rolling_windows((H, W), 3, side, 5)
+    assert sorted({x for _, x, _, _ in five}) == [20, 145, 270, 395, 520]
+    # narrower than two windows: the three overlap (150 // 32 = 4 px from the edges)
+    assert sorted({x for _, x, _, _ in rolling_windows((H, 150), 3, 100, 3)}) == [4, 25, 46]
+    # narrower than one window: one full-width window per band, kept once
+    assert rolling_windows((H, 90), 3, 100, 3) == [(y, 0, 100, 90) for y in rows]
+    with pytest.raises(ValueError, match="columns"):
+        rolling_windows((H, W), 3, side, 0)
+    with pytest.raises(ValueError, match="columns"):
+        RollingParams(columns=0)
+
+
+def _roll_pair(readout, deg, noise, seed=0, shape=(128, 512)):
+    """A rolling-shutter pair of a roll about the image centre at ``deg`` degrees per
+    exposure (64 sub-poses each), rendered by the test bed, with Gaussian noise."""
+    from reblur.grid import pose_homography
+
+    H, W = shape
+    rng = np.random.default_rng(seed)
+    img = cv2.GaussianBlur(rng.random((H, W)), (0, 0), 1.5)
+    scene = (img - img.min()) / np.ptp(img)
+    n = 64
+    t = (np.arange(n + int(np.ceil(readout * n))) + 0.5) / n - (1 + readout) / 2
+    centre = ((W - 1) / 2, (H - 1) / 2)
+    hs = np.stack([pose_homography(0.0, 0.0, 0.0, 0.0, 0.0, deg * s, center=centre)
+                   for s in t])
+    clean, ok = render_rolling_tiled(scene, hs, readout=readout, n_exposure=n)
+    obs = clean + np.random.default_rng(seed + 1).normal(0.0, noise, clean.shape)
+    return scene, obs, ok
+
+
+@pytest.mark.parametrize("readout", [0.5, 1.0])
+def test_band_kernels_right_across_the_width_under_a_strong_roll(readout):
+    """A roll of 6 degrees per exposure about the centre of a 128 x 512 frame: under a
+    rolling shutter the bands' kernels are arcs whose vertical extent grows with the
+    distance from the centre column.  Seen at the two edge windows only, a band's weight
+    over (ty, rz) is known through two projections (``ty +- rz dx``), which leave the
+    centre's (``ty`` alone) free.  Fitted on three columns, the reblurred reference
+    explains the centre strip between the edge windows down to the noise ``sigma``
+    (RMS residual <= 1.25 sigma, i.e. a model error <= 0.75 sigma: 1.06 / 1.13 sigma at
+    r = 0.5 / 1); on the edges alone it does not (1.33 / 1.61 sigma, model errors of
+    0.9 / 1.3 sigma)."""
+    sigma = 0.01
+    scene, obs, ok = _roll_pair(readout, 6.0, sigma)
+    H, W = scene.shape
+    side = 64
+    grid = PoseGrid(scene.shape, tx=np.arange(-3, 4), ty=np.arange(-3, 4),
+                    rz=np.round(np.arange(-6.0, 6.01, 0.25), 3))
+    w = estimate_motion(scene, obs, grid, boxes=rolling_windows(scene.shape, 6, side),
+                        lam=1e-3, occlusion=False).weights
+    strip = np.zeros((H, W), bool)  # between the edge windows: x in [W/32 + side, ...)
+    strip[:, W // 32 + side:W - side - W // 32] = True
+    rms = {}
+    for columns in (3, 2):
+        p = RollingParams(n_bands=6, side=side, columns=columns)
+        choice = choose_shutter(scene, obs, grid, w_start=w, lam=1e-3, occlusion=False,
+                                params=p)
+        assert choice.model == "rolling", choice.criterion
+        assert len({x for _, x, _, _ in choice.rolling.boxes}) == columns
+        reblurred, valid = reblur_rolling(scene, choice.rolling)
+        m = strip & valid & ok
+        assert m.sum() > 0.8 * strip.sum()
+        rms[columns] = float(np.sqrt(np.mean((reblurred - obs)[m] ** 2)))
+    assert rms[3] <= 1.25 * sigma, rms
+    assert rms[2] > 1.25 * sigma, rms  # the edges alone: the bound can fail
+
+
+def test_band_model_dropped_when_the_full_window_refit_reads_no_readout(scene, monkeypatch):
+    """The parts keep the band model (r = 0.5), and the full-window refit reads a readout
+    below ``min_readout`` (forced here through readout_fraction on the full windows): the
+    choice falls back to the global model and records it."""
+    import reblur.rolling as R
+
+    hs = _translation_path(scene.shape, 64, 0.5)
+    obs, _ = render_rolling_tiled(scene, hs, readout=0.5, n_exposure=64)
+    grid = PoseGrid(scene.shape, tx=np.arange(-8, 9), ty=np.arange(-4, 5))
+    p = RollingParams(n_bands=6, side=128)
+    boxes = rolling_windows(scene.shape, p.n_bands, p.side, p.columns)
+    w = estimate_motion(scene, obs, grid, boxes=boxes, lam=1e-3, occlusion=False).weights
+    kept = choose_shutter(scene, obs, grid, w_start=w, lam=1e-3, occlusion=False, params=p)
+    assert kept.model == "rolling" and not kept.criterion["refit_rejected"]
+    assert kept.criterion["readout_final"] >= p.min_readout
+    fraction = R.readout_fraction
+
+    def none_on_full_windows(motion):
+        r, info = fraction(motion)
+        full = all(h == p.side for _, _, h, _ in motion.boxes)
+        return (0.5 * p.min_readout if full else r), info
+
+    monkeypatch.setattr(R, "readout_fraction", none_on_full_windows)
+    dropped = choose_shutter(scene, obs, grid, w_start=w, lam=1e-3, occlusion=False,
+                             params=p)
+    assert dropped.model == "global", dropped.criterion
+    assert dropped.criterion["refit_rejected"]
+    assert dropped.criterion["readout"] >= p.min_readout  # the parts kept it
+    assert dropped.criterion["readout_final"] == 0.5 * p.min_readout
+    assert "refit" in dropped.criterion["rule"]
+    assert dropped.motion is dropped.global_

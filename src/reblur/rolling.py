@@ -27,8 +27,10 @@ interpolation is exact for a kernel that varies linearly with the row; for a pat
 its two ends over ``v r / (2 B)`` px (a trapezoid instead of a box).  The readout is then
 read from the bands' drift (:func:`readout_fraction`), and the coupling between bands is
 the interpolation itself: every band is fitted on the rows of both of its neighbours'
-halves, and :func:`rolling_windows` puts estimation windows on every band centre, so no
-band is left without data.
+halves, and :func:`rolling_windows` puts estimation windows on every band centre, at the
+left edge, the centre and the right edge of the width (``RollingParams.columns``), so no
+band is left without data and its kernel is fitted where it varies across the columns
+(a roll).
 """
 
 from __future__ import annotations
@@ -269,7 +271,14 @@ class RollingParams:
         --size 512 --readouts 1 --no-change-only --no-save --bands 4``: 1.60 % false
         alarms; 0.08 % with 6 bands, 0.00 % with 8 at 1.4x the CPU of 6).
     side : int
-        Side (px) of the estimation windows, two per band (:func:`rolling_windows`).
+        Side (px) of the estimation windows (:func:`rolling_windows`).
+    columns : int
+        Estimation windows per band across the width (:func:`rolling_windows`): 3, the
+        left edge, the centre and the right edge; with the edges alone (2) the kernels of
+        the centre strip were left free and reblurred a textured centre wrongly under a
+        roll (``python -m benchmarks.rolling --size 768``, pasted changes, readouts
+        0.25 / 0.5 / 1: 1.45 / 0.67 / 0.41 % false alarms with 2, 0.018 / 0.049 / 0.036 %
+        with 3, at 1.1-1.3x the CPU of a whole run at 512 px).
     t_margin, b_margin : int
         The band weights live on the poses within ``t_margin`` translation steps and
         ``b_margin`` base steps of the global estimate's support (:func:`support_grid`).
@@ -295,6 +304,7 @@ class RollingParams:
 
     n_bands: int = 6
     side: int = 160
+    columns: int = 3
     t_margin: int = 3
     b_margin: int = 2
     bic_margin: float = 10.0
@@ -304,7 +314,7 @@ class RollingParams:
     coarse: bool = True
 
     def __post_init__(self) -> None:
-        for name in ("n_bands", "side", "max_outer"):
+        for name in ("n_bands", "side", "columns", "max_outer"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"RollingParams.{name} must be >= 1, got {getattr(self, name)}")
         for name in ("t_margin", "b_margin", "bic_margin", "min_drop", "min_readout"):
@@ -359,22 +369,58 @@ class RollingMotion:
                     grid=self.grid.to_dict())
 
 
-def rolling_windows(shape: tuple[int, int], n_bands: int, side: int
+def rolling_windows(shape: tuple[int, int], n_bands: int, side: int, columns: int = 3
                     ) -> list[tuple[int, int, int, int]]:
-    """Two windows per band, centred on its centre row, near the left and right edges.
+    """``columns`` windows per band, centred on its centre row, spread across the width.
 
-    Every band then has data on its own rows, and the left/right pair (far apart) makes
-    its roll observable.  Windows are clipped to the image (``side`` at most the image's
-    sides).
+    Parameters
+    ----------
+    shape : tuple of int
+        The observation's ``(H, W)`` (further axes ignored).
+    n_bands : int
+        Row bands (:class:`RowBands`).
+    side : int
+        Side (px) of the windows, at most the image's height; across, at most half the
+        width when the width holds two windows, else the whole width.
+    columns : int
+        Windows per band: the first ``W / 32`` from the left edge, the last as far from
+        the right edge, the others evenly spaced between them (3: left edge, centre,
+        right edge); 1: one centred window.  2 is the layout of the first band model (the
+        edges only).
+
+    Returns
+    -------
+    list of (y0, x0, h, w)
+        Row by row (bands from the top), left to right; windows that coincide (a narrow
+        image) are kept once.
+
+    Notes
+    -----
+    Every band then has data on its own rows, and the far-apart edge windows make its
+    roll observable.  The edges alone do not fix the kernels between them: a weight
+    spread over translations and rolls is seen there only through two projections
+    (``t + rz (x - x_c)`` at two columns ``x``), and a roll's rolling-shutter drift makes
+    the kernel vary across the columns, so a band fitted on its edges can reblur the
+    centre strip wrongly (``python -m benchmarks.rolling --size 768``: 1.45 % false
+    alarms with pasted changes at readout 0.25 with two columns, 0.018 % with three).
+    The centre window adds the third projection.
     """
+    if int(columns) < 1:
+        raise ValueError(f"columns must be >= 1, got {columns}")
     H, W = (int(s) for s in shape[:2])
     s_y, s_x = min(int(side), H), min(int(side), W // 2 if W >= 2 * side else W)
     bands = RowBands(H, n_bands)
+    if int(columns) == 1:
+        xs = [(W - s_x) // 2]
+    else:
+        left, right = W // 32, W - s_x - W // 32
+        xs = [int(round(v)) for v in np.linspace(left, right, int(columns))]
+    xs = sorted({int(np.clip(x0, 0, W - s_x)) for x0 in xs})
     out = []
     for c in bands.centres:
         y0 = int(np.clip(round(c - s_y / 2), 0, H - s_y))
-        for x0 in sorted({0 + W // 32, W - s_x - W // 32}):
-            out.append((y0, int(np.clip(x0, 0, W - s_x)), s_y, s_x))
+        for x0 in xs:
+            out.append((y0, x0, s_y, s_x))
     return list(dict.fromkeys(out))
 
 
@@ -523,7 +569,7 @@ def estimate_rolling(
     p = params or RollingParams()
     bands = RowBands(grid.image_shape[0], p.n_bands)
     if boxes is None:
-        boxes = rolling_windows(observed.shape[:2], p.n_bands, p.side)
+        boxes = rolling_windows(observed.shape[:2], p.n_bands, p.side, p.columns)
     boxes = [as_box(b) for b in boxes]
     sub = support_grid(grid, w_global, p.t_margin, p.b_margin)
     ops, gs = _window_operators(reference, observed, sub, boxes, base, scale)
@@ -737,8 +783,10 @@ class ShutterChoice:
         ``rss_global``, ``rss_rolling`` (inlier residual sums of squares), ``k_global``,
         ``k_rolling`` (weights in use), ``bic_global``, ``bic_rolling``, ``drop``
         (relative RSS drop), ``readout`` (the parts' band fit), ``rule``; ``fits`` (every
-        window fit: bands, outer iterations, ``full`` for the full-window refit) and
-        ``readout_final`` (:attr:`rolling`'s readout).
+        window fit: bands, outer iterations, ``full`` for the full-window refit),
+        ``readout_final`` (:attr:`rolling`'s readout) and ``refit_rejected`` (True when
+        the parts kept the band model and the full-window refit's readout fell below
+        ``RollingParams.min_readout``, so the global model is kept).
     """
 
     model: str
@@ -830,18 +878,22 @@ def choose_shutter(
     global-shutter camera lets the bands fit their rows better too, without drift).
 
     With ``params.coarse`` (default) both fits and the criterion run on the windows'
-    central parts (:func:`reblur.estimate.coarse_side` px each, a fifth of the pixels of
-    twelve 160 px windows), and only when they keep the band model is it fitted again on
+    central parts (:func:`reblur.estimate.coarse_side` px each, 64 px: a sixth of the pixels
+    of eighteen 160 px windows), and only when they keep the band model is it fitted again on
     the full windows, from the parts' band weights: a global-shutter pair costs two fits
     on the parts, a rolling one a band fit on the full windows more (``criterion["fits"]``
     lists them).  The parts decided as the full windows did on every benchmark pair
     (``python -m benchmarks.rolling``); the full-window band fit is the model the
     reblur uses (on the parts alone, recall of pasted changes fell at a full readout).
+    That refit must read a readout of at least ``params.min_readout`` too, else the
+    global model is kept (``criterion["refit_rejected"]``): the band model is worth its
+    unknowns only for the drift, and the parts' estimate of it can be a fluke of their
+    few pixels.
     """
     t0 = time.perf_counter()
     p = params or RollingParams()
     if boxes is None:
-        boxes = rolling_windows(observed.shape[:2], p.n_bands, p.side)
+        boxes = rolling_windows(observed.shape[:2], p.n_bands, p.side, p.columns)
     boxes = [as_box(b) for b in boxes]
     sub = support_grid(grid, w_start, p.t_margin, p.b_margin)
     parts = [_shrink(b, coarse_side(len(boxes))) for b in boxes] if p.coarse else boxes
@@ -850,6 +902,7 @@ def choose_shutter(
     glob, roll, crit = _evidence(ops, gs, sub, parts, embed_weights(w_start, sub, grid), lam,
                                  occlusion, p)
     rolling = crit.pop("rolling")
+    crit["refit_rejected"] = False
     if rolling and coarse:
         del ops, gs
         ops, gs = _window_operators(reference, observed, sub, boxes, base, scale)
@@ -857,10 +910,14 @@ def choose_shutter(
         wr, rinfo, rops = _fit(ops, gs, many, roll.weights, lam, occlusion, p.max_outer)
         roll = _motion(wr, rinfo, rops, gs, sub, many, boxes, lam, occlusion)
         crit["fits"].append(dict(n_bands=p.n_bands, n_outer=rinfo["n_outer"], full=True))
+        if not roll.info["readout"] >= p.min_readout:  # the full windows see no drift
+            rolling = False
+            crit["refit_rejected"] = True
     crit.update(windows=[b.as_tuple() for b in parts], readout_final=roll.info["readout"],
                 time_s=time.perf_counter() - t0,
                 rule=f"rolling when BIC_rolling < BIC_global - {p.bic_margin:g}, the "
                      f"inlier RSS drops by >= {p.min_drop:g} and the estimated readout is "
-                     f">= {p.min_readout:g}" + (" (on the windows' central parts)"
-                                                if coarse else ""))
+                     f">= {p.min_readout:g}" + (" (on the windows' central parts), and the "
+                                                "full-window refit's readout is >= "
+                                                f"{p.min_readout:g} too" if coarse else ""))
     return ShutterChoice("rolling" if rolling else "global", glob, roll, crit)
