@@ -43,6 +43,7 @@ def test_shutter_rolling_is_used_and_reported(tmp_path, rolling_pair):
     sh = report["decision"]["shutter"]
     assert sh["asked"] == "rolling" and sh["model"] == "rolling"
     assert 0.0 <= sh["readout"] <= 1.0
+    assert "alignment" in sh["readout_meaning"]  # says what the figure is, and its bias
     bands = sh["rolling"]["bands"]
     assert len(bands) == 6 and all(abs(b["weight_sum"] - 1) < 0.1 for b in bands)
     assert sh["criterion"]["rule"].startswith("rolling when BIC")

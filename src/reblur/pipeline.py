@@ -784,6 +784,14 @@ def _windows_of(motion) -> list[tuple[tuple[int, ...], np.ndarray | None, np.nda
             for box, chi, ex in zip(motion.boxes, chis, excl[:n], strict=True)]
 
 
+#: What the reported readout fraction measures (``report.json`` ``shutter.readout_meaning``).
+READOUT_MEANING = (
+    "the drift between the row bands' kernels that the alignment leaves: a constant camera "
+    "drift under a rolling shutter is a global blur plus a shear of the rows, which the "
+    "alignment's homography takes up, so the sensor's true readout can be larger "
+    "(reblur.rolling.readout_fraction)")
+
+
 def _shutter_stage(reference, view, grid, H0, weights, shutter, params, lam, poses,
                    calibration, local_field):
     """The rolling-shutter model (``shutter="rolling"``) or the choice (``"auto"``):
@@ -794,7 +802,7 @@ def _shutter_stage(reference, view, grid, H0, weights, shutter, params, lam, pos
     info = dict(asked=shutter, model=model, criterion=choice.criterion,
                 readout=choice.rolling.info["readout"],
                 readout_quartiles=choice.rolling.info["readout_fit"]["quartiles"],
-                rolling=choice.rolling.to_dict())
+                readout_meaning=READOUT_MEANING, rolling=choice.rolling.to_dict())
     if model == "rolling":
         m = choice.rolling
         poses = RollingPoses(m, H0)

@@ -541,7 +541,7 @@ def rolling_figure(shutter: dict[str, Any], path: str | os.PathLike) -> Path:
     q = shutter.get("readout_quartiles")
     crit = shutter.get("criterion", {})
     spread = "" if not q else f" (windows' quartiles {q[0]:.2f}-{q[1]:.2f})"
-    fig.suptitle(f"rolling shutter, {len(bands)} bands: estimated readout "
+    fig.suptitle(f"rolling shutter, {len(bands)} bands: readout after the alignment "
                  f"{'-' if r is None else f'{r:.2f}'}{spread} of an exposure; inlier RSS "
                  f"{100 * crit.get('drop', float('nan')):.0f} % below the global model's",
                  fontsize=10)
