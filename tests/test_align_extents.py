@@ -17,6 +17,7 @@ from conftest import LEVIR, WHU
 from reblur.align import AlignParams, coarse_align_shakes
 from reblur.align import coarse as coarse_mod
 from reblur.align import polish as polish_mod
+from reblur.align.overviews import pyramid
 from reblur.align.polish import content_misfit, kernel_polish, polish_and_verify
 from reblur.grid import map_points, pose_homography
 from reblur.pipeline import align_coarse
@@ -180,8 +181,6 @@ def test_region_reasons(years_apart):
         "flat": np.full_like(gray, 0.5),
         "noise": rng.random(gray.shape).astype(np.float32),
     }
-    from reblur.align.overviews import pyramid
-
     for name, obs in cases.items():
         (level, *_) = pyramid(gray, obs, 1.0, 256, None)
         *_, why = kernel_polish(level, np.eye(3), 3, n_regions=(4, 4), min_r2=0.3,

@@ -178,15 +178,16 @@ def kernel_polish(
     The centroid of ``k`` is the mean camera displacement there -- unlike the optimum of a
     correlation, it is not pulled by an asymmetric blur.  A homography fitted robustly to the
     region centres moved by their centroids corrects ``H``.  Returns
-    ``(H, n_agree, n_fit, spread)``: the regions that agree with the corrected homography,
-    the regions whose kernel fits, and the area of the convex hull of the agreeing region
-    centres relative to the region grid (``n_agree = 0`` and ``H`` unchanged when no
-    homography could be fitted), and ``reasons``: the regions counted by outcome
+    ``(H, n_agree, n_fit, spread, reasons)``: the regions that agree with the corrected
+    homography, the regions whose kernel fits, the area of the convex hull of the
+    agreeing region centres relative to the region grid (``n_agree = 0`` and ``H``
+    unchanged when no homography could be fitted), and the regions counted by outcome
     (:data:`REASONS`; all ``invalid`` when the level is too small for the grid).
 
-    The regions are independent: ``workers > 1`` fits them on that many threads (NumPy's
-    and SciPy's solvers release the GIL), in the serial order, so the result is the
-    one-thread result bit for bit.
+    The regions are independent: ``workers > 1`` fits them on that many threads (the
+    Gram products and the NNLS release the GIL: 1.25 -> 0.84 s for the polish of a 1 MP
+    pair on two free cores), in the serial order, so the result is the one-thread result
+    bit for bit.
     """
     Hs = to_level(H, level.scale)
     h, w = level.obs.shape
