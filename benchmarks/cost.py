@@ -183,7 +183,12 @@ def run_case(case: Path, src: Path | None = None) -> dict:
     # the tile pass's work: decisions, padded pixels decided, tiles left incomplete
     res["tile_work"] = {**dec.get("backend", {}).get("work", {}),
                         "tiles": dec.get("n_tiles"), "incomplete": dec.get("incomplete_tiles")}
-    res["align_method"] = rep.get("alignment", {}).get("details", {}).get("method")
+    details = rep.get("alignment", {}).get("details") or {}
+    res["align_method"] = details.get("method")
+    # the shake extents the alignment tried (absent before the report recorded them)
+    extents = details.get("extents")
+    res["align_extents"] = None if extents is None else [e["shake_px"] for e in extents]
+    res["align_content_misfit"] = details.get("content_misfit")
     return res
 
 

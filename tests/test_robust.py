@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from reblur.robust import huber_line, mad, median
+from reblur.robust import MAD_TO_SIGMA, huber_line, inlier_scale, mad, median
 
 
 def _irls_lstsq(x, y, n_iter=20):
@@ -64,3 +64,36 @@ def test_median_equals_numpy(n, kind):
         x = rng.standard_cauchy(n).astype(np.float32)
     got, want = median(x), float(np.median(x))
     assert got == want or (np.isnan(got) and np.isnan(want)), (got, want)
+
+
+def _inlier_scale_numpy(r, start, centre=0.0, k=3.5, n_iter=20):
+    """``inlier_scale`` as it was written with ``np.median`` (the reference)."""
+    c, s = float(centre), float(start)
+    for _ in range(n_iter):
+        keep = np.abs(r - c) < k * s
+        if np.count_nonzero(keep) < 3:
+            break
+        c_new = float(np.median(r[keep]))
+        s_new = MAD_TO_SIGMA * float(np.median(np.abs(r[keep] - c_new)))
+        if not s_new > 0:
+            break
+        done = abs(s_new - s) <= 1e-6 * s and abs(c_new - c) <= 1e-6 * s
+        c, s = c_new, s_new
+        if done:
+            break
+    return c, s, np.abs(r - c) < k * s
+
+
+@pytest.mark.parametrize("n", [5_000, 200_001, 400_000])
+def test_inlier_scale_equals_the_numpy_median_one(n):
+    """``inlier_scale`` on :func:`median` gives exactly what it gave on ``np.median``
+    (centre, scale and inliers), on large residuals with 30 % gross outliers and ties."""
+    rng = np.random.default_rng(n)
+    r = 0.5 + 0.02 * rng.standard_normal(n)
+    bad = rng.random(n) < 0.3
+    r[bad] = rng.uniform(-5.0, 5.0, int(bad.sum()))
+    r[: n // 10] = np.round(r[: n // 10], 2)
+    c, s, keep = inlier_scale(r, 0.1, 0.4)
+    c0, s0, keep0 = _inlier_scale_numpy(r, 0.1, 0.4)
+    assert (c, s) == (c0, s0) and np.array_equal(keep, keep0)
+    assert abs(c - 0.5) < 1e-3 and abs(s - 0.02) < 2e-3

@@ -589,6 +589,15 @@ def align_coarse(reference, observed, shakes=(8.0, 16.0, 32.0, 64.0), hint=None,
     pair the polish then fits and removes the blur bias of the correlation optimum (on the
     Fig. 6 set-up, seed 8 of ``benchmarks/quality.py``: a 10 px corner error left at
     ``shake_px=8``); between captures years apart it never fits, and the reserve is used.
+    When the polish of such a result failed on the content (:attr:`Alignment.content_misfit`:
+    its regions' kernels explain little of their texture, where a blur larger than the
+    extent spreads them instead), no larger extent is tried: the blur model cannot fit
+    content that differs, whatever its extent (a years-apart 1 MP pair: one polish
+    instead of four).
+
+    The result's :attr:`~reblur.align.Alignment.extents` records every extent tried: its
+    method or refusal, its polishes (regions by outcome) and whether it found a content
+    misfit.
 
     The extents share one pyramid of overviews (:func:`reblur.align.coarse_align_shakes`):
     the images are read once, and the features, their ECC refinement and the gradient
@@ -599,15 +608,24 @@ def align_coarse(reference, observed, shakes=(8.0, 16.0, 32.0, 64.0), hint=None,
 
     err: Exception | None = None
     reserve = None
-    for _, a in coarse_align_shakes(reference, observed, shakes, params, hint=hint):
+    tried: list[dict[str, Any]] = []
+    for s, a in coarse_align_shakes(reference, observed, shakes, params, hint=hint):
         if isinstance(a, Exception):
             err = a
+            tried.append(dict(shake_px=float(s), refused=str(a),
+                              polishes=[dict(p) for p in getattr(a, "polishes", ())],
+                              content_misfit=False))
             continue
+        tried.append(dict(shake_px=float(s), method=a.method,
+                          polishes=[dict(p) for p in a.polishes],
+                          content_misfit=a.content_misfit))
         if "kernel" in a.method.split("+"):
-            return a
+            return dataclasses.replace(a, extents=tuple(tried))
         reserve = reserve or a
+        if a.content_misfit:  # a larger extent cannot make the blur model fit the content
+            break
     if reserve is not None:
-        return reserve
+        return dataclasses.replace(reserve, extents=tuple(tried))
     assert err is not None
     raise err
 

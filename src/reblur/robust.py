@@ -153,8 +153,9 @@ def inlier_scale(r: np.ndarray, start: float, centre: float = 0.0, k: float = 3.
         keep = np.abs(r - c) < k * s
         if np.count_nonzero(keep) < 3:
             break
-        c_new = float(np.median(r[keep]))
-        s_new = MAD_TO_SIGMA * float(np.median(np.abs(r[keep] - c_new)))
+        inl = r[keep]
+        c_new = median(inl)  # np.median's value, by a bracketed selection on large arrays
+        s_new = MAD_TO_SIGMA * median(np.abs(inl - c_new))
         if not s_new > 0:
             break
         done = abs(s_new - s) <= 1e-6 * s and abs(c_new - c) <= 1e-6 * s

@@ -23,6 +23,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
+import os
 from collections.abc import Callable, Hashable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -35,7 +36,7 @@ from .ecc import ecc_refine, phase_init
 from .features import Features, match_features
 from .overviews import Level, block_factor, image_shape, overview_k, overview_source, pyramid
 from .params import AlignParams
-from .polish import REGION_PX, polish_and_verify
+from .polish import REGION_PX, Polished, PolishError, content_misfit, polish_and_verify
 from .result import Alignment, AlignmentError
 from .verify import (
     check_near_hint,
@@ -47,6 +48,10 @@ from .verify import (
 )
 
 log = logging.getLogger(__name__)
+
+#: Threads fitting the kernel-polish regions (:func:`~reblur.align.polish.kernel_polish`:
+#: independent regions, the one-thread result bit for bit).
+POLISH_WORKERS = min(2, os.cpu_count() or 1)
 
 
 # ---------------------------------------------------------------------- entry points
@@ -330,13 +335,16 @@ class _Shake:
 
     ``work`` is the working level of ECC and the polish: the finest where the shake spans
     at most 4 pixels, but large enough for a grid of polish regions.  ``errors`` collects
-    the stages that failed and why, for the refusal."""
+    the stages that failed and why, for the refusal; ``polishes`` every kernel polish run
+    (:meth:`polish`): the estimate it polished, its regions by outcome, and what became of
+    it."""
 
     prep: Prepared
     params: AlignParams
     shake_px: float
     work: int = 0
     errors: list[tuple[str, str]] = field(default_factory=list)
+    polishes: list[dict] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         levels, top = self.prep.levels, len(self.prep.levels) - 1
@@ -381,10 +389,24 @@ class _Shake:
             check_near_hint(H, self.hint, self.prep.ref_shape, p.hint_reach)
         return overlap
 
-    def polish(self, H: np.ndarray):
-        """:func:`~reblur.align.polish.polish_and_verify` of ``H`` on the working level."""
-        return polish_and_verify(self.levels[self.work], H, self.shake_px,
-                                 self.prep.ref_shape, self.params, self.plausible)
+    def polish(self, H: np.ndarray, of: str) -> tuple[Polished, dict]:
+        """:func:`~reblur.align.polish.polish_and_verify` of ``H`` (the estimate ``of``) on
+        the working level, and its record in :attr:`polishes` (``outcome`` ``verified``, for
+        the caller to update, or the refusal); raises its AlignmentError."""
+        rec: dict[str, Any] = {"of": of}
+        self.polishes.append(rec)
+        try:
+            p = polish_and_verify(self.levels[self.work], H, self.shake_px,
+                                  self.prep.ref_shape, self.params, self.plausible,
+                                  workers=POLISH_WORKERS)
+        except PolishError as err:
+            rec.update(regions=err.reasons, outcome=f"refused: {err}")
+            raise
+        except AlignmentError as err:
+            rec.update(outcome=f"refused: {err}")
+            raise
+        rec.update(regions=p.reasons, outcome="verified")
+        return p, rec
 
     def failed(self, stage: str, err: Exception) -> None:
         """Record why ``stage`` failed."""
@@ -405,6 +427,8 @@ class _Estimate:
     feats: Features | None = None
     n_regions: int = 0
     n_blocks: int = 0
+    #: the polish regions by outcome, when a polish of this estimate ran and was not kept
+    unkept: dict[str, int] | None = None
 
 
 def _align(prep: Prepared, params: AlignParams, shake_px: float) -> Alignment:
@@ -422,7 +446,7 @@ def _align(prep: Prepared, params: AlignParams, shake_px: float) -> Alignment:
         seed = _features_seed(ctx) if params.method == "auto" and ctx.hint is None else None
         est = _gradient_blocks(ctx, seed)
         if est is None and params.method == "gradient":
-            raise ctx.refused()
+            raise _refused(ctx)
         if est is not None and params.polish:
             _polish_and_keep(ctx, est)
     if est is None and params.method in ("auto", "features"):
@@ -430,12 +454,19 @@ def _align(prep: Prepared, params: AlignParams, shake_px: float) -> Alignment:
     if est is None and params.method in ("auto", "ecc"):
         est = _phase_fallback(ctx)
     if est is None:
-        raise ctx.refused()
+        raise _refused(ctx)
     try:
         return _result(ctx, est)
     except AlignmentError as err:
         ctx.failed("checks", err)
-        raise ctx.refused() from None
+        raise _refused(ctx) from None
+
+
+def _refused(ctx: _Shake) -> AlignmentError:
+    """The refusal of ``ctx``, with its polishes' records (``polishes``)."""
+    err = ctx.refused()
+    err.polishes = [dict(r) for r in ctx.polishes]
+    return err
 
 
 # ---------------------------------------------------------------------- the stages
@@ -535,21 +566,26 @@ def _polish_and_keep(ctx: _Shake, est: _Estimate) -> None:
     optimum sits near a mode of the blur; between captures years apart its blur model
     does not hold and it can wander."""
     try:
-        p = ctx.polish(est.H)
+        p, rec = ctx.polish(est.H, "+".join(est.stages))
     except AlignmentError as err:
         log.debug("kernel polish not kept: %s", err)
+        est.unkept = getattr(err, "reasons", None)
         return
     fine = min(ctx.first_at_most(ctx.params.gradient_side), ctx.work)
     reach = max(2.0 / ctx.levels[fine].scale, ctx.shake_px)
     moved = max_corner_shift(p.H, est.H, ctx.prep.ref_shape)
     if p.n_fit < 0.5 * p.n_total:
-        log.debug("kernel polish not kept: the blur model fits in %d of %d regions only",
-                  p.n_fit, p.n_total)
+        why = f"the blur model fits in {p.n_fit} of {p.n_total} regions only"
     elif moved > reach:
-        log.debug("kernel polish moved %.1f px (> %.1f): not kept", moved, reach)
+        why = f"it moved the estimate by {moved:.1f} px (> {reach:.1f})"
     else:
         est.H, est.n_regions = p.H, p.n_agree
         est.stages.append("kernel")
+        rec["outcome"] = "kept"
+        return
+    log.debug("kernel polish not kept: %s", why)
+    rec["outcome"] = f"verified, not kept: {why}"
+    est.unkept = p.reasons
 
 
 def _features_fallback(ctx: _Shake) -> _Estimate | None:
@@ -576,7 +612,8 @@ def _features_fallback(ctx: _Shake) -> _Estimate | None:
 
 def _polish_verified(ctx: _Shake, est: _Estimate) -> None:
     """Polish ``est`` in place; raise AlignmentError unless its regions verify it."""
-    p = ctx.polish(est.H)
+    p, rec = ctx.polish(est.H, "+".join(est.stages))
+    rec["outcome"] = "kept"
     est.H, est.n_regions = p.H, p.n_agree
     if est.stages[-1] != "kernel":
         est.stages.append("kernel")
@@ -605,7 +642,7 @@ def _phase_fallback(ctx: _Shake) -> _Estimate:
             )
     except AlignmentError as err:
         ctx.failed(stage, err)
-        raise ctx.refused() from None
+        raise _refused(ctx) from None
     return est
 
 
@@ -635,4 +672,6 @@ def _result(ctx: _Shake, est: _Estimate) -> Alignment:
         scale=ctx.prep.scale0, residual_px=residual, ecc=rho if np.isfinite(rho) else None,
         overlap=overlap, n_regions=est.n_regions, n_blocks=est.n_blocks,
         overviews={k: dict(v) for k, v in (ctx.prep.sources or {}).items()},
+        shake_px=float(ctx.shake_px), polishes=tuple(dict(r) for r in ctx.polishes),
+        content_misfit=est.unkept is not None and content_misfit(est.unkept),
     )

@@ -49,6 +49,24 @@ class Alignment:
         ...}``, each ``{"source": "file levels", "file": ..., "level": ...}`` (the
         file's own reduced-resolution levels) or ``{"source": "block means of the full
         image"}`` (see :meth:`~reblur.align.OverviewCache.overview_source`).
+    shake_px : float or None
+        The shake extent of this result (:func:`coarse_align`'s ``shake_px``).
+    polishes : tuple of dict
+        Every kernel polish run for this result, in order: ``of`` (the estimate it
+        polished, e.g. ``"features+gradient"``), ``regions`` (its regions counted by
+        outcome: ``fit``, ``invalid``, ``flat``, ``faint``, ``misfit``, ``spread``; see
+        :data:`reblur.align.polish.REASONS`) and ``outcome`` (``kept``, ``verified, not
+        kept: ...`` or ``refused: ...``).
+    content_misfit : bool
+        True when ``H`` has no ``kernel`` stage because the polish's blur model did not fit
+        the CONTENT (:func:`reblur.align.polish.content_misfit`: most failing regions
+        explain little of their texture, rather than a blur larger than ``shake_px``): a
+        larger shake extent would not help, and :func:`reblur.pipeline.align_coarse`
+        tries none.
+    extents : tuple of dict or None
+        Set by :func:`reblur.pipeline.align_coarse`: the shake extents it tried, in order,
+        each ``{"shake_px", "method"}`` (or ``"refused"``: the reason), ``"polishes"`` and
+        ``"content_misfit"`` (None from :func:`coarse_align` itself).
     """
 
     H: np.ndarray
@@ -62,6 +80,10 @@ class Alignment:
     n_regions: int = 0
     n_blocks: int = 0
     overviews: dict | None = None
+    shake_px: float | None = None
+    polishes: tuple[dict, ...] = ()
+    content_misfit: bool = False
+    extents: tuple[dict, ...] | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready description of the alignment."""
@@ -77,5 +99,9 @@ class Alignment:
             "n_regions": int(self.n_regions),
             "n_blocks": int(self.n_blocks),
             **({} if self.overviews is None else {"overviews": self.overviews}),
+            "shake_px": None if self.shake_px is None else float(self.shake_px),
+            "polishes": [dict(p) for p in self.polishes],
+            "content_misfit": bool(self.content_misfit),
+            **({} if self.extents is None else {"extents": [dict(e) for e in self.extents]}),
         }
 
