@@ -151,6 +151,39 @@ def test_cog_masks_no_data_and_its_overviews_ignore_it(tmp_path):
         np.testing.assert_allclose(ov[~np.isnan(ov)], 0.8, rtol=1e-6)
 
 
+def test_cogs_written_from_two_threads_are_whole(tmp_path):
+    """``write_report`` writes the masks' and the reblurred image's COGs from two threads:
+    a masked uint8 COG and a max-overview mask COG written side by side must each read back
+    as their source (without the lock, GDAL failed with "_tiffWriteProc: No such file or
+    directory" every time at this size)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    n = 5000
+    rng = np.random.default_rng(5)
+    mask = rng.random((n, n)) > 0.99
+    img = rng.integers(0, 256, (n, n), dtype=np.uint8)
+
+    def masks():
+        for name in ("m.tif", "u.tif"):
+            write_cog(tmp_path / name, mask.astype(np.uint8), None, block=512,
+                      overviews="max")
+
+    def image():
+        write_cog(tmp_path / "r.tif", img.astype(np.float32) / 255, None, block=512,
+                  overviews="average", nodata_mask=mask,
+                  convert=lambda b: quantize(b, np.uint8))
+
+    with ThreadPoolExecutor(2) as ex:
+        for fut in [ex.submit(masks), ex.submit(image)]:
+            fut.result()
+    for name in ("m.tif", "u.tif"):
+        with rasterio.open(tmp_path / name) as f:
+            np.testing.assert_array_equal(f.read(1), mask)
+    with rasterio.open(tmp_path / "r.tif") as f:
+        np.testing.assert_array_equal(f.read_masks(1) == 0, mask)
+        np.testing.assert_array_equal(f.read(1)[~mask], img[~mask])
+
+
 def test_cog_max_overviews_keep_every_change_pixel(tmp_path):
     m = np.zeros((500, 333), np.uint8)
     rng = np.random.default_rng(1)

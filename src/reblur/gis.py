@@ -31,6 +31,7 @@ import math
 import os
 import shutil
 import tempfile
+import threading
 import warnings
 import xml.etree.ElementTree as ET
 from collections.abc import Callable, Iterator
@@ -71,6 +72,13 @@ SIMPLIFY_PX = 0.5
 
 #: GDAL's block cache (MB) while a COG is assembled: bounds the memory of the copy.
 _GDAL_CACHE_MB = 256
+
+#: One COG written at a time in a process.  GDAL's block cache is shared by every thread and
+#: a thread that fills it writes out other threads' dirty blocks, while rasterio's
+#: ``Env`` options are per thread: two masked COGs written side by side failed with
+#: "_tiffWriteProc: No such file or directory" (every time at 5000^2 px,
+#: ``tests/test_gis.py::test_cogs_written_from_two_threads_are_whole``).
+_COG_LOCK = threading.Lock()
 
 _OVERVIEWS = ("average", "max", "none")
 
@@ -323,10 +331,6 @@ def write_cog(
     -------
     Path
     """
-    import rasterio
-    import rasterio.shutil
-    from rasterio.errors import NotGeoreferencedWarning
-
     path = Path(path)
     if overviews not in _OVERVIEWS:
         raise ValueError(f"overviews must be one of {', '.join(_OVERVIEWS)}, got {overviews!r}")
@@ -350,6 +354,19 @@ def write_cog(
         opts["LEVEL"] = int(level)
     # temporaries next to the output, named like the output set's, so that a run killed
     # here leaves nothing the next run into the directory does not remove
+    with _COG_LOCK:
+        _write_cog_locked(path, data, georef, shape, dtype, block, overviews, convert, alpha,
+                          nodata_mask, masked, opts)
+    return path
+
+
+def _write_cog_locked(path: Path, data, georef, shape, dtype, block, overviews, convert,
+                      alpha, nodata_mask, masked, opts) -> None:
+    """The GDAL part of :func:`write_cog` (under ``_COG_LOCK``)."""
+    import rasterio
+    import rasterio.shutil
+    from rasterio.errors import NotGeoreferencedWarning
+
     work = Path(tempfile.mkdtemp(prefix=f".reblur-tmp-{os.getpid()}-cog-", dir=path.parent))
     try:
         with warnings.catch_warnings():
@@ -372,7 +389,6 @@ def write_cog(
                     rasterio.shutil.copy(src, tmp, driver="COG", **opts)
     finally:
         shutil.rmtree(work, ignore_errors=True)
-    return path
 
 
 class ReblurredStore:
