@@ -13,6 +13,8 @@ import cv2
 import numpy as np
 import pytest
 from conftest import LEVIR, WHU
+from test_align import _read
+from test_align import _smooth_walk as _walk
 
 from reblur.align import AlignParams, coarse_align_shakes
 from reblur.align import coarse as coarse_mod
@@ -26,20 +28,6 @@ from reblur.warp import Box, warp_window
 SIZE = 1024
 CENTER = ((SIZE - 1) / 2.0, (SIZE - 1) / 2.0)
 SHAKES = (8.0, 16.0, 32.0, 64.0)
-
-
-def _read(path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    assert img is not None, f"real test imagery missing: {path}"
-    return (cv2.cvtColor(img, cv2.COLOR_BGR2RGB) / 255.0).astype(np.float32)
-
-
-def _walk(rng: np.random.Generator, n: int) -> np.ndarray:
-    """A smooth random walk of ``n`` samples scaled to [-1, 1]."""
-    v = np.cumsum(rng.normal(size=n + 6))
-    v = np.convolve(v, np.ones(7) / 7.0, mode="valid")[:n]
-    v -= (v.max() + v.min()) / 2.0
-    return v / np.abs(v).max()
 
 
 def _shaken(scene: np.ndarray, seed: int, shake: float, n: int = 30):
