@@ -488,6 +488,41 @@ def main() -> None:
 
     Run 'reblur demo' for a first look, 'reblur COMMAND --help' for each command.
     """
+    _quiet_libtiff()
+
+
+def _quiet_libtiff() -> bool:
+    """Stop GDAL's libtiff from printing its own error lines on stderr.
+
+    GDAL reports a failed TIFF write (a full disk) as an error, which the command turns
+    into its one line; libtiff's global default handler prints the same failure again
+    ("_tiffWriteProc: No space left on device.") for the calls GDAL makes without a
+    per-file handler.  The handler is cleared in the libtiff that rasterio's GDAL loads
+    (the wheel's own copy); nothing happens where it cannot be found.
+
+    Returns
+    -------
+    bool
+        True if the handlers were cleared.
+    """
+    import ctypes
+    import glob
+
+    try:
+        import rasterio
+    except ImportError:
+        return False
+    libs = os.path.join(os.path.dirname(os.path.dirname(rasterio.__file__)), "rasterio.libs")
+    found = sorted(glob.glob(os.path.join(libs, "libtiff*.so*")))
+    if not found:
+        return False
+    try:
+        tiff = ctypes.CDLL(found[0])
+        tiff.TIFFSetErrorHandler(None)
+        tiff.TIFFSetWarningHandler(None)
+    except (OSError, AttributeError):
+        return False
+    return True
 
 
 def _read_boxes(ctx: click.Context, param: click.Parameter, value: tuple[str, ...]):

@@ -65,7 +65,6 @@ from typing import Any
 
 import numpy as np
 
-from ._memory import available_cpus
 from .gis import (
     FEATURE_KEYS,
     change_features,
@@ -1094,16 +1093,22 @@ def write_report(
 
     done(0.0)
 
-    # the three groups of files are independent (each streams its own source window by
-    # window) and run side by side; their files and notes are merged in this order
-    jobs = ((_write_masks, 0.3), (_write_reblurred, 0.6), (_write_pictures, 0.9))
-    with ThreadPoolExecutor(min(len(jobs), available_cpus())) as ex:
-        futures = [ex.submit(job, result, out, observed, geo) for job, _ in jobs]
-        for fut, (_, fraction) in zip(futures, jobs, strict=True):
-            got_files, got_notes = fut.result()
+    # the pictures (PNGs drawn from the arrays) are written on a thread beside the masks and
+    # the reblurred image; those two stay on the calling thread, one after the other: GDAL
+    # writes one COG at a time in a process (``gis._COG_LOCK``), and its options and error
+    # handling (libtiff's messages on stderr when the disk fills) are the calling thread's
+    # (rasterio's ``Env`` is per thread); files and notes are merged in this order
+    with ThreadPoolExecutor(1) as ex:
+        pictures = ex.submit(_write_pictures, result, out, observed, geo)
+        for job, fraction in ((_write_masks, 0.3), (_write_reblurred, 0.6)):
+            got_files, got_notes = job(result, out, observed, geo)
             files.update(got_files)
             notes.extend(got_notes)
             done(fraction)
+        got_files, got_notes = pictures.result()
+        files.update(got_files)
+        notes.extend(got_notes)
+        done(0.9)
 
     timings = dict(timings or {})
     timings["report"] = time.perf_counter() - t0
