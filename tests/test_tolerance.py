@@ -209,3 +209,16 @@ def test_windows_marked_as_change_drop_the_noise_floor():
                                    shape)
     assert not info["calibrated"] and info["marked"] > 0.9
     assert q.min_threshold == 0.0
+
+
+def test_tolerant_reference_takes_any_memory_layout():
+    """The contiguous path (OpenCV) and the strided one (numpy) clamp to the same values,
+    and both to the explicit ``clip(o, lo, hi)``."""
+    rng = np.random.default_rng(7)
+    m = _smooth_image((64, 71), seed=7)
+    o = m + rng.normal(0, 0.05, m.shape).astype(np.float32)
+    tol = ModelTolerance(shift=0.4, contrast=0.05, radius=3)
+    lo, hi = tolerance_interval(m, tol)
+    want = np.minimum(np.maximum(o, lo), hi)
+    np.testing.assert_array_equal(tolerant_reference(o, m, tol), want)
+    np.testing.assert_array_equal(tolerant_reference(np.asfortranarray(o), m, tol), want)

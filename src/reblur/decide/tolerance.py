@@ -159,10 +159,10 @@ def tolerance_interval(matched: np.ndarray, tol: ModelTolerance,
         r = int(tol.radius)
         disc = _disc(r)
         rng = cv2.dilate(m, disc, borderType=cv2.BORDER_REPLICATE)
-        rng -= cv2.erode(m, disc, borderType=cv2.BORDER_REPLICATE)
+        cv2.subtract(rng, cv2.erode(m, disc, borderType=cv2.BORDER_REPLICATE), dst=rng)
         rng *= f32(tol.contrast)
-        lo -= rng
-        hi += rng
+        cv2.subtract(lo, rng, dst=lo)  # float32 sums, rounded once: numpy's values
+        cv2.add(hi, rng, dst=hi)
     if reach is not None:
         _widen_by_reach(m, lo, hi, reach)
     return lo, hi
@@ -195,5 +195,8 @@ def tolerant_reference(observed: np.ndarray, matched: np.ndarray,
         return matched
     lo, hi = tolerance_interval(matched, tol or ModelTolerance(), reach)
     o = np.asarray(observed, dtype=np.float32)
-    np.maximum(lo, np.minimum(o, hi), out=lo)
+    if o.flags.c_contiguous:  # OpenCV's extremes (exact, as numpy's) without a temporary
+        cv2.max(lo, cv2.min(o, hi, dst=hi), dst=lo)
+    else:
+        np.maximum(lo, np.minimum(o, hi), out=lo)
     return lo
