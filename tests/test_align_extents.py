@@ -13,8 +13,7 @@ import cv2
 import numpy as np
 import pytest
 from conftest import LEVIR, WHU
-from test_align import _read
-from test_align import _smooth_walk as _walk
+from test_align import _observe, _read
 
 from reblur.align import AlignParams, coarse_align_shakes
 from reblur.align import coarse as coarse_mod
@@ -23,7 +22,6 @@ from reblur.align.overviews import pyramid
 from reblur.align.polish import content_misfit, kernel_polish, polish_and_verify
 from reblur.grid import map_points, pose_homography
 from reblur.pipeline import align_coarse
-from reblur.warp import Box, warp_window
 
 SIZE = 1024
 CENTER = ((SIZE - 1) / 2.0, (SIZE - 1) / 2.0)
@@ -37,14 +35,7 @@ def _shaken(scene: np.ndarray, seed: int, shake: float, n: int = 30):
     rng = np.random.default_rng(seed)
     tx, ty = rng.uniform(-0.03, 0.03, 2) * SIZE
     Hv = pose_homography(tx, ty, rz=rng.uniform(-3, 3), center=CENTER)
-    px, py, pr = shake * _walk(rng, n), shake * _walk(rng, n), _walk(rng, n)
-    acc = np.zeros(scene.shape, np.float32)
-    for a, b, r in zip(px, py, pr, strict=True):
-        out, _ = warp_window(scene, pose_homography(a, b, rz=r, center=CENTER) @ Hv,
-                             Box(0, 0, SIZE, SIZE))
-        acc += out
-    H = pose_homography(px.mean(), py.mean(), rz=pr.mean(), center=CENTER) @ Hv
-    return acc / n, H / H[2, 2]
+    return _observe(scene, Hv, rng, n=n, shake=shake, roll=1.0)
 
 
 def _corner_error(H, H_true) -> float:
