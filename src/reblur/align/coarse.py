@@ -23,13 +23,13 @@ from __future__ import annotations
 import functools
 import logging
 import math
-import os
 from collections.abc import Callable, Hashable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
+from .._memory import available_cpus
 from ..grid import map_points
 from .blocks import Blocks, gradient_align, rotation_hypotheses
 from .ecc import ecc_refine, phase_init
@@ -51,7 +51,7 @@ log = logging.getLogger(__name__)
 
 #: Threads fitting the kernel-polish regions (:func:`~reblur.align.polish.kernel_polish`:
 #: independent regions, the one-thread result bit for bit).
-POLISH_WORKERS = min(2, os.cpu_count() or 1)
+POLISH_WORKERS = min(2, available_cpus())
 
 
 # ---------------------------------------------------------------------- entry points
