@@ -1095,9 +1095,8 @@ def write_report(
 
     # the pictures (PNGs drawn from the arrays) are written on a thread beside the masks and
     # the reblurred image; those two stay on the calling thread, one after the other: GDAL
-    # writes one COG at a time in a process (``gis._COG_LOCK``), and its options and error
-    # handling (libtiff's messages on stderr when the disk fills) are the calling thread's
-    # (rasterio's ``Env`` is per thread); files and notes are merged in this order
+    # writes one COG at a time in a process anyway (``gis._COG_LOCK``); files and notes are
+    # merged in this order (the first error raised is the one reported)
     with ThreadPoolExecutor(1) as ex:
         pictures = ex.submit(_write_pictures, result, out, observed, geo)
         for job, fraction in ((_write_masks, 0.3), (_write_reblurred, 0.6)):
