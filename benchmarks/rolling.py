@@ -62,13 +62,14 @@ def scores(change: np.ndarray, truth: np.ndarray, known: np.ndarray) -> dict:
                        if pos.any() else None)}
 
 
-def run(pair, shutter: str, bands: int | None = None) -> dict:
-    """``detect_changes`` with a shutter model (``bands`` row bands, default
-    :class:`~reblur.rolling.RollingParams`'), scored."""
+def run(pair, shutter: str, bands: int | None = None, columns: int | None = None) -> dict:
+    """``detect_changes`` with a shutter model (``bands`` row bands and ``columns``
+    estimation windows per band; None: :class:`~reblur.rolling.RollingParams`'), scored."""
     import reblur
     from reblur.rolling import RollingParams
 
-    params = RollingParams() if bands is None else RollingParams(n_bands=bands)
+    given = {"n_bands": bands, "columns": columns}
+    params = RollingParams(**{k: v for k, v in given.items() if v is not None})
     t, c = time.perf_counter(), time.process_time()
     res = reblur.detect_changes(pair.reference, pair.observed, shutter=shutter,
                                 rolling=params)
@@ -85,14 +86,15 @@ def run(pair, shutter: str, bands: int | None = None) -> dict:
 
 
 def matrix(size: int, readouts, shutters, bands: int | None = None,
-           changes=(False, True)) -> list[dict]:
+           changes=(False, True), columns: int | None = None) -> list[dict]:
     rows = []
     for ch in changes:
         for r in readouts:
             pair = make(r, ch, size)
-            row = {"size": size, "readout": r, "changes": ch, "bands": bands}
+            row = {"size": size, "readout": r, "changes": ch, "bands": bands,
+                   "columns": columns}
             for sh in shutters:
-                row[sh] = run(pair, sh, bands)
+                row[sh] = run(pair, sh, bands, columns)
             print(json.dumps(row), flush=True)
             rows.append(row)
     return rows
@@ -177,6 +179,9 @@ if __name__ == "__main__":
     ap.add_argument("--all", action="store_true", help="also shutter='rolling'")
     ap.add_argument("--bands", type=int, default=None,
                     help="row bands of the rolling model (default RollingParams')")
+    ap.add_argument("--columns", type=int, default=None,
+                    help="estimation windows per band across the width (default "
+                         "RollingParams'; 2: the edges only, the layout before b4fd12f)")
     ap.add_argument("--no-change-only", action="store_true", help="only the pairs without "
                     "changes")
     ap.add_argument("--no-save", action="store_true", help=f"do not write {RUNS.name}")
@@ -192,7 +197,7 @@ if __name__ == "__main__":
         print(gopro_table(rows, shutters))
         raise SystemExit(0)
     rows = matrix(a.size, [float(v) for v in a.readouts.split(",")], shutters, a.bands,
-                  (False,) if a.no_change_only else (False, True))
+                  (False,) if a.no_change_only else (False, True), a.columns)
     if not a.no_save:
         RUNS.write_text(json.dumps(rows, indent=1))
     print(table(rows, shutters))

@@ -276,9 +276,9 @@ class RollingParams:
         Estimation windows per band across the width (:func:`rolling_windows`): 3, the
         left edge, the centre and the right edge; with the edges alone (2) the kernels of
         the centre strip were left free and reblurred a textured centre wrongly under a
-        roll (``python -m benchmarks.rolling --size 768``, pasted changes, readouts
-        0.25 / 0.5 / 1: 1.45 / 0.67 / 0.41 % false alarms with 2, 0.018 / 0.049 / 0.036 %
-        with 3, at 1.1-1.3x the CPU of a whole run at 512 px).
+        roll (``python -m benchmarks.rolling --size 768 [--columns 2]``, pasted changes,
+        readouts 0.25 / 0.5 / 1: 1.45 / 0.67 / 0.41 % false alarms with 2, 0.018 / 0.049 /
+        0.036 % with 3; at 512 px auto's CPU over the eight pairs 56 s with 2, 64 s with 3).
     t_margin, b_margin : int
         The band weights live on the poses within ``t_margin`` translation steps and
         ``b_margin`` base steps of the global estimate's support (:func:`support_grid`).

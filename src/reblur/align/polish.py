@@ -185,9 +185,8 @@ def kernel_polish(
     (:data:`REASONS`; all ``invalid`` when the level is too small for the grid).
 
     The regions are independent: ``workers > 1`` fits them on that many threads (the
-    Gram products and the NNLS release the GIL: 1.25 -> 0.84 s for the polish of a 1 MP
-    pair on two free cores), in the serial order, so the result is the one-thread result
-    bit for bit.
+    Gram products and the NNLS release the GIL), in the serial order, so the result is
+    the one-thread result bit for bit.
     """
     Hs = to_level(H, level.scale)
     h, w = level.obs.shape

@@ -135,8 +135,10 @@ def tolerance_interval(matched: np.ndarray, tol: ModelTolerance,
         lo = cv2.erode(m, k3, borderType=cv2.BORDER_REPLICATE)
         hi = cv2.dilate(m, k3, borderType=cv2.BORDER_REPLICATE)
     elif tol.shift > 0.0:
-        # OpenCV's blends and extremes: 2.2x numpy's on one thread at 1152^2 px (its
-        # float32 blend may round the last bit differently from numpy's two products)
+        # OpenCV's blends and extremes (with the contrast step below: the 100 MP unchanged
+        # tile pass 8.8 -> 7.6 s CPU, ``python -m benchmarks.stage_cpu REF OBS --stages
+        # reblur.pipeline:run_tiles``); its float32 blend may round the last bit
+        # differently from numpy's two products
         a, b = float(tol.shift), float(1.0 - tol.shift)
         p = _padded(m, 1)
         lo = m.copy()
