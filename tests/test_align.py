@@ -215,6 +215,48 @@ def test_phase_correlation_path(scene):
     assert _obs_corner_error(a.H, H_true, obs.shape) <= 2.0
 
 
+def test_ecc_refines_finer_levels_in_few_iterations(scene, monkeypatch):
+    """Coarse to fine, the first level runs all ``ecc_iterations`` and the finer ones at
+    most ``REFINE_ITERATIONS``; on a shaken same-scene pair that leaves the estimate where
+    the uncapped refinement puts it (within 0.05 px of the finest level)."""
+    from reblur.align import ecc as ecc_mod
+
+    ref, obs, _ = scene
+    params = AlignParams()
+    prep = coarse_mod._prepare(ref, obs, params, None)
+    top = len(prep.levels) - 1
+    H0 = ecc_mod.phase_init(prep.levels[top])
+    used = []
+    level = ecc_mod._ecc_level
+
+    def counting(lv, H, motion, sigma, iterations, eps):
+        used.append(iterations)
+        return level(lv, H, motion, sigma, iterations, eps)
+
+    monkeypatch.setattr(ecc_mod, "_ecc_level", counting)
+    H, _, _ = ecc_mod.ecc_refine(prep.levels, H0, top, 0, prep.ref_shape, params,
+                                 max_jump=0.25)
+    assert len(used) == top + 1 and used[0] == params.ecc_iterations
+    assert max(used[1:]) == ecc_mod.REFINE_ITERATIONS < params.ecc_iterations
+    monkeypatch.setattr(ecc_mod, "REFINE_ITERATIONS", params.ecc_iterations)
+    H_full, _, _ = ecc_mod.ecc_refine(prep.levels, H0, top, 0, prep.ref_shape, params,
+                                      max_jump=0.25)
+    assert _ref_corner_error(H, H_full, prep.ref_shape) * prep.levels[0].scale <= 0.05
+
+
+def test_gradient_block_coverage_counts():
+    """The coverage of every block and search window, from integral images, is the slow
+    count of its pixels."""
+    from reblur.align.blocks import _box_counts
+
+    rng = np.random.default_rng(5)
+    a = rng.random((70, 90)) < 0.7
+    y0, x0 = np.array([0, 7, 33, 40]), np.array([0, 12, 50, 59])
+    got = _box_counts(a, y0, x0, 30)
+    want = np.array([[a[y:y + 30, x:x + 30].sum() for x in x0] for y in y0])
+    np.testing.assert_array_equal(got, want)
+
+
 def test_identity_and_sharp_warp():
     ref = _read(IMAGES["whu_000121"])
     a = coarse_align(ref, ref)
@@ -421,20 +463,63 @@ def test_real_unrelated_later_image_is_refused():
 SHAKES = (8.0, 16.0, 32.0, 64.0)
 
 
+#: A kernel polish's reason, in a refusal or a polish record: the shared run does not
+#: rerun a polish a smaller extent refused on a content misfit on the same level
+_POLISH_REASON = re.compile(r"(kernel polish\): )?could not be verified: [^;]*?"
+                            r"(shake_px=[0-9.]+|cannot change that)")
+
+
 def _outcome(a):
-    """Comparable form of an alignment or an AlignmentError."""
+    """Comparable form of an alignment or an AlignmentError, its polishes' reasons left
+    out (they are compared by :func:`_check_reused_polishes`)."""
     if isinstance(a, AlignmentError):
-        return ("refused", str(a))
-    return ("aligned", a.H.tobytes(), json.dumps(a.to_dict(), sort_keys=True))
+        return ("refused", _POLISH_REASON.sub("<polish refused>", str(a)))
+    d = a.to_dict()
+    d["polishes"] = [{k: v for k, v in r.items() if k == "of"} for r in d["polishes"]]
+    del d["content_misfit"]  # read from the polishes
+    return ("aligned", a.H.tobytes(), json.dumps(d, sort_keys=True))
+
+
+def _polish_records(a) -> list[dict]:
+    return [dict(r) for r in (a.polishes if not isinstance(a, AlignmentError)
+                              else getattr(a, "polishes", ()))]
+
+
+def _check_reused_polishes(shared: list, separate: list) -> int:
+    """Every polish record of the shared run is the separate run's, or (a polish not
+    rerun) a refusal naming a smaller extent whose polish of the same estimate was
+    refused with the same regions on a content misfit.  Returns how many were reused."""
+    from reblur.align.polish import content_misfit
+
+    reused, seen = 0, []  # (extent, record) of the content-misfit refusals so far
+    for (s, got), want in zip(shared, separate, strict=True):
+        got, want = _polish_records(got), _polish_records(want)
+        assert len(got) == len(want), f"shake_px={s}"
+        for g, w in zip(got, want, strict=True):
+            assert g["of"] == w["of"]
+            m = re.search(r"at shake_px=([0-9.]+) on the same level", g["outcome"])
+            if m is None:
+                assert g == w, f"shake_px={s}"
+            else:
+                earlier = float(m.group(1))
+                assert earlier < s and w["outcome"].startswith("refused")
+                assert any(e == earlier and r["of"] == g["of"]
+                           and r["regions"] == g["regions"] for e, r in seen)
+                reused += 1
+            if g.get("regions") and content_misfit(g["regions"]) and m is None:
+                seen.append((s, g))
+    return reused
 
 
 @pytest.mark.parametrize("case", ["same_scene", "years_apart", "unrelated"])
 def test_shakes_share_work_but_not_results(case, scenes, monkeypatch):
     """``coarse_align_shakes`` (one pyramid; features, ECC and gradient blocks memoised)
     gives, extent by extent, exactly what separate ``coarse_align`` calls give: the same
-    homography bit for bit, diagnostics, or refusal message.  Covers the feature + ECC
-    path (a same-scene pair), the gradient blocks from rotation hypotheses (years apart,
-    the polish never fits) and a refusal (another scene); a caller editing a yielded
+    homography bit for bit, diagnostics, or refusal message, but for the polishes it does
+    not rerun (refused on a content misfit at a smaller extent on the same level).  Covers
+    the feature + ECC path (a same-scene pair), the gradient blocks from rotation
+    hypotheses (years apart, the polish never fits) and a refusal (another scene); a
+    caller editing a yielded
     ``H`` in place must not change the later extents."""
     if case == "same_scene":
         ref, obs, _ = scenes["levir_test_7"]
@@ -442,12 +527,13 @@ def test_shakes_share_work_but_not_results(case, scenes, monkeypatch):
         ref, obs, _ = _later_pair(0, LEVIR / "B" / "test_102.png")
     else:
         ref, obs, _ = _later_pair(3, WHU / "curr" / "000121.png")
-    separate = []
+    separate_raw = []
     for s in SHAKES:
         try:
-            separate.append(_outcome(coarse_align(ref, obs, shake_px=s)))
+            separate_raw.append(coarse_align(ref, obs, shake_px=s))
         except AlignmentError as err:
-            separate.append(_outcome(err))
+            separate_raw.append(err)
+    separate = [_outcome(a) for a in separate_raw]
 
     calls = {"sift": 0, "overview": 0}
     match, ov = coarse_mod.match_features, coarse_mod.overview_k
@@ -462,15 +548,19 @@ def test_shakes_share_work_but_not_results(case, scenes, monkeypatch):
 
     monkeypatch.setattr(coarse_mod, "match_features", counting_match)
     monkeypatch.setattr(coarse_mod, "overview_k", counting_overview)
-    shared = []
+    shared, raw = [], []
     for s, a in align_mod.coarse_align_shakes(ref, obs, SHAKES):
         shared.append((s, _outcome(a)))
+        raw.append((s, a))
         if not isinstance(a, AlignmentError):
             a.H[:] = np.nan  # must not reach the memo
     assert [s for s, _ in shared] == list(SHAKES)
     for s, (got, want) in zip(SHAKES, zip([o for _, o in shared], separate, strict=True),
                               strict=True):
         assert got == want, f"shake_px={s}"
+    reused = _check_reused_polishes(raw, separate_raw)
+    if case == "years_apart":  # extents sharing a level: polishes refused on content
+        assert reused > 0
     assert calls["overview"] == 2  # each image read once
     assert calls["sift"] <= 2  # at most the two feature levels, once each
     if case != "unrelated":

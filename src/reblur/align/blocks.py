@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from .._memory import available_cpus, parts, thread_map
 from ..grid import map_points, translation
 from .overviews import Level, to_full, to_level
 from .params import AlignParams
@@ -28,6 +29,8 @@ log = logging.getLogger(__name__)
 _BLOCK_PX = 96
 #: Side of the blocks of the coarse (rotation hypothesis) search.
 _COARSE_BLOCK_PX = 64
+#: Threads matching the blocks of one level (each with OpenCV single-threaded).
+MATCH_WORKERS = min(2, available_cpus())
 
 
 def _grad_field(a: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
@@ -64,24 +67,27 @@ def _block_match(
     normalised correlation of the two gradient fields is searched over ``+-search`` pixels.
     Returns ``(src, dst, ncc)``: ``src`` the matched points of the warped reference,
     ``dst`` the block centres of the observation (level pixels), and the correlation peak.
+    The blocks are matched on :data:`MATCH_WORKERS` threads, in a fixed order.
     """
     h, w = level.obs.shape
     warped, cover = level.warped_reference(to_level(H, level.scale))
     fr = _grad_field(warped, cover, sigma)
     fo = _grad_field(level.obs, level.obs_mask, sigma)
-    has_r = np.any(fr != 0, axis=2)
-    has_o = np.any(fo != 0, axis=2)
     half, S = block // 2, search
-    src, dst, score = [], [], []
-    for cy in range(half + S, h - half - S + 1, step):
-        for cx in range(half + S, w - half - S + 1, step):
+    cys = np.arange(half + S, h - half - S + 1, step)
+    cxs = np.arange(half + S, w - half - S + 1, step)
+    # blocks of the observation with gradient almost everywhere, whose search window in
+    # the warped reference has it mostly (counts from integral images)
+    n_o = _box_counts(np.any(fo != 0, axis=2), cys - half, cxs - half, block)
+    n_r = _box_counts(np.any(fr != 0, axis=2), cys - half - S, cxs - half - S, block + 2 * S)
+    ok = (n_o / block**2 >= 0.9) & (n_r / (block + 2 * S) ** 2 >= 0.8)
+    centres = [(int(cys[i]), int(cxs[j])) for i, j in zip(*np.nonzero(ok), strict=True)]
+
+    def match(part: list[tuple[int, int]]) -> list[tuple[float, float, int, int, float]]:
+        out = []
+        for cy, cx in part:
             t = fo[cy - half : cy + half, cx - half : cx + half]
-            win = (slice(cy - half - S, cy + half + S), slice(cx - half - S, cx + half + S))
-            if has_o[cy - half : cy + half, cx - half : cx + half].mean() < 0.9:
-                continue
-            if has_r[win].mean() < 0.8:
-                continue
-            sr = fr[win]
+            sr = fr[cy - half - S : cy + half + S, cx - half - S : cx + half + S]
             if float(np.ptp(t)) <= 0 or float(np.ptp(sr)) <= 0:
                 continue
             r = cv2.matchTemplate(
@@ -93,12 +99,21 @@ def _block_match(
             dx = px - S + (_parabola(*r[py, px - 1 : px + 2]) if 0 < px < 2 * S else 0.0)
             dy = py - S + (_parabola(*r[py - 1 : py + 2, px]) if 0 < py < 2 * S else 0.0)
             # observation block at c matches the warped reference at c + d
-            src.append((cx + dx, cy + dy))
-            dst.append((cx, cy))
-            score.append(peak)
-    return (
-        np.float64(src).reshape(-1, 2), np.float64(dst).reshape(-1, 2), np.float64(score)
-    )
+            out.append((cx + dx, cy + dy, cx, cy, peak))
+        return out
+
+    found = [m for got in thread_map(match, parts(centres, MATCH_WORKERS), MATCH_WORKERS)
+             for m in got]
+    a = np.float64(found).reshape(-1, 5)
+    return a[:, 0:2].copy(), a[:, 2:4].copy(), a[:, 4].copy()
+
+
+def _box_counts(a: np.ndarray, y0: np.ndarray, x0: np.ndarray, side: int) -> np.ndarray:
+    """Number of true pixels of ``a`` in the ``side x side`` boxes whose top-left corners
+    are the rows ``y0`` times the columns ``x0`` (all inside ``a``)."""
+    s = cv2.integral(a.astype(np.uint8), sdepth=cv2.CV_32S).astype(np.int64)
+    y1, x1 = y0 + side, x0 + side
+    return (s[y1][:, x1] - s[y0][:, x1] - s[y1][:, x0] + s[y0][:, x0])
 
 
 def _similarity_lsq(src: np.ndarray, dst: np.ndarray) -> np.ndarray:

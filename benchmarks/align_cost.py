@@ -1,0 +1,113 @@
+"""Cost and accuracy of the coarse alignment alone on the cost benchmark's pairs (issue #28:
+at most 3 s at 100 MP, whatever the content): ``python -m benchmarks.align_cost``.
+
+For every pair of :mod:`benchmarks.cost` (same cache, same test-bed rendering) this opens
+both files and times :func:`reblur.pipeline.align_coarse` on them, as ``reblur detect``
+does (each image read once into its overviews), in this process.  Per pair: the time,
+the shake extents tried, the method, and the corner error against the test bed's truth,
+the mean over the camera path's sub-poses of where each reference corner lands
+(the pose the pipeline's fine grid is centred on).  Refused pairs (unrelated content) give
+their time only.
+
+``--refine-iterations N`` sets :data:`reblur.align.ecc.REFINE_ITERATIONS` and
+``--match-workers N`` :data:`reblur.align.blocks.MATCH_WORKERS`: with ``100`` and ``1``
+the alignment runs as it did before either existed (the "before" rows).  ``--no-save``
+prints the table without writing ``docs/benchmarks.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+from benchmarks.cost import CONTENTS, _scenes, make_case
+
+
+def truth_error(H: np.ndarray, mp: int, content: str) -> float:
+    """Largest distance (full-resolution px) between where ``H`` and the test bed's mean
+    sub-pose put the reference's corners."""
+    from reblur.grid import map_points
+    from reblur.testbed import plan_pair, shake_for
+
+    ref, _ = _scenes(mp, content)
+    plan = plan_pair(ref, bits=8, noise_dn=0.5, n_changes=0, seed=0,
+                     motion=shake_for(ref.shape), viewpoint={"shift_px": 20.0})
+    h, w = ref.shape[:2]
+    c = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], float)
+    true = np.mean([map_points(Hk, c) for Hk in plan.homographies], axis=0)
+    return float(np.abs(map_points(H, c) - true).max())
+
+
+def run_case(case: Path) -> dict:
+    """Time the coarse alignment of one cached pair."""
+    from reblur.align import AlignmentError
+    from reblur.align.overviews import OverviewCache
+    from reblur.io import open_image
+    from reblur.pipeline import align_coarse
+
+    ref, obs = open_image(case / "ref.tif"), open_image(case / "obs.tif")
+    t = time.perf_counter()
+    try:
+        a = align_coarse(OverviewCache(ref.for_detection()), OverviewCache(obs.for_detection()))
+    except AlignmentError as err:
+        return {"seconds": time.perf_counter() - t, "refused": str(err)[:80]}
+    return {"seconds": time.perf_counter() - t, "method": a.method, "H": a.H,
+            "extents": [e["shake_px"] for e in a.extents]}
+
+
+def table(rows: list[dict]) -> str:
+    out = ["| size | content | align (s) | extents tried | method | corner error (px) |",
+           "|---|---|---|---|---|---|"]
+    for r in rows:
+        if "refused" in r:
+            out.append(f"| {r['mp']} MP | {r['content']} | {r['seconds']:.2f} | | refused | |")
+            continue
+        ext = ", ".join(f"{e:g}" for e in r["extents"])
+        out.append(f"| {r['mp']} MP | {r['content']} | {r['seconds']:.2f} | {ext} | "
+                   f"{r['method']} | {r['error']:.2f} |")
+    return "\n".join(out)
+
+
+def main(sizes: list[int], contents: list[str], cache: Path) -> str:
+    rows = []
+    for mp in sizes:
+        for content in contents:
+            r = {"mp": mp, "content": content, **run_case(make_case(mp, content, cache))}
+            if "H" in r:
+                r["error"] = truth_error(r.pop("H"), mp, content)
+            print(r, flush=True)
+            rows.append(r)
+    return table(rows)
+
+
+if __name__ == "__main__":
+    import tempfile
+
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", default="1,25,100")
+    ap.add_argument("--contents", default=",".join(CONTENTS))
+    ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "reblur-cost")
+    ap.add_argument("--refine-iterations", type=int, default=None)
+    ap.add_argument("--match-workers", type=int, default=None)
+    ap.add_argument("--no-save", action="store_true")
+    a = ap.parse_args()
+    import reblur.align.blocks as blocks
+    import reblur.align.ecc as ecc
+
+    if a.refine_iterations is not None:
+        ecc.REFINE_ITERATIONS = a.refine_iterations
+    if a.match_workers is not None:
+        blocks.MATCH_WORKERS = a.match_workers
+    body = main([int(s) for s in a.sizes.split(",")], a.contents.split(","), a.cache)
+    body = ("## Coarse alignment over content (`python -m benchmarks.align_cost`)\n\n"
+            f"ECC iterations after a converged level: {ecc.REFINE_ITERATIONS}; block-"
+            f"matching threads: {blocks.MATCH_WORKERS}.  Corner error against the test "
+            "bed's mean pose; the pairs of the cost benchmark.\n\n" + body)
+    if not a.no_save:
+        from benchmarks.run import write_section
+
+        write_section("align_cost", body)
+    print(body)
