@@ -244,6 +244,53 @@ def test_ecc_refines_finer_levels_in_few_iterations(scene, monkeypatch):
     assert _ref_corner_error(H, H_full, prep.ref_shape) * prep.levels[0].scale <= 0.05
 
 
+def _slow_block_match(level, H, *, block, search, step, sigma):
+    """The gradient blocks' matching, block by block (the reference for ``_block_match``)."""
+    from reblur.align import blocks as blocks_mod
+    from reblur.align.overviews import to_level
+
+    h, w = level.obs.shape
+    warped, cover = level.warped_reference(to_level(H, level.scale))
+    fr = blocks_mod._grad_field(warped, cover, sigma)
+    fo = blocks_mod._grad_field(level.obs, level.obs_mask, sigma)
+    has_r, has_o = np.any(fr != 0, axis=2), np.any(fo != 0, axis=2)
+    half, S = block // 2, search
+    out = []
+    for cy in range(half + S, h - half - S + 1, step):
+        for cx in range(half + S, w - half - S + 1, step):
+            t = fo[cy - half:cy + half, cx - half:cx + half]
+            win = (slice(cy - half - S, cy + half + S), slice(cx - half - S, cx + half + S))
+            if has_o[cy - half:cy + half, cx - half:cx + half].mean() < 0.9:
+                continue
+            if has_r[win].mean() < 0.8 or np.ptp(t) <= 0 or np.ptp(fr[win]) <= 0:
+                continue
+            r = cv2.matchTemplate(np.ascontiguousarray(fr[win]), np.ascontiguousarray(t),
+                                  cv2.TM_CCOEFF_NORMED)
+            _, peak, _, (px, py) = cv2.minMaxLoc(r)
+            dx = px - S + (blocks_mod._parabola(*r[py, px - 1:px + 2]) if 0 < px < 2 * S
+                           else 0.0)
+            dy = py - S + (blocks_mod._parabola(*r[py - 1:py + 2, px]) if 0 < py < 2 * S
+                           else 0.0)
+            out.append((cx + dx, cy + dy, cx, cy, peak))
+    return np.float64(out).reshape(-1, 5)
+
+
+@pytest.mark.parametrize("block", [96, 75])
+def test_gradient_blocks_match_the_block_by_block_reference(scene, block):
+    """The threaded matching with coverage from integral images gives, bit for bit, the
+    blocks of a plain loop over them, also for an odd block side (a 300 px level)."""
+    from reblur.align import blocks as blocks_mod
+
+    ref, obs, H_true = scene
+    lv = coarse_mod._prepare(ref, obs, AlignParams(), None).levels[0]
+    src, dst, ncc = blocks_mod._block_match(lv, H_true, block=block, search=8,
+                                            step=max(4, block // 3), sigma=1.0)
+    want = _slow_block_match(lv, H_true, block=block, search=8, step=max(4, block // 3),
+                             sigma=1.0)
+    assert len(want) > 20
+    np.testing.assert_array_equal(np.c_[src, dst, ncc], want)
+
+
 def test_gradient_block_coverage_counts():
     """The coverage of every block and search window, from integral images, is the slow
     count of its pixels."""
@@ -519,8 +566,7 @@ def test_shakes_share_work_but_not_results(case, scenes, monkeypatch):
     not rerun (refused on a content misfit at a smaller extent on the same level).  Covers
     the feature + ECC path (a same-scene pair), the gradient blocks from rotation
     hypotheses (years apart, the polish never fits) and a refusal (another scene); a
-    caller editing a yielded
-    ``H`` in place must not change the later extents."""
+    caller editing a yielded ``H`` in place must not change the later extents."""
     if case == "same_scene":
         ref, obs, _ = scenes["levir_test_7"]
     elif case == "years_apart":

@@ -76,6 +76,45 @@ def test_thread_map_keeps_order_and_opencv_threads(workers):
     assert cv2.getNumThreads() == before
 
 
+def test_thread_maps_running_at_once_keep_opencv_single_then_restore_it():
+    """Two ``thread_map`` calls overlapping (the viewer's beside another writer's): OpenCV
+    stays single-threaded until the later one ends, even when the first one ends first,
+    and then gets its own thread count back."""
+    import threading
+
+    import cv2
+
+    from reblur._memory import thread_map
+
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(max(2, before))
+    want = cv2.getNumThreads()
+    b_started, a_done = threading.Event(), threading.Event()
+    inside_b = []
+
+    def fa(x):
+        assert b_started.wait(10)
+        return x
+
+    def fb(x):
+        b_started.set()
+        assert a_done.wait(10)
+        inside_b.append(cv2.getNumThreads())
+        return x
+
+    try:
+        first = threading.Thread(target=lambda: (thread_map(fa, range(2), 2), a_done.set()))
+        first.start()
+        while cv2.getNumThreads() != 1:  # the first map has set OpenCV single-threaded
+            pass
+        assert thread_map(fb, range(2), 2) == [0, 1]
+        first.join()
+        assert inside_b == [1, 1]
+        assert cv2.getNumThreads() == want
+    finally:
+        cv2.setNumThreads(before)
+
+
 _THP_PROBE = """
 import numpy as np
 from reblur import _memory

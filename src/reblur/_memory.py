@@ -129,16 +129,38 @@ def split_sum(fn, items, threads: int) -> np.ndarray:
     return out
 
 
+#: OpenCV's thread count is one setting of the process: :func:`thread_map` calls running at
+#: once (the viewer's beside the report's other writers) count themselves here; the first
+#: sets it to 1, the last puts back what the first found.
+_CV_LOCK = threading.Lock()
+_cv_users = 0
+_cv_saved = 1
+
+
+def _cv_single(enter: bool) -> None:
+    global _cv_users, _cv_saved
+    with _CV_LOCK:
+        if enter:
+            if _cv_users == 0:
+                _cv_saved = cv2.getNumThreads()
+                cv2.setNumThreads(1)
+            _cv_users += 1
+        else:
+            _cv_users -= 1
+            if _cv_users == 0:
+                cv2.setNumThreads(_cv_saved)
+
+
 def thread_map(fn, items, workers: int) -> list:
     """``[fn(x) for x in items]`` on ``workers`` threads, OpenCV single-threaded inside
-    each (so the threads do not oversubscribe the cores); in order."""
+    each (so the threads do not oversubscribe the cores); in order.  Calls may run at once
+    and nest: OpenCV's own threads come back when the last one ends."""
     items = list(items)
     if workers <= 1 or len(items) <= 1:
         return [fn(x) for x in items]
-    n_cv = cv2.getNumThreads()
-    cv2.setNumThreads(1)
+    _cv_single(True)
     try:
         with ThreadPoolExecutor(min(int(workers), len(items))) as ex:
             return list(ex.map(fn, items))
     finally:
-        cv2.setNumThreads(n_cv)
+        _cv_single(False)

@@ -27,6 +27,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import math
 import os
 import shutil
@@ -387,6 +388,15 @@ def _write_cog_locked(path: Path, data, georef, shape, dtype, block, overviews, 
                     opts["OVERVIEWS"] = "FORCE_USE_EXISTING"
                 with atomic_path(path) as tmp:
                     rasterio.shutil.copy(src, tmp, driver="COG", **opts)
+    except Exception as exc:
+        # GDAL reports a write that filled the disk as its own error (rasterio's CPLE_*
+        # classes; the OS's errno is gone): say so when the disk cannot hold the image's
+        # pixels (the temporaries are still there)
+        raw = math.prod(shape) * dtype.itemsize
+        if (type(exc).__module__.startswith("rasterio")
+                and shutil.disk_usage(path.parent).free < raw):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path)) from exc
+        raise
     finally:
         shutil.rmtree(work, ignore_errors=True)
 

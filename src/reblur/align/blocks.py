@@ -78,9 +78,10 @@ def _block_match(
     cxs = np.arange(half + S, w - half - S + 1, step)
     # blocks of the observation with gradient almost everywhere, whose search window in
     # the warped reference has it mostly (counts from integral images)
-    n_o = _box_counts(np.any(fo != 0, axis=2), cys - half, cxs - half, block)
-    n_r = _box_counts(np.any(fr != 0, axis=2), cys - half - S, cxs - half - S, block + 2 * S)
-    ok = (n_o / block**2 >= 0.9) & (n_r / (block + 2 * S) ** 2 >= 0.8)
+    side = 2 * half  # the template's side (``block`` rounded down to even)
+    n_o = _box_counts(np.any(fo != 0, axis=2), cys - half, cxs - half, side)
+    n_r = _box_counts(np.any(fr != 0, axis=2), cys - half - S, cxs - half - S, side + 2 * S)
+    ok = (n_o / side**2 >= 0.9) & (n_r / (side + 2 * S) ** 2 >= 0.8)
     centres = [(int(cys[i]), int(cxs[j])) for i, j in zip(*np.nonzero(ok), strict=True)]
 
     def match(part: list[tuple[int, int]]) -> list[tuple[float, float, int, int, float]]:
