@@ -337,6 +337,13 @@ def _poly_terms(ys: np.ndarray, xs: np.ndarray, shape: tuple[int, int]) -> np.nd
     return np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=-1)
 
 
+#: Samples the illumination field's IRLS fits its 12 coefficients on (every k-th of those
+#: near the global model's band): their standard error is then a few 1e-3 of the noise,
+#: and the fit a quarter of the time on 200 000 samples.  The choice between the field and
+#: the global model still measures both on every sample.
+FIELD_FIT_SAMPLES = 50_000
+
+
 def _fit_poly_field(ys, xs, x, y, shape, start, scale, n_iter: int = 15
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Huber IRLS of ``y ~ (T a) x + (T b)`` with ``T`` the quadratic terms: a smooth gain
@@ -352,6 +359,9 @@ def _fit_poly_field(ys, xs, x, y, shape, start, scale, n_iter: int = 15
     if np.count_nonzero(use) < 100:
         use = np.ones(r.size, bool)
     A, yy = A[use], y[use]
+    if yy.size > FIELD_FIT_SAMPLES:  # an even subset (the samples are in image order)
+        k = -(-yy.size // FIELD_FIT_SAMPLES)
+        A, yy = A[::k], yy[::k]
     for _ in range(n_iter):
         r = yy - A @ p
         s = mad(r)
