@@ -67,6 +67,7 @@ import numpy as np
 
 from .gis import (
     FEATURE_KEYS,
+    ReblurredStore,
     change_features,
     geopackage_available,
     quantize,
@@ -995,10 +996,15 @@ def _write_reblurred(result: ChangeResult, out: Path, observed: Image | None,
         return {}, ["reblurred.tif not written: the result holds no reblurred image "
                     "(detect_changes keeps it in memory up to 64 MP, and writes it to "
                     "reblurred_out at any size)"]
-    dtype = observed.dtype if observed is not None else np.dtype(np.float32)
+    dtype = np.dtype(observed.dtype if observed is not None else np.float32)
+    data, convert = result.reblurred, _to_dtype(dtype)
+    if isinstance(data, ReblurredStore) and data.stored_dtype == dtype:
+        # the store already holds the observation's pixel values: written as they are
+        # (the same file; at 100 MP 0.4-1.0 s less than a round trip through floats)
+        data, convert = data.stored, None
     # the pixels the reference does not cover hold no data (a mask, or NaN)
-    write_cog(out / "reblurred.tif", result.reblurred, geo, block=COG_BLOCK,
-              overviews="average", convert=_to_dtype(dtype), nodata_mask=result.unknown)
+    write_cog(out / "reblurred.tif", data, geo, block=COG_BLOCK, overviews="average",
+              convert=convert, nodata_mask=result.unknown)
     return {"reblurred.tif": "reblurred.tif"}, []
 
 
