@@ -9,10 +9,12 @@ the mean over the camera path's sub-poses of where each reference corner lands
 (the pose the pipeline's fine grid is centred on).  Refused pairs (unrelated content) give
 their time only.
 
-``--refine-iterations N`` sets :data:`reblur.align.ecc.REFINE_ITERATIONS` and
-``--match-workers N`` :data:`reblur.align.blocks.MATCH_WORKERS`: with ``100`` and ``1``
-the alignment runs as it did before either existed (the "before" rows).  ``--no-save``
-prints the table without writing ``docs/benchmarks.md``.
+The rows are kept in ``docs/align_cost_runs.json`` under ``--label`` (default: this
+checkout's commit) and the section shows every label's table, so that another checkout's
+figures stand beside these: ``PYTHONPATH=OLD/src python -m benchmarks.align_cost --label
+OLD`` (run from this checkout).  ``--refine-iterations N`` sets
+:data:`reblur.align.ecc.REFINE_ITERATIONS` and ``--match-workers N``
+:data:`reblur.align.blocks.MATCH_WORKERS`.  ``--no-save`` prints the table only.
 """
 
 from __future__ import annotations
@@ -71,7 +73,10 @@ def table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
-def main(sizes: list[int], contents: list[str], cache: Path) -> str:
+RUNS = Path(__file__).resolve().parents[1] / "docs" / "align_cost_runs.json"
+
+
+def main(sizes: list[int], contents: list[str], cache: Path) -> list[dict]:
     rows = []
     for mp in sizes:
         for content in contents:
@@ -80,7 +85,33 @@ def main(sizes: list[int], contents: list[str], cache: Path) -> str:
                 r["error"] = truth_error(r.pop("H"), mp, content)
             print(r, flush=True)
             rows.append(r)
-    return table(rows)
+    return rows
+
+
+def section(rows: list[dict], label: str) -> str:
+    """Save ``rows`` under ``label`` in :data:`RUNS` and render every label's table."""
+    import json
+
+    runs = json.loads(RUNS.read_text()) if RUNS.exists() else {}
+    runs.pop(label, None)
+    runs = {label: {"date": time.strftime("%Y-%m-%d"), "rows": rows}, **runs}
+    RUNS.write_text(json.dumps(runs, indent=1))
+    return ("## Coarse alignment over content (`python -m benchmarks.align_cost`)\n\n"
+            "The alignment alone (`pipeline.align_coarse`) on the cost benchmark's pairs; "
+            "corner error against the test bed's mean pose.  One table per checkout "
+            "(`docs/align_cost_runs.json`), newest first.\n\n"
+            + "\n\n".join(f"{k} ({v['date']}):\n\n{table(v['rows'])}"
+                           for k, v in runs.items()))
+
+
+def bench(cache: Path | None = None, label: str | None = None) -> str:
+    """``make bench``: every size and content, rows saved under this checkout's commit."""
+    import tempfile
+
+    from benchmarks.common import commit
+
+    cache = cache or Path(tempfile.gettempdir()) / "reblur-cost"
+    return section(main([1, 25, 100], CONTENTS, cache), label or commit())
 
 
 if __name__ == "__main__":
@@ -93,6 +124,7 @@ if __name__ == "__main__":
     ap.add_argument("--refine-iterations", type=int, default=None)
     ap.add_argument("--match-workers", type=int, default=None)
     ap.add_argument("--no-save", action="store_true")
+    ap.add_argument("--label", default=None, help="name of the rows (default: the commit)")
     a = ap.parse_args()
     import reblur.align.blocks as blocks
     import reblur.align.ecc as ecc
@@ -101,13 +133,13 @@ if __name__ == "__main__":
         ecc.REFINE_ITERATIONS = a.refine_iterations
     if a.match_workers is not None:
         blocks.MATCH_WORKERS = a.match_workers
-    body = main([int(s) for s in a.sizes.split(",")], a.contents.split(","), a.cache)
-    body = ("## Coarse alignment over content (`python -m benchmarks.align_cost`)\n\n"
-            f"ECC iterations after a converged level: {ecc.REFINE_ITERATIONS}; block-"
-            f"matching threads: {blocks.MATCH_WORKERS}.  Corner error against the test "
-            "bed's mean pose; the pairs of the cost benchmark.\n\n" + body)
-    if not a.no_save:
+    rows = main([int(s) for s in a.sizes.split(",")], a.contents.split(","), a.cache)
+    if a.no_save:
+        print(table(rows))
+    else:
+        from benchmarks.common import commit
         from benchmarks.run import write_section
 
+        body = section(rows, a.label or commit())
         write_section("align_cost", body)
-    print(body)
+        print(body)

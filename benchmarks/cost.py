@@ -281,8 +281,8 @@ def targets(rows: list[dict]) -> str:
         tot = np.array([r["seconds"] for _, r in ok])
         per = np.array([_tile_pass(r) for _, r in ok])
         b, a = np.polyfit(mp, tot, 1)
-        fixed = float(np.mean([r["seconds"] - r["stages"].get("reblur_decide", 0.0)
-                               - r["stages"].get("report", 0.0) for _, r in ok]))
+        fixed = float(np.mean([r["seconds"] - _tile_pass(r) - r["stages"].get("report", 0.0)
+                               for _, r in ok]))
         s = _slope(mp, per)
         out.append(f"- fixed cost <= 3 s (unchanged content): intercept of total time against "
                    f"MP {a:.1f} s ({1000 * b:.0f} ms per MP); mean time outside the tiles and "

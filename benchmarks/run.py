@@ -37,6 +37,8 @@ BENCHES = {
     "failure_modes": ("benchmarks.failure_modes", "main"),
     # the zoomable viewer's pyramids at 4 and 25 MP (issue #31)
     "viewer": ("benchmarks.viewer", "main"),
+    # the coarse alignment alone on the cost pairs, 1-100 MP (issue #28)
+    "align_cost": ("benchmarks.align_cost", "bench"),
 }
 
 
