@@ -97,7 +97,7 @@ def main(megapixels: float = 25.0) -> str:
         write_geojson,
         write_geopackage,
     )
-    from reblur.report import _MaskView, _to_dtype
+    from reblur.report import _cog_source, _MaskView, _to_dtype
 
     side = int(round(np.sqrt(megapixels * 1e6)))
     geo = dict(crs=CRS.from_epsg(32631), transform=Affine(0.5, 0, 4e5, 0, -0.5, 5e6))
@@ -109,13 +109,19 @@ def main(megapixels: float = 25.0) -> str:
         t_build = time.perf_counter() - t
         out = d / "out"
         out.mkdir()
+        source, convert = _cog_source(rb, np.dtype(np.uint8))
         stages = [
             ("changes.tif", lambda: write_cog(out / "changes.tif", _MaskView(change, unknown),
                                               geo, overviews="max")),
             ("unknown.tif", lambda: write_cog(out / "unknown.tif", _MaskView(unknown), geo,
                                               overviews="max")),
-            ("reblurred.tif", lambda: write_cog(out / "reblurred.tif", rb, geo,
-                                                convert=_to_dtype(np.uint8))),
+            # as the report writes it (the store's own pixels), and through floats as
+            # before 0a7cf1a: the same file
+            ("reblurred.tif", lambda: write_cog(out / "reblurred.tif", source, geo,
+                                                convert=convert)),
+            ("reblurred.tif through floats",
+             lambda: write_cog(out / "reblurred.tif through floats", rb, geo,
+                               convert=_to_dtype(np.uint8))),
         ]
         feats = []
 

@@ -989,6 +989,16 @@ def _write_masks(result: ChangeResult, out: Path, observed: Image | None,
     return files, notes
 
 
+def _cog_source(reblurred, dtype: np.dtype) -> tuple[Any, Callable | None]:
+    """What ``reblurred.tif`` is written from, and the converter of its windows: a
+    :class:`~reblur.gis.ReblurredStore` that holds ``dtype`` pixels (the observation's) is
+    written as it is stored, anything else quantised from float intensities (the same file;
+    ``python -m benchmarks.gis_outputs`` times both)."""
+    if isinstance(reblurred, ReblurredStore) and reblurred.stored_dtype == dtype:
+        return reblurred.stored, None
+    return reblurred, _to_dtype(dtype)
+
+
 def _write_reblurred(result: ChangeResult, out: Path, observed: Image | None,
                      geo) -> tuple[dict[str, str], list[str]]:
     """``reblurred.tif`` (a COG in the observation's dtype); returns (files, notes)."""
@@ -997,11 +1007,7 @@ def _write_reblurred(result: ChangeResult, out: Path, observed: Image | None,
                     "(detect_changes keeps it in memory up to 64 MP, and writes it to "
                     "reblurred_out at any size)"]
     dtype = np.dtype(observed.dtype if observed is not None else np.float32)
-    data, convert = result.reblurred, _to_dtype(dtype)
-    if isinstance(data, ReblurredStore) and data.stored_dtype == dtype:
-        # the store already holds the observation's pixel values: written as they are
-        # (the same file; at 100 MP 0.4-1.0 s less than a round trip through floats)
-        data, convert = data.stored, None
+    data, convert = _cog_source(result.reblurred, dtype)
     # the pixels the reference does not cover hold no data (a mask, or NaN)
     write_cog(out / "reblurred.tif", data, geo, block=COG_BLOCK, overviews="average",
               convert=convert, nodata_mask=result.unknown)
