@@ -1111,8 +1111,9 @@ def write_report(
     # beside the masks and the reblurred image; those two stay on the calling thread, one
     # after the other: GDAL writes one COG at a time in a process anyway
     # (``gis._COG_LOCK``).  Files and notes are merged in this order (the first error
-    # raised is the one reported).  At 100 MP the writing takes 14 s of CPU, 11 s of wall
-    # time one job after the other (``python -m benchmarks.stage_cpu``).
+    # raised is the one reported).  On the 100 MP unchanged cost pair the writing took
+    # 11.5 s with the viewer after the rest, 9.3 s beside it, 15-16 s of CPU either way
+    # (``python -m benchmarks.stage_cpu``).
     with ThreadPoolExecutor(2) as ex:
         pictures = ex.submit(_write_pictures, result, out, observed, geo)
         viewing = (None if viewer is None else
