@@ -16,7 +16,6 @@ import logging
 import math
 from collections import Counter
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import cv2
@@ -25,6 +24,7 @@ from scipy.linalg import solve_triangular
 from scipy.optimize import nnls
 from threadpoolctl import threadpool_limits
 
+from .._memory import thread_map
 from .overviews import Level, to_full, to_level
 from .params import AlignParams
 from .result import AlignmentError
@@ -202,11 +202,7 @@ def kernel_polish(
         return _kernel_centroid(level.obs, ref, valid, box, R, min_r2=min_r2, max_sd=max_sd,
                                 max_pixels=max_pixels)
 
-    if workers > 1 and len(boxes) >= _MIN_THREADED:
-        with ThreadPoolExecutor(min(workers, len(boxes))) as pool:
-            fits = list(pool.map(fit, boxes))
-    else:
-        fits = [fit(b) for b in boxes]
+    fits = thread_map(fit, boxes, workers if len(boxes) >= _MIN_THREADED else 1)
     reasons = dict(Counter(why for _, why in fits))
     src, dst = [], []
     for (y0, y1, x0, x1), (d, _) in zip(boxes, fits, strict=True):
