@@ -603,8 +603,9 @@ def _markdown(rows: dict, runs: list[dict] | None = None) -> str:
         "",
         f"Load: the 1-minute load average at the end of each case (up to {max(loads):.1f} on 2 "
         "cores; above 2, something else shared the cores).  'tiles re-run': tiles still "
-        "incomplete after the last re-run (each tried at most 4 times).  Rows keep the commit they "
-        "were measured at (`docs/scale_runs.json`).",
+        "incomplete after the last re-run (each tried at most `reblur.tilejob._ATTEMPTS` times: "
+        "5, and 4 in rows measured before the halo grew edge by edge to its largest).  Rows "
+        "keep the commit they were measured at (`docs/scale_runs.json`).",
         "",
         "Pair generation (not timed above): " + ", ".join(
             f"{mp} MP {t:.0f} s" for mp, t in sorted(gen.items())) + ".",

@@ -149,3 +149,37 @@ def test_oversize_region_is_decided_without_growing_the_halo():
     for cy, cx, ch, cw in done:
         np.testing.assert_array_equal(tiled[cy : cy + ch, cx : cx + cw],
                                       whole[cy : cy + ch, cx : cx + cw])
+
+
+def test_halo_grows_on_the_edges_regions_reach():
+    """Two regions reaching up out of their tile's core by 212 px (more than four times the
+    first halo, less than the largest halo holds): a bar, and an L whose arm turns left
+    beyond the left halo only where the largest top halo sees it.  The bar's tile grows
+    its top edge alone (h, 2h, 4h, then 8h) and completes there; the L's tile reaches the
+    left edge on that try and completes on the largest window.  The padded pixels decided
+    are counted from the schedule by hand; both tiles equal the whole-image decision."""
+    p = DecisionParams()
+    h = p.halo(16)
+    assert 4 * h + p.local_radius < 212 < max_region_extent(h, p.local_radius) - 18
+    ref, obs, _ = _scene(0, big=False, seed=4)
+    shapes = np.zeros(SHAPE, bool)
+    shapes[300:530, 600:624] = True  # the bar, in the core (512, 512)
+    shapes[300:530, 1112:1136] = True  # the L's stem, in the core (512, 1024) ...
+    shapes[300:324, 962:1136] = True  # ... and its arm, left of the core beyond h
+    obs = obs + 0.25 * shapes.astype(np.float32)
+    tiled, results, job = _tiled(ref, obs, h)
+    whole = _whole(job, ref, obs)
+    by_core = {r["core"][:2]: r for r in results}
+    side = TILE + 2 * h  # every padded tile here is 256 + 2h wide before it grows
+    heights = [TILE + 2 * h, TILE + 3 * h, TILE + 5 * h, TILE + 9 * h]  # the top edge grows
+    bar = by_core[(512, 512)]
+    assert bar["complete"] and bar["attempts"] == 4
+    assert bar["pixels"] == side * sum(heights)
+    ell = by_core[(512, 1024)]
+    assert ell["complete"] and ell["attempts"] == 5
+    # the largest window, clipped at the image's bottom and right borders
+    largest = ((min(768 + 8 * h, SHAPE[0]) - (512 - 8 * h))
+               * (min(1280 + 8 * h, SHAPE[1]) - (1024 - 8 * h)))
+    assert ell["pixels"] == side * sum(heights) + largest
+    assert all(r["complete"] for r in results)
+    np.testing.assert_array_equal(tiled, whole)

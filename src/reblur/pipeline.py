@@ -323,8 +323,9 @@ def reblur_and_decide(
     (:func:`reblur.decide.estimate_threshold`).  (2) Every tile, padded with a halo of
     ``params.halo(max_region)`` pixels, is reblurred (each padded tile reads only the
     reference window its poses touch), decided (:func:`reblur.decide.decide_tile`) and its
-    core written out; a tile whose regions reach the halo's edge is re-run with a twice
-    larger halo on the edges they reach, up to three times (:func:`reblur.tilejob.run_tile`).
+    core written out; a tile whose regions reach the halo's edge is re-run with a larger
+    halo on the edges they reach, up to eight times the first, at most four times
+    (:func:`reblur.tilejob.run_tile`).
     On-disk images are read through a chunk cache (:func:`reblur.io.chunk_cached`):
     neighbouring windows share chunks.  Nothing full-size is held but the output masks (and
     the reblurred image if ``keep_reblurred``); outputs given as arrays on disk

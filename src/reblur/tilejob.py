@@ -28,17 +28,21 @@ from .warp import as_box, read_window
 __all__ = ["TileJob", "grow_tile", "load_tile", "max_region_extent", "run_tile", "pad_box",
            "tile_work", "tune_worker_malloc"]
 
-#: Tries per tile: the first halo, then doubled where a region reaches the edge, and 8x the
-#: first halo on every edge for the last try.
-_ATTEMPTS = 4
+#: Tries per tile: the first halo; twice, then four times it where a region reaches the
+#: edge; eight times it (the largest halo) on every edge a region has reached; and, if a
+#: region then reaches another edge, the largest halo on every edge.
+_ATTEMPTS = 5
+
+#: The largest halo is the first one ``<< _LARGEST`` (8x).
+_LARGEST = 3
 
 
 def max_region_extent(halo: int, local_radius: int) -> int:
     """Largest region (bounding-box side, px) the re-runs of :func:`run_tile` decide exactly
-    with a first-try ``halo``: the last try's halo, ``halo << (_ATTEMPTS - 1)``, less the
-    reach of the pixel-local steps.  A region seen larger than this in a padded tile is
-    decided there, without growing the halo (``decide_tile``'s ``max_extent``)."""
-    return max((int(halo) << (_ATTEMPTS - 1)) - int(local_radius), 0)
+    with a first-try ``halo``: the largest halo, ``halo << 3``, less the reach of the
+    pixel-local steps.  A region seen larger than this in a padded tile is decided there,
+    without growing the halo (``decide_tile``'s ``max_extent``)."""
+    return max((int(halo) << _LARGEST) - int(local_radius), 0)
 
 
 def tile_work(results: Sequence[dict[str, Any]]) -> dict[str, int]:
@@ -125,8 +129,8 @@ class TileJob:
     params : DecisionParams
         Decision parameters (the same for every tile).
     halo : int
-        First-try halo of the padded tiles (doubled, at most three times, for a tile whose
-        regions reach the halo's edge).
+        First-try halo of the padded tiles (grown, up to eight times, on the edges a
+        tile's regions reach; :func:`run_tile`).
     image_shape : (int, int)
         Observation size.
     two_d : bool
@@ -249,14 +253,17 @@ def run_tile(
 
     The padded tile is reblurred (reading only the reference window its poses touch),
     pre-matched, decided by :func:`reblur.decide.decide_tile`, re-run when a region reaches
-    the halo's edge -- with a twice larger halo on the edges it reaches, and on the last of
-    at most three re-runs eight times the first halo on every edge -- reading, reblurring
-    and computing the statistic only on what the halo adds (:func:`grow_tile`), and its
-    core written into the job's outputs.  Only regions that the last halo can hold
+    the halo's edge -- with a twice, then four times larger halo on the edges it reaches,
+    then eight times the first halo on every edge a region has reached, and last, if a
+    region then reaches another edge, eight times on every edge -- reading, reblurring and
+    computing the statistic only on what the halo adds (:func:`grow_tile`), and its core
+    written into the job's outputs.  Only regions that the largest halo can hold
     (:func:`max_region_extent`) ask for a re-run: a region already larger than that in the
     padded tile (an area-wide change, a large false region) is decided on the tile as it
-    is and counted in ``oversize``.  The work per tile is at most four attempts, the last
-    on the core grown by eight times the first halo, however many regions it holds.
+    is and counted in ``oversize``.  The work per tile is at most five attempts, none
+    larger than the core grown by eight times the first halo on every edge, however many
+    regions it holds; growing only the edges regions reach spares most tiles that largest
+    window (a quarter of its pixels for one edge of a 1024 px tile).
 
     Parameters
     ----------
@@ -289,8 +296,10 @@ def run_tile(
     loaded, prev, stat = None, padded, None
     max_extent = max_region_extent(job.halo, job.params.local_radius)
     pixels = 0
+    big = int(job.halo) << _LARGEST
+    largest = pad_box(core, big, (H, W))  # no try reads more than this
     for attempt in range(_ATTEMPTS):
-        last = attempt == _ATTEMPTS - 1
+        last = attempt == _ATTEMPTS - 1 or padded == largest
         if loaded is None:
             loaded = load_tile(job.poses, reference, observed, padded, s_ref=job.s_ref,
                                s_obs=job.s_obs, gain=gain, offset=offset)
@@ -313,11 +322,15 @@ def run_tile(
         stat = info.pop("statistic", None)
         if not info["reach"] or last:  # complete, or only oversize regions reach the edge
             break
-        if attempt + 1 == _ATTEMPTS - 1:  # the last try: the largest halo on every side
-            halo = dict.fromkeys(sides, int(job.halo) << attempt + 1)
-        else:  # twice the halo where a region came too close to the edge
+        if attempt + 1 < _LARGEST:  # twice the halo where a region came too close to the edge
             for side in info["reach"]:
                 halo[side] *= 2
+        elif attempt + 1 == _LARGEST:  # the largest halo on every edge a region has reached
+            for side in sides:
+                if halo[side] > job.halo or side in info["reach"]:
+                    halo[side] = big
+        else:  # a region reached another edge: the largest halo on every edge
+            halo = dict.fromkeys(sides, big)
         padded = pad_box(core, [halo[side] for side in sides], (H, W))
     ly, lx = core[0] - padded[0], core[1] - padded[1]
     sl = (slice(ly, ly + core[2]), slice(lx, lx + core[3]))
