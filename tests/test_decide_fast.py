@@ -384,6 +384,27 @@ def test_hull_pixels_match_convex_hull_image():
     assert n > 300
 
 
+
+def test_inradius_matches_scipy():
+    """``_inradius`` (OpenCV's float32 transform, squared and rounded) gives scipy's float64
+    value to the bit: blobs of every scale, single pixels, one-pixel lines, and a 2400 px
+    disc beyond OpenCV's range (scipy's own transform)."""
+    from reblur.decide.regions import _CV_INRADIUS_MAX, _inradius
+
+    rng = np.random.default_rng(41)
+    masks = [np.ones((1, 1), bool), np.ones((1, 57), bool), np.ones((9, 9), bool)]
+    for _ in range(150):
+        shape = tuple(int(v) for v in rng.integers(3, 400, 2))
+        masks.append(_blobs(rng, shape, rng.uniform(0.2, 0.9), rng.uniform(0.5, 25.0)))
+    yy, xx = np.mgrid[:2401, :2401]
+    masks.append((yy - 1200) ** 2 + (xx - 1200) ** 2 <= 1200**2)
+    radii = []
+    for m in masks:
+        want = float(ndi.distance_transform_edt(np.pad(m, 1)).max())
+        assert _inradius(m) == want
+        radii.append(want)
+    assert max(radii) > _CV_INRADIUS_MAX and sorted(radii)[-2] > 50  # both paths
+
 def test_shape_test_matches_reference():
     """``_shape_ok`` (rows' spans before the hull) against the hull-first reference on the
     components of seeded masks, with both outcomes of the solidity test present."""

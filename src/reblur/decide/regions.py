@@ -97,8 +97,30 @@ def _shape_ok(sub: np.ndarray, area: int, p: DecisionParams) -> bool:
         hull = _hull_pixels(sub)
         if hull and area / hull < p.min_solidity:
             return False
-    r_in = float(ndi.distance_transform_edt(np.pad(sub, 1)).max())
+    r_in = _inradius(sub)
     return area / (4.0 * r_in * r_in) <= p.max_aspect
+
+
+#: Largest inscribed radius (px) :func:`_inradius` takes from OpenCV: float32 holds the
+#: squared distances exactly, and its root to well within half a unit of their spacing.
+_CV_INRADIUS_MAX = 1000.0
+
+
+def _inradius(sub: np.ndarray) -> float:
+    """Radius of the largest disc inscribed in a region:
+    ``scipy.ndimage.distance_transform_edt(np.pad(sub, 1)).max()``, the same float.
+
+    OpenCV's exact Euclidean transform (``DIST_MASK_PRECISE``) is 5x faster but returns
+    float32: its maximum, squared and rounded, is the integer squared distance, and
+    scipy's value is that integer's float64 root.  Beyond :data:`_CV_INRADIUS_MAX` scipy
+    computes it.
+    """
+    padded = np.pad(sub, 1)
+    d = float(cv2.distanceTransform(padded.view(np.uint8), cv2.DIST_L2,
+                                    cv2.DIST_MASK_PRECISE).max())
+    if d > _CV_INRADIUS_MAX:
+        return float(ndi.distance_transform_edt(padded).max())
+    return float(np.sqrt(np.float64(round(d * d))))
 
 
 class _Components(NamedTuple):
