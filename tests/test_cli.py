@@ -7,6 +7,7 @@ import os
 import re
 import subprocess
 import sys
+import textwrap
 from html.parser import HTMLParser
 from pathlib import Path
 
@@ -730,6 +731,47 @@ def test_detect_end_to_end(detected):
         x0, y0, x1, y1 = gj["features"][0]["geometry"]["coordinates"][0][0] * 2
         assert 4e5 <= x0 <= 4e5 + 128 and 3e6 - 128 <= y0 <= 3e6
     assert_html_refs_exist(out / "report.html")
+
+
+#: Runs ``reblur detect`` with a finder first on ``sys.meta_path`` that records every module
+#: imported off the main thread, the masks held back 1 s so that the report's picture and
+#: viewer threads start their work first.
+_OFF_MAIN_IMPORTS = textwrap.dedent("""
+    import sys, threading, time
+    seen = []
+    class Recorder:
+        def find_spec(self, name, path=None, target=None):
+            if threading.current_thread() is not threading.main_thread():
+                seen.append(name)
+            return None
+    sys.meta_path.insert(0, Recorder())
+    import reblur.report as report
+    from reblur.cli import main
+    masks = report._write_masks
+    def later(*args, **kwargs):
+        time.sleep(1.0)
+        return masks(*args, **kwargs)
+    report._write_masks = later
+    main(sys.argv[1:], standalone_mode=False)
+    print("imported off the main thread:", sorted(set(seen)))
+""")
+
+
+def test_no_module_is_first_imported_on_a_worker_thread(detected, tmp_path):
+    """Two threads importing one package at once can meet it half initialised (a CI run:
+    "cannot import name 'BaseGeometry' from partially initialized module
+    'shapely.geometry.base'", the viewer's outlines and the GeoJSON polygons importing
+    shapely together).  No thread of a run but the main one imports a module: every
+    module the tile threads and the report's writer threads use is loaded before they
+    start, here with the writer threads given a second's head start on the georeferenced
+    pair (GeoJSON polygons and the viewer's outlines both written)."""
+    d, _, args, _, _ = detected
+    res = subprocess.run(
+        [sys.executable, "-c", _OFF_MAIN_IMPORTS, *map(str, args), "--out",
+         str(tmp_path / "out"), "-q"], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert "imported off the main thread: []" in res.stdout, res.stdout
+    assert (tmp_path / "out" / "changes.geojson").exists()
 
 
 def test_detect_rerun_is_byte_identical_and_overwrite(detected):

@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import base64
 import html
+import importlib
 import importlib.metadata
 import os
 import resource
@@ -1037,6 +1038,29 @@ def _write_pictures(result: ChangeResult, out: Path, observed: Image | None,
     return files, []
 
 
+#: Modules the writers import on first use.  :func:`write_report` imports them before its
+#: threads start: two threads importing one package at once can meet it half initialised
+#: (a clean-clone CI run: "cannot import name 'BaseGeometry' from partially initialized
+#: module 'shapely.geometry.base'", the viewer's outlines and the GeoJSON polygons both
+#: importing shapely).
+_WRITER_MODULES = (
+    "affine", "shapely", "shapely.affinity", "shapely.geometry", "rasterio",
+    "rasterio.enums", "rasterio.errors", "rasterio.features", "rasterio.shutil",
+    "rasterio.windows", "matplotlib.figure", "matplotlib.backends.backend_agg",
+    "reblur.viewer.outlines", "reblur.viewer.layers", "reblur.viewer.pyramid",
+)
+
+
+def _import_writers() -> None:
+    """Import :data:`_WRITER_MODULES` on the calling thread (a missing optional one is
+    left to raise where it is used)."""
+    for name in _WRITER_MODULES:
+        try:
+            importlib.import_module(name)
+        except ImportError:
+            pass
+
+
 def write_report(
     result: ChangeResult,
     out_dir: str | os.PathLike,
@@ -1114,6 +1138,7 @@ def write_report(
     # raised is the one reported).  On the 100 MP unchanged cost pair the writing took
     # 11.5 s with the viewer after the rest, 9.3 s beside it, 15-16 s of CPU either way
     # (``python -m benchmarks.stage_cpu``).
+    _import_writers()
     with ThreadPoolExecutor(2) as ex:
         pictures = ex.submit(_write_pictures, result, out, observed, geo)
         viewing = (None if viewer is None else
