@@ -263,7 +263,7 @@ def run_tile(
     is and counted in ``oversize``.  The work per tile is at most five attempts, none
     larger than the core grown by eight times the first halo on every edge, however many
     regions it holds; growing only the edges regions reach spares most tiles that largest
-    window (a quarter of its pixels for one edge of a 1024 px tile).
+    window (under half its pixels for one edge of a 1024 px tile and the default halo).
 
     Parameters
     ----------
