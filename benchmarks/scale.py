@@ -183,12 +183,15 @@ def _flag_rates(change, H: int, W: int, margin: int = 40,
     return flagged / (H * W), false / (H * W), false_ns / max(n_ns, 1)
 
 
-def _pose_groups(motion) -> int:
-    """Distinct base poses (rotation / scale / tilt) among the non-zero weights: the warps
-    the tile pass makes per tile (:class:`reblur.tiled.SparsePoses`)."""
+def _pose_groups(motion) -> list[float]:
+    """Share of the weight of each distinct base pose (rotation / scale / tilt) among the
+    non-zero weights, largest first: one warp per group and tile in the tile pass
+    (:class:`reblur.tiled.SparsePoses`)."""
     from reblur.tiled import SparsePoses
 
-    return len(SparsePoses(motion.weights, motion.grid).groups)
+    mass = np.array([g[:, 2].sum() for g in SparsePoses(motion.weights, motion.grid)
+                     .groups.values()])
+    return [round(float(v), 5) for v in np.sort(mass / mass.sum())[::-1]]
 
 
 def detect_case(d: Path, mode: str, tile: int = 1024) -> dict:
@@ -227,7 +230,7 @@ def detect_case(d: Path, mode: str, tile: int = 1024) -> dict:
         flagged, false, false_ns = _flag_rates(res.change, H, W)
         return dict(mode=mode, mp=H * W / 1e6, time_s=dt, timings=res.timings,
                     poses=int(np.count_nonzero(res.motion.weights)),
-                    pose_groups=_pose_groups(res.motion),
+                    pose_groups=_pose_groups(res.motion),  # weight shares
                     grid_poses=int(res.motion.grid.size), flagged=flagged, false_alarm=false,
                     false_alarm_no_seams=false_ns,
                     seconds=res.decision.get("seconds"), threshold=float(res.threshold),
