@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.cost import CONTENTS, _scenes, make_case
+from benchmarks.common import REPO
+from benchmarks.cost import CACHE, CONTENTS, _scenes, make_case
 
 
 def truth_error(H: np.ndarray, mp: int, content: str) -> float:
@@ -73,7 +74,7 @@ def table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
-RUNS = Path(__file__).resolve().parents[1] / "docs" / "align_cost_runs.json"
+RUNS = REPO / "docs" / "align_cost_runs.json"
 
 
 def main(sizes: list[int], contents: list[str], cache: Path) -> list[dict]:
@@ -106,21 +107,17 @@ def section(rows: list[dict], label: str) -> str:
 
 def bench(cache: Path | None = None, label: str | None = None) -> str:
     """``make bench``: every size and content, rows saved under this checkout's commit."""
-    import tempfile
-
     from benchmarks.common import commit
 
-    cache = cache or Path(tempfile.gettempdir()) / "reblur-cost"
+    cache = cache or CACHE
     return section(main([1, 25, 100], CONTENTS, cache), label or commit())
 
 
 if __name__ == "__main__":
-    import tempfile
-
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", default="1,25,100")
     ap.add_argument("--contents", default=",".join(CONTENTS))
-    ap.add_argument("--cache", type=Path, default=Path(tempfile.gettempdir()) / "reblur-cost")
+    ap.add_argument("--cache", type=Path, default=CACHE)
     ap.add_argument("--refine-iterations", type=int, default=None)
     ap.add_argument("--match-workers", type=int, default=None)
     ap.add_argument("--no-save", action="store_true")

@@ -52,6 +52,8 @@ SIZES = {1: 1, 25: 5, 100: 10}  # MP -> upsampling factor of the 1024 px scenes
 CONTENTS = ["unchanged", "5%", "45%", "years-whu", "years-levir", "unrelated"]
 RUNS = REPO / "docs" / "cost_runs.json"
 BEFORE = REPO / "docs" / "cost_before.json"
+#: Default folder of the generated pairs (shared with :mod:`benchmarks.align_cost`).
+CACHE = Path(tempfile.gettempdir()) / "reblur-cost"
 STAGES = ["open", "align", "photometry", "estimate", "refine", "reblur_decide", "report"]
 
 
@@ -218,12 +220,18 @@ def _slope(xs, ys) -> float:
     return float(np.polyfit(np.log(xs), np.log(ys), 1)[0]) if len(xs) >= 2 else float("nan")
 
 
+def _tiles_seconds(row: dict) -> float | None:
+    """The decision's tile pass (``decision.seconds.tiles`` of the row's report), if known."""
+    tiles = (row.get("decide_seconds") or {}).get("tiles")
+    return float(tiles) if tiles else None
+
+
 def _cell(row: dict, stage: str) -> str:
     """A stage's seconds; ``reblur_decide`` with its tile pass in brackets when known."""
     st = row["stages"]
     if stage not in st:
         return "-"
-    tiles = (row.get("decide_seconds") or {}).get("tiles")
+    tiles = _tiles_seconds(row)
     if stage == "reblur_decide" and tiles:
         return f"{st[stage]:.2f} ({float(tiles):.2f})"
     return f"{st[stage]:.2f}"
@@ -253,8 +261,8 @@ def _tile_pass(row: dict) -> float:
     """Seconds of the per-pixel stage of a row: the decision's tile pass
     (``decision.seconds.tiles`` of its report), else the whole reblur-and-decide stage,
     which also holds the decision's fit on a sample of windows (fixed work)."""
-    tiles = (row.get("decide_seconds") or {}).get("tiles")
-    return float(tiles) if tiles else float(row["stages"].get("reblur_decide", np.nan))
+    tiles = _tiles_seconds(row)
+    return tiles if tiles else float(row["stages"].get("reblur_decide", np.nan))
 
 
 def targets(rows: list[dict]) -> str:
@@ -287,8 +295,7 @@ def targets(rows: list[dict]) -> str:
         out.append(f"- fixed cost <= 3 s (unchanged content): intercept of total time against "
                    f"MP {a:.1f} s ({1000 * b:.0f} ms per MP); mean time outside the tiles and "
                    f"the writing {fixed:.1f} s: {'met' if max(a, fixed) <= 3 else 'NOT met'}")
-        what = ("the tile pass" if all((r.get("decide_seconds") or {}).get("tiles")
-                                       for _, r in ok) else "reblur + decide")
+        what = "the tile pass" if all(_tiles_seconds(r) for _, r in ok) else "reblur + decide"
         out.append(f"- per-pixel stage ({what}) log-log slope 0.9-1.1: {s:.2f} "
                    f"over {', '.join(f'{m:g}' for m in mp)} MP: "
                    f"{'met' if 0.9 <= s <= 1.1 else 'NOT met'}")
@@ -317,7 +324,7 @@ def main(sizes: list[int] | None = None, contents: list[str] | None = None,
     """Run the cases; return the markdown section (with ``src``: save the "before" rows)."""
     sizes = [1, 25] if sizes is None else sizes
     contents = CONTENTS if contents is None else contents
-    cache = cache or Path(tempfile.gettempdir()) / "reblur-cost"
+    cache = cache or CACHE
     rows = measure(sizes, contents, cache, src)
     if src is not None:
         old = json.loads(BEFORE.read_text())["rows"] if BEFORE.exists() else []

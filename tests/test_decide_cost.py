@@ -160,7 +160,9 @@ def test_halo_grows_on_the_edges_regions_reach():
     are counted from the schedule by hand; both tiles equal the whole-image decision."""
     p = DecisionParams()
     h = p.halo(16)
-    assert 4 * h + p.local_radius < 212 < max_region_extent(h, p.local_radius) - 18
+    # past the 4h halo's edge band, and no larger (530 - 300 px) than the largest halo holds
+    assert 4 * h + p.local_radius < 512 - 300
+    assert 530 - 300 <= max_region_extent(h, p.local_radius)
     ref, obs, _ = _scene(0, big=False, seed=4)
     shapes = np.zeros(SHAPE, bool)
     shapes[300:530, 600:624] = True  # the bar, in the core (512, 512)

@@ -384,7 +384,6 @@ def test_hull_pixels_match_convex_hull_image():
     assert n > 300
 
 
-
 def test_inradius_matches_scipy():
     """``_inradius`` (OpenCV's float32 transform, squared and rounded) gives scipy's float64
     value to the bit: blobs of every scale, single pixels, one-pixel lines, and a 2400 px
@@ -404,6 +403,7 @@ def test_inradius_matches_scipy():
         assert _inradius(m) == want
         radii.append(want)
     assert max(radii) > _CV_INRADIUS_MAX and sorted(radii)[-2] > 50  # both paths
+
 
 def test_shape_test_matches_reference():
     """``_shape_ok`` (rows' spans before the hull) against the hull-first reference on the
