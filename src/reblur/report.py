@@ -1015,6 +1015,12 @@ def _write_reblurred(result: ChangeResult, out: Path, observed: Image | None,
     return {"reblurred.tif": "reblurred.tif"}, []
 
 
+def _draws_rolling(result: ChangeResult) -> bool:
+    """Whether the result has the rolling-shutter model's bands (``rolling.png``)."""
+    shutter = result.decision.get("shutter", {})
+    return shutter.get("model") == "rolling" and "rolling" in shutter
+
+
 def _write_pictures(result: ChangeResult, out: Path, observed: Image | None,
                     geo) -> tuple[dict[str, str], list[str]]:
     """``overlay.png``, ``motion.png`` and, where the result has them, ``field.png`` and
@@ -1031,9 +1037,8 @@ def _write_pictures(result: ChangeResult, out: Path, observed: Image | None,
     if getattr(result, "field", None) is not None:
         field_figure(result.field, result.change.shape[:2], out / "field.png")
         files["field.png"] = "field.png"
-    shutter = result.decision.get("shutter", {})
-    if shutter.get("model") == "rolling" and "rolling" in shutter:
-        rolling_figure(shutter, out / "rolling.png")
+    if _draws_rolling(result):
+        rolling_figure(result.decision["shutter"], out / "rolling.png")
         files["rolling.png"] = "rolling.png"
     return files, []
 
@@ -1046,15 +1051,18 @@ def _write_pictures(result: ChangeResult, out: Path, observed: Image | None,
 _WRITER_MODULES = (
     "affine", "shapely", "shapely.affinity", "shapely.geometry", "rasterio",
     "rasterio.enums", "rasterio.errors", "rasterio.features", "rasterio.shutil",
-    "rasterio.windows", "matplotlib.figure", "matplotlib.backends.backend_agg",
-    "reblur.viewer.outlines", "reblur.viewer.layers", "reblur.viewer.pyramid",
+    "rasterio.windows", "reblur.viewer.outlines", "reblur.viewer.layers",
+    "reblur.viewer.pyramid",
 )
+#: Those of :func:`rolling_figure`, imported only for a run that draws it: matplotlib takes
+#: 0.3 s to import, a tenth of a 1 MP run.
+_ROLLING_MODULES = ("matplotlib.figure", "matplotlib.backends.backend_agg")
 
 
-def _import_writers() -> None:
-    """Import :data:`_WRITER_MODULES` on the calling thread (a missing optional one is
-    left to raise where it is used)."""
-    for name in _WRITER_MODULES:
+def _import_writers(rolling: bool) -> None:
+    """Import :data:`_WRITER_MODULES`, and :data:`_ROLLING_MODULES` if ``rolling``, on the
+    calling thread (a missing optional one is left to raise where it is used)."""
+    for name in _WRITER_MODULES + (_ROLLING_MODULES if rolling else ()):
         try:
             importlib.import_module(name)
         except ImportError:
@@ -1138,7 +1146,7 @@ def write_report(
     # raised is the one reported).  On the 100 MP unchanged cost pair the writing took
     # 11.5 s with the viewer after the rest, 9.3 s beside it, 15-16 s of CPU either way
     # (``python -m benchmarks.stage_cpu``).
-    _import_writers()
+    _import_writers(_draws_rolling(result))
     with ThreadPoolExecutor(2) as ex:
         pictures = ex.submit(_write_pictures, result, out, observed, geo)
         viewing = (None if viewer is None else
