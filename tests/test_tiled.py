@@ -134,6 +134,29 @@ def test_reblur_tile_equals_numpy_shifted_sums(levir_rgb):
                 assert not valid.all()  # the border: the partial-validity path
 
 
+def test_8bit_reference_is_warped_in_fixed_point_within_its_rounding(levir_rgb):
+    """An 8-bit reference is warped as 16-bit values (times 256): each warp rounds to a
+    256th of a level, so the tile is the float32 shifted sums (on the same values as
+    floats) within half of that, summed over the weights; the validity is the same."""
+    import reblur.tiled as tiled
+
+    img = np.round(levir_rgb[:300, :400] * 255).astype(np.uint8)  # the PNG's values
+    grid = PoseGrid((300, 400), tx=np.arange(-5, 6), ty=np.arange(-5, 6), rz=[-1.0, 0.0, 1.5])
+    w = grid_path(grid, rng=4, n_poses=20)
+    poses = tiled.SparsePoses(w, grid)
+    bound = 0.5 / 256 * float(w.sum()) + 1e-4  # + float32 sums of values up to 255
+    for box in [(0, 0, 300, 400), (120, 150, 101, 77)]:
+        for ref in (img, img[:, :, 1]):
+            assert tiled._fixed_point(ref, np.float32)
+            out, valid = tiled.reblur_tile(poses, ref, box)
+            eout, evalid = _reblur_tile_numpy(poses, ref.astype(np.float32), box)
+            assert out.dtype == np.float32
+            np.testing.assert_array_equal(valid, evalid)
+            d = np.abs(out - eout)[valid]
+            assert d.max() <= bound, d.max()
+            assert d.mean() < 0.25 * bound  # rounding errors, not a bias
+
+
 def test_grow_tile_equals_loading_the_larger_window(levir_gray):
     """A re-run with a larger halo reuses the smaller window and loads only the ring: the
     same observation and unknown mask as loading the larger window directly, and the

@@ -97,12 +97,22 @@ def _reblur_poses(poses: SparsePoses, reference, box: Box, dtype) -> tuple[np.nd
                        int(-tx.min()))
         warps.append((Hb, ext, (tx, ty, tw[:, 2])))
     needs = [source_box(H, dst) for H, dst, _ in warps]
-    source = _shared_source(reference, needs, dtype)
+    fixed = _fixed_point(reference, dtype)
+    source = _shared_source(reference, needs, np.uint16 if fixed else dtype)
+    if fixed and source is not None:
+        source[0][...] <<= 8
     shape = tuple(reference.shape[:2])
     acc = out[:, :, 0] if C == 1 else out  # OpenCV sees one multi-band image
 
     def view(a: np.ndarray) -> np.ndarray:
         return a[:, :, 0] if C == 1 else a
+
+    def add(img: np.ndarray, weight: float) -> None:
+        """``acc += weight * img`` (a fixed-point ``img`` scaled back by 2^-8)."""
+        if fixed:
+            cv2.addWeighted(img, weight / 256.0, acc, 1.0, 0.0, dst=acc, dtype=cv2.CV_32F)
+        else:
+            cv2.scaleAdd(img, float(np.asarray(weight, dtype)), acc, dst=acc)
 
     for (H, dst, what), need in zip(warps, needs, strict=True):
         if source is None:  # the window reads nothing of the reference
@@ -110,7 +120,7 @@ def _reblur_poses(poses: SparsePoses, reference, box: Box, dtype) -> tuple[np.nd
         else:
             img, ok = warp_source(source, H, dst, need, shape)
         if not poses.integer:
-            cv2.scaleAdd(view(img), float(np.asarray(what, dtype)), acc, dst=acc)
+            add(view(img), float(what))
             if ok is not None:
                 valid &= ok
             continue
@@ -120,11 +130,22 @@ def _reblur_poses(poses: SparsePoses, reference, box: Box, dtype) -> tuple[np.nd
         src = view(img)
         for sx, sy, v in zip(tx, ty, wv, strict=True):
             oy, ox = tymax - int(sy), txmax - int(sx)
-            cv2.scaleAdd(src[oy : oy + box.h, ox : ox + box.w], float(np.asarray(v, dtype)),
-                         acc, dst=acc)
+            add(src[oy : oy + box.h, ox : ox + box.w], float(v))
             if ok is not None:
                 valid &= ok[oy : oy + box.h, ox : ox + box.w]
     return out, valid
+
+
+def _fixed_point(reference, dtype) -> bool:
+    """Whether the warps of an 8-bit reference run in 16-bit fixed point (the 8-bit values
+    times 256) rather than in ``dtype``.
+
+    OpenCV's bilinear warp resamples at the same 1/32 px positions with either type; the
+    16-bit one rounds its result to a 256th of an 8-bit level (an error of at most 0.002
+    level, 10^-5 of the range), and takes 55 % of the float32 warp's time (1188 px
+    windows, one thread).  The weighted sum is taken in ``dtype`` (float32) as before.
+    """
+    return np.dtype(reference.dtype) == np.uint8 and np.dtype(dtype) == np.float32
 
 
 def _shared_source(reference, boxes: list[Box], dtype) -> tuple[np.ndarray, Box] | None:
