@@ -337,6 +337,52 @@ def test_write_png_is_deterministic(tmp_path, rng):
         write_png(tmp_path / "c.png", m.astype(np.float32))
 
 
+def _png_rows(data: bytes) -> tuple[dict, list[bytes]]:
+    """A PNG's header fields and its scanlines (each with its filter-type byte), parsed with
+    struct and zlib alone."""
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    pos, idat, hdr = 8, b"", {}
+    while pos < len(data):
+        n, kind = struct.unpack(">I4s", data[pos:pos + 8])
+        body = data[pos + 8:pos + 8 + n]
+        if kind == b"IHDR":
+            w, h, depth, colour = struct.unpack(">IIBB", body[:10])
+            hdr = dict(width=w, height=h, depth=depth, colour=colour)
+        elif kind == b"IDAT":
+            idat += body
+        pos += 12 + n
+    raw = zlib.decompress(idat)
+    channels = {0: 1, 2: 3, 4: 2, 6: 4}[hdr["colour"]]
+    stride = 1 + hdr["width"] * channels * hdr["depth"] // 8
+    assert len(raw) == stride * hdr["height"]
+    return hdr, [raw[i:i + stride] for i in range(0, len(raw), stride)]
+
+
+def test_flat_png_holds_the_same_pixels_unfiltered(tmp_path, rng):
+    """``flat`` (masks) keeps the pixels, type and bands; its rows carry no filter (type 0),
+    while the default encoding filters some rows of the same image."""
+    m = np.zeros((300, 200), bool)
+    m[40:120, 30:90] = True
+    m[200:260, 150:190] = rng.random((60, 40)) > 0.5
+    rgba = np.zeros((64, 80, 4), np.uint8)
+    rgba[..., :3] = (255, 40, 40)
+    rgba[10:30, 5:60, 3] = 115
+    for name, a, want in (("m", m, m.astype(np.uint8) * 255), ("rgba", rgba, rgba)):
+        write_png(tmp_path / f"{name}_flat.png", a, flat=True)
+        write_png(tmp_path / f"{name}.png", a)
+        hdr, rows = _png_rows((tmp_path / f"{name}_flat.png").read_bytes())
+        assert (hdr["depth"], hdr["colour"]) == ((8, 0) if name == "m" else (8, 6))
+        assert {r[0] for r in rows} == {0}, name
+        assert {r[0] for r in _png_rows((tmp_path / f"{name}.png").read_bytes())[1]} != {0}
+        # the unfiltered rows are the pixels themselves
+        got = np.frombuffer(b"".join(r[1:] for r in rows), np.uint8).reshape(want.shape)
+        np.testing.assert_array_equal(got, want)
+    # and a reader decodes the mask as before: 0 / 255 in uint8
+    back = open_image(tmp_path / "m_flat.png").array
+    assert back.dtype == np.uint8
+    np.testing.assert_array_equal(back, m.astype(np.uint8) * 255)
+
+
 def test_write_tiff_from_tile_iterator(tmp_path, rng):
     h, w, t = 300, 250, 64
     full = (rng.random((h, w)) > 0.5).astype(np.uint8) * 255

@@ -1128,8 +1128,8 @@ def _simulate(stage: Path, out_dir: Path, image: Path, after: Path | None, seed:
     with _writing(out_dir):
         write_tiff(stage / "reference.tif", np.asarray(pair.reference, np.float32))
         write_tiff(stage / "observed.tif", np.asarray(pair.observed, np.float32))
-        write_png(stage / "truth.png", np.asarray(pair.truth, bool))
-        write_png(stage / "unknown.png", np.asarray(pair.unknown, bool))
+        write_png(stage / "truth.png", np.asarray(pair.truth, bool), flat=True)
+        write_png(stage / "unknown.png", np.asarray(pair.unknown, bool), flat=True)
         write_json(stage / "path.json", meta)
     return pair
 

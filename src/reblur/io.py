@@ -87,6 +87,7 @@ __all__ = [
     "iter_windows",
     "atomic_path",
     "write_png",
+    "encode_png",
     "write_tiff",
     "write_geotiff",
     "write_json",
@@ -1981,10 +1982,26 @@ def zarr_masks(
     ]
 
 
-def write_png(path: str | os.PathLike, array: np.ndarray, *, compression: int = 6) -> Path:
-    """Write a uint8/uint16 (or bool, as 0/255) gray, RGB or RGBA image as PNG, atomically.
+def encode_png(array: np.ndarray, *, compression: int = 6, flat: bool = False) -> bytes:
+    """A uint8/uint16 (or bool, as 0/255) gray, RGB or RGBA image as the bytes of a PNG.
 
-    The encoding is deterministic: the same array always gives the same bytes.
+    Parameters
+    ----------
+    array : ndarray
+        ``(H, W)``, ``(H, W, 1)``, ``(H, W, 3)`` RGB or ``(H, W, 4)`` RGBA.
+    compression : int
+        zlib level, 0-9.
+    flat : bool
+        The image is made of few flat colours (a mask): deflate in run-length mode with no
+        row filters.  A 100 MP change mask encodes 5x faster than with the default filters,
+        into a smaller file; a photograph would compress badly.  Either way the PNG holds
+        the same pixels in the same type.
+
+    Returns
+    -------
+    bytes
+        The encoding is deterministic: the same array and options always give the same
+        bytes.
     """
     import cv2
 
@@ -2002,13 +2019,30 @@ def write_png(path: str | os.PathLike, array: np.ndarray, *, compression: int = 
             a = a[:, :, [2, 1, 0, 3]]
         else:
             raise ValueError(f"PNG holds 1, 3 or 4 bands, got {a.shape[2]}")
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(a),
-                           [cv2.IMWRITE_PNG_COMPRESSION, int(compression)])
+    params = [cv2.IMWRITE_PNG_COMPRESSION, int(compression)]
+    if flat:  # after the level, which resets the strategy
+        params += [cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE,
+                   cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE]
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(a), params)
     if not ok:
-        raise OSError(f"{path}: PNG encoding failed")
+        raise OSError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def write_png(path: str | os.PathLike, array: np.ndarray, *, compression: int = 6,
+              flat: bool = False) -> Path:
+    """Write a uint8/uint16 (or bool, as 0/255) gray, RGB or RGBA image as PNG, atomically
+    (:func:`encode_png`; ``flat`` for masks).
+
+    The encoding is deterministic: the same array always gives the same bytes.
+    """
+    try:
+        data = encode_png(array, compression=compression, flat=flat)
+    except OSError as exc:
+        raise OSError(f"{path}: {exc}") from exc
     path = Path(path)
     with atomic_path(path) as tmp:
-        tmp.write_bytes(buf.tobytes())
+        tmp.write_bytes(data)
     return path
 
 

@@ -965,9 +965,9 @@ def _write_masks(result: ChangeResult, out: Path, observed: Image | None,
     files: dict[str, str] = {}
     notes: list[str] = []
     if H * W <= PNG_MAX_PIXELS:
-        write_png(out / "changes.png", _mask_u8(change, unknown))
+        write_png(out / "changes.png", _mask_u8(change, unknown), flat=True)
         files["changes.png"] = "changes.png"
-        write_png(out / "unknown.png", _mask_u8(unknown))
+        write_png(out / "unknown.png", _mask_u8(unknown), flat=True)
         files["unknown.png"] = "unknown.png"
     else:
         notes.append(f"image of {H * W:,} pixels: masks written as TIFF only (PNG limit)")

@@ -65,9 +65,13 @@ class ViewerOptions:
     Attributes
     ----------
     tile_size : int
-        Side of the pyramid tiles (pixels).
+        Side of the pyramid tiles (pixels).  512 px tiles make a quarter of the files of
+        256 px ones: creating a file costs about as much as encoding a tile, so a 100 MP
+        viewer is written in about two thirds of the time.
     block : int
-        Side of the largest window read from an image or mask while building the pyramids.
+        Side of the largest window read from an image or mask while building the pyramids
+        (2048 px is 5 % faster than 1024 px at 100 MP, but adds 140 MB to the run's peak
+        memory).
     image_format : {"jpg", "png"}
         Tiles of the observation and the reblurred reference (masks are always PNG).
     quality : int
@@ -81,7 +85,7 @@ class ViewerOptions:
         Region boxes longer than this are traced at a coarser scale.
     """
 
-    tile_size: int = 256
+    tile_size: int = 512
     block: int = 1024
     image_format: str = "jpg"
     quality: int = 90

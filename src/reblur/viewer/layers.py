@@ -122,7 +122,7 @@ def mask_layer(name: str, mask: Any, rgb: tuple[int, int, int], *, alpha: float,
         out[:, :, 3] = np.rint(tile[:, :, 0] * np.float32(alpha)).astype(np.uint8)
         return out
 
-    return Layer(name, read, encode, fmt="png", reduce=reduce)
+    return Layer(name, read, encode, fmt="png", reduce=reduce, flat=True)
 
 
 def reblurred_source(result: Any, observed: Any, reblurred_path: Path | None
