@@ -1,6 +1,6 @@
 """Cost of the zoomable viewer (:func:`reblur.viewer.write_viewer`) at growing sizes.
 
-``python -m benchmarks.viewer [--sizes 4,25] [--tile 256]``
+``python -m benchmarks.viewer [--sizes 4,25] [--tile PX]`` (default: the viewer's own tile size)
 
 Each size (megapixels, square) runs in a fresh process: a textured RGB uint8 observation and
 the change and unknown masks are written chunk by chunk into zarr stores in a temporary
@@ -83,7 +83,7 @@ def _reset_peak() -> float:
         return next(float(ln.split()[1]) / 1024 for ln in f if ln.startswith("VmRSS:"))
 
 
-def case(mp: float, tile: int) -> dict:
+def case(mp: float, tile: int | None) -> dict:
     """One size, in this process."""
     from reblur.grid import PoseGrid
     from reblur.io import Image
@@ -103,7 +103,9 @@ def case(mp: float, tile: int) -> dict:
         before = _reset_peak()
         t0 = time.perf_counter()
         info = write_viewer(d / "viewer", res, observed=Image.from_array(_Recorded(obs), "obs"),
-                            regions=regions, options=ViewerOptions(tile_size=tile))
+                            regions=regions,
+                            options=ViewerOptions() if tile is None
+                            else ViewerOptions(tile_size=tile))
         dt = time.perf_counter() - t0
         files = [p for p in (d / "viewer" / "tiles").rglob("*") if p.is_file()]
         return dict(mp=side * side / 1e6, side=side, seconds=dt,
@@ -115,8 +117,11 @@ def case(mp: float, tile: int) -> dict:
         shutil.rmtree(d, ignore_errors=True)
 
 
-def main(sizes: str = "4,25", tile: int = 256) -> str:
+def main(sizes: str = "4,25", tile: int | None = None) -> str:
     """Run every size in a fresh process; return (and print) the markdown table."""
+    from reblur.viewer import ViewerOptions
+
+    tile = ViewerOptions().tile_size if tile is None else int(tile)
     rows = [run_case("benchmarks.viewer", "--case", str(float(s)), "--tile", str(tile))
             for s in sizes.split(",")]
     lines = [f"Viewer pyramids (observation, unknown, changes; {tile} px tiles), commit "
@@ -137,7 +142,7 @@ def main(sizes: str = "4,25", tile: int = 256) -> str:
 if __name__ == "__main__":
     ap = argparse.ArgumentParser()
     ap.add_argument("--sizes", default="4,25", help="megapixels, comma-separated")
-    ap.add_argument("--tile", type=int, default=256)
+    ap.add_argument("--tile", type=int, default=None, help="tile side (default: the viewer's)")
     ap.add_argument("--case", type=float, default=None, help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.case is not None:

@@ -1993,8 +1993,8 @@ def encode_png(array: np.ndarray, *, compression: int = 6, flat: bool = False) -
         zlib level, 0-9.
     flat : bool
         The image is made of few flat colours (a mask): deflate in run-length mode with no
-        row filters.  A 100 MP change mask encodes 5x faster than with the default filters,
-        into a smaller file; a photograph would compress badly.  Either way the PNG holds
+        row filters.  A 100 MP change mask encodes about 5x faster than with the default
+        filters, into a smaller file; a photograph would compress badly.  Either way the PNG holds
         the same pixels in the same type.
 
     Returns

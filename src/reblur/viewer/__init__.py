@@ -66,12 +66,12 @@ class ViewerOptions:
     ----------
     tile_size : int
         Side of the pyramid tiles (pixels).  512 px tiles make a quarter of the files of
-        256 px ones: creating a file costs about as much as encoding a tile, so a 100 MP
-        viewer is written in about two thirds of the time.
+        256 px ones; inside a 100 MP run, whose COGs are written at the same time, the
+        writing of a 45 %-changed pair took 10.6 s against 12.1 s (the same for an unchanged
+        pair).
     block : int
         Side of the largest window read from an image or mask while building the pyramids
-        (2048 px is 5 % faster than 1024 px at 100 MP, but adds 140 MB to the run's peak
-        memory).
+        (2048 px saved 3 % of a 100 MP run's writing but added 140 MB to its peak memory).
     image_format : {"jpg", "png"}
         Tiles of the observation and the reblurred reference (masks are always PNG).
     quality : int
