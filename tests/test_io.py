@@ -7,6 +7,7 @@ import os
 import struct
 import zlib
 
+import cv2
 import imagecodecs
 import numpy as np
 import pytest
@@ -19,6 +20,7 @@ from reblur.io import (
     LazyBands,
     atomic_path,
     check_finite,
+    encode_png,
     open_image,
     read_mask,
     reconcile_bands,
@@ -358,29 +360,49 @@ def _png_rows(data: bytes) -> tuple[dict, list[bytes]]:
     return hdr, [raw[i:i + stride] for i in range(0, len(raw), stride)]
 
 
-def test_flat_png_holds_the_same_pixels_unfiltered(tmp_path, rng):
-    """``flat`` (masks) keeps the pixels, type and bands; its rows carry no filter (type 0),
-    while the default encoding filters some rows of the same image."""
+def _unfilter_sub(row: bytes, bpp: int) -> np.ndarray:
+    """A PNG scanline under the Sub filter (type 1) decoded by the PNG specification:
+    each byte plus the decoded byte ``bpp`` before it, modulo 256."""
+    f = np.frombuffer(row[1:], np.uint8).reshape(-1, bpp).astype(np.int64)
+    return (np.cumsum(f, axis=0) % 256).astype(np.uint8).ravel()
+
+
+def test_flat_png_holds_the_same_pixels_compactly(tmp_path, rng):
+    """``flat`` (masks) keeps the pixels, type and bands.  A gray mask's rows carry no
+    filter (type 0: the bytes are the pixels); a colour mask's rows the Sub filter (type 1),
+    without which a flat RGBA colour repeats with a 4-byte period that run-length deflate
+    cannot code.  The default encoding filters the same images differently."""
     m = np.zeros((300, 200), bool)
     m[40:120, 30:90] = True
     m[200:260, 150:190] = rng.random((60, 40)) > 0.5
     rgba = np.zeros((64, 80, 4), np.uint8)
     rgba[..., :3] = (255, 40, 40)
     rgba[10:30, 5:60, 3] = 115
-    for name, a, want in (("m", m, m.astype(np.uint8) * 255), ("rgba", rgba, rgba)):
+    for name, a, want, kind in (("m", m, m.astype(np.uint8) * 255, 0), ("rgba", rgba, rgba, 1)):
         write_png(tmp_path / f"{name}_flat.png", a, flat=True)
         write_png(tmp_path / f"{name}.png", a)
         hdr, rows = _png_rows((tmp_path / f"{name}_flat.png").read_bytes())
         assert (hdr["depth"], hdr["colour"]) == ((8, 0) if name == "m" else (8, 6))
-        assert {r[0] for r in rows} == {0}, name
-        assert {r[0] for r in _png_rows((tmp_path / f"{name}.png").read_bytes())[1]} != {0}
-        # the unfiltered rows are the pixels themselves
-        got = np.frombuffer(b"".join(r[1:] for r in rows), np.uint8).reshape(want.shape)
+        assert {r[0] for r in rows} == {kind}, name
+        assert {r[0] for r in _png_rows((tmp_path / f"{name}.png").read_bytes())[1]} != {kind}
+        # the rows, decoded by the specification, are the pixels
+        bpp = 1 if name == "m" else 4
+        got = np.concatenate([_unfilter_sub(r, bpp) if kind else np.frombuffer(r[1:], np.uint8)
+                              for r in rows]).reshape(want.shape)
         np.testing.assert_array_equal(got, want)
     # and a reader decodes the mask as before: 0 / 255 in uint8
     back = open_image(tmp_path / "m_flat.png").array
     assert back.dtype == np.uint8
     np.testing.assert_array_equal(back, m.astype(np.uint8) * 255)
+    # a blank 512 px RGBA tile (one colour, transparent: the viewer's empty mask tile) holds
+    # 1 MB of pixels; the row filters and deflate make them a few KB, flat or not
+    blank = np.empty((512, 512, 4), np.uint8)
+    blank[:] = (40, 40, 255, 0)
+    for flat in (False, True):
+        data = encode_png(blank, flat=flat)
+        assert len(data) < 8192, (flat, len(data))
+        np.testing.assert_array_equal(cv2.imdecode(np.frombuffer(data, np.uint8),
+                                                   cv2.IMREAD_UNCHANGED)[..., [2, 1, 0, 3]], blank)
 
 
 def test_write_tiff_from_tile_iterator(tmp_path, rng):

@@ -1992,10 +1992,15 @@ def encode_png(array: np.ndarray, *, compression: int = 6, flat: bool = False) -
     compression : int
         zlib level, 0-9.
     flat : bool
-        The image is made of few flat colours (a mask): deflate in run-length mode with no
-        row filters.  A 100 MP change mask encodes about 5x faster than with the default
-        filters, into a smaller file; a photograph would compress badly.  Either way the PNG holds
-        the same pixels in the same type.
+        The image is made of few flat colours (a mask): deflate in run-length mode, which
+        codes runs of a repeated byte.  A gray image goes unfiltered (its pixels are the
+        bytes); a colour one with the Sub filter of every row, which turns a pixel equal to
+        its left neighbour into zero bytes (unfiltered, a flat RGBA colour repeats with a
+        4-byte period that run-length mode cannot code: a blank 512 px tile took 225 KB
+        instead of 3 KB).  A 100 MP gray change mask encodes about 5x faster than with the
+        default filters and strategy, into a smaller file; a 512 px RGBA mask tile 4x
+        faster, about as small; a photograph would compress badly.  Either way the PNG
+        holds the same pixels in the same type.
 
     Returns
     -------
@@ -2021,8 +2026,9 @@ def encode_png(array: np.ndarray, *, compression: int = 6, flat: bool = False) -
             raise ValueError(f"PNG holds 1, 3 or 4 bands, got {a.shape[2]}")
     params = [cv2.IMWRITE_PNG_COMPRESSION, int(compression)]
     if flat:  # after the level, which resets the strategy
+        row_filter = cv2.IMWRITE_PNG_FILTER_NONE if a.ndim == 2 else cv2.IMWRITE_PNG_FILTER_SUB
         params += [cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE,
-                   cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_NONE]
+                   cv2.IMWRITE_PNG_FILTER, row_filter]
     ok, buf = cv2.imencode(".png", np.ascontiguousarray(a), params)
     if not ok:
         raise OSError("PNG encoding failed")
