@@ -518,3 +518,27 @@ def test_chunk_cached_wraps_only_tiled_on_disk_arrays():
     assert chunk_cached(c, 1024, 80) is c  # already cached
     rows = _Counting(a, (16, 3000))  # a striped file: chunks are row strips
     assert chunk_cached(rows, 1024, 80) is rows
+
+
+def test_mask_u8_of_zarr_and_numpy_masks(tmp_path, rng):
+    """The report's whole-mask read (``changes.png``, ``unknown.png``): ``change & ~unknown``
+    as 0 / 255 uint8, from zarr masks on disk (read by bands of their chunks, the last one
+    partial) and from in-memory arrays, which stay as they were."""
+    from reblur.io import zarr_masks
+    from reblur.report import _mask_u8
+
+    shape = (203, 150)
+    c = rng.random(shape) > 0.7
+    u = rng.random(shape) > 0.8
+    zc, zu = zarr_masks(tmp_path / "m", shape, 64)
+    zc[...] = c
+    zu[...] = u
+    want = np.where(c & ~u, 255, 0).astype(np.uint8)
+    c0, u0 = c.copy(), u.copy()
+    for change, unknown in ((zc, zu), (c, u)):
+        got = _mask_u8(change, unknown)
+        assert got.dtype == np.uint8
+        np.testing.assert_array_equal(got, want)
+        np.testing.assert_array_equal(_mask_u8(unknown), np.where(u, 255, 0))
+    np.testing.assert_array_equal(c, c0)
+    np.testing.assert_array_equal(u, u0)
