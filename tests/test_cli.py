@@ -255,6 +255,33 @@ def test_overlay_downscales_and_keeps_small_changes():
     assert ov[10, 10, 0] == ov[10, 10, 2]  # background stays gray
 
 
+@pytest.mark.parametrize("shape", [(23, 31), (20, 30), (23, 31, 3), (3, 7), (9, 2, 4)])
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32, np.int32])
+def test_block_reduce_against_a_loop_over_blocks(shape, dtype, monkeypatch):
+    """The overlay's and the outlines' block reduction: the mean (float32) and the maximum
+    (same dtype) of every s x s block, the partial ones at the bottom and right over their
+    own pixels, checked block by block; with a working buffer of one row of blocks too."""
+    from reblur import report
+
+    rng = np.random.default_rng(7)
+    a = (rng.random(shape) * 60000 - (20000 if dtype in (np.float32, np.int32) else 0))
+    a = a.astype(dtype)
+    for s, buffer in ((1, None), (2, None), (5, None), (2, 1), (5, 1)):
+        if buffer is not None:
+            monkeypatch.setattr(report, "_REDUCE_BUFFER", buffer)
+        _block_reduce = report._block_reduce
+        for how, fn in (("mean", np.mean), ("max", np.max)):
+            got = _block_reduce(a, s, how)
+            ny, nx = -(-shape[0] // s), -(-shape[1] // s)
+            assert got.shape == (ny, nx) + shape[2:]
+            assert got.dtype == (np.float32 if how == "mean" else a.dtype)
+            for i in range(ny):
+                for j in range(nx):
+                    blk = a[i * s:(i + 1) * s, j * s:(j + 1) * s].astype(np.float64)
+                    want = fn(blk, axis=(0, 1))
+                    np.testing.assert_allclose(got[i, j], want, rtol=1e-6, atol=1e-6 * 6e4)
+
+
 def test_blur_kernels_translation_and_rotation():
     grid = PoseGrid.from_ranges((201, 301), t_max=4, rz_max=2.0, rz_step=2.0)
     w = np.zeros(grid.shape)

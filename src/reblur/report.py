@@ -174,11 +174,74 @@ def _row_step(shape: tuple[int, ...], itemsize: int, multiple: int,
     return k * multiple
 
 
+#: dtypes OpenCV's dilation takes as they are (block maxima)
+_CV_DEPTHS = (np.uint8, np.uint16, np.int16, np.float32, np.float64)
+
+
+#: Bytes of the working buffer of :func:`_block_reduce` (reused band after band: a fresh
+#: full-band float copy costs page faults that dwarfed the reduction on this VM).
+_REDUCE_BUFFER = 8 * 2**20
+
+
+#: Bytes of the bands :func:`downscale` reads: under glibc's largest mmap threshold
+#: (32 MB), so a freed band's pages serve the next one; 64 MB bands were mapped afresh
+#: each time, and their page faults took most of the overlay's time on this VM.
+DOWNSCALE_BAND = 16 * 2**20
+
+
 def _block_reduce(a: np.ndarray, s: int, how: str) -> np.ndarray:
+    """Mean (float32) or maximum (same dtype) of every ``s x s`` block of ``a``, partial
+    blocks at the bottom and right included (over their own pixels).
+
+    OpenCV does the work, a few rows of blocks at a time in one reused buffer: the maximum
+    is a dilation by an ``s x s`` box anchored at its top-left corner, read at the blocks'
+    corners; the mean of the whole blocks an area resize by ``1/s`` of their float32
+    copy, which for an integer factor is the block mean.  :func:`_block_reduce_np` remains
+    for the dtypes and band counts OpenCV does not take and for the partial blocks' strips
+    of the mean."""
+    import cv2
+
+    r, w = a.shape[:2]
+    bands = a.shape[2] if a.ndim == 3 else 1
+    if bands > 4 or a.dtype == np.bool_ or (how == "max" and a.dtype.type not in _CV_DEPTHS):
+        return _block_reduce_np(a, s, how)
+    ny, nx, h, v = -(-r // s), -(-w // s), r // s, w // s
+    if how == "max":
+        out = np.empty((ny, nx) + a.shape[2:], a.dtype)
+        step = max(1, _REDUCE_BUFFER // (s * w * bands * a.dtype.itemsize))  # rows of blocks
+        buf = np.empty((min(ny, step) * s, w) + a.shape[2:], a.dtype)
+        box = np.ones((s, s), np.uint8)
+        for i0 in range(0, ny, step):
+            src = np.ascontiguousarray(a[i0 * s:(i0 + step) * s])
+            dst = buf[: src.shape[0]]
+            cv2.dilate(src, box, dst=dst, anchor=(0, 0))
+            out[i0:i0 + step] = dst[::s, ::s]
+        return out
+    out = np.empty((ny, nx) + a.shape[2:], np.float32)
+    if h and v:
+        step = max(1, _REDUCE_BUFFER // (s * v * s * bands * 4))
+        buf = np.empty((min(h, step) * s, v * s) + a.shape[2:], np.float32)
+        for i0 in range(0, h, step):
+            i1 = min(h, i0 + step)
+            sub = buf[: (i1 - i0) * s]
+            np.copyto(sub, a[i0 * s:i1 * s, : v * s], casting="unsafe")
+            out[i0:i1, :v] = cv2.resize(sub, (v, i1 - i0), interpolation=cv2.INTER_AREA
+                                        ).reshape(out[i0:i1, :v].shape)
+    if h < ny:  # the partial bottom row of blocks
+        out[h:] = _block_reduce_np(a[h * s:], s, how)
+    if v < nx and h:  # the partial right column of blocks, above it
+        out[:h, v:] = _block_reduce_np(a[: h * s, v * s:], s, how)
+    return out
+
+
+def _block_reduce_np(a: np.ndarray, s: int, how: str) -> np.ndarray:
+    """:func:`_block_reduce` by numpy's reductions of ``a`` padded to whole blocks."""
     r, w = a.shape[:2]
     R, Wp = -(-r // s) * s, -(-w // s) * s
-    if (R, Wp) != (r, w):
-        pad = np.zeros((R, Wp) + a.shape[2:], a.dtype)
+    if (R, Wp) != (r, w):  # padding that takes no part: 0 in a sum, the least value in a max
+        low = 0 if how != "max" or a.dtype == np.bool_ else (
+            np.iinfo(a.dtype).min if a.dtype.kind in "iu" else -np.inf)
+        pad = np.full((R, Wp) + a.shape[2:], low, a.dtype)
         pad[:r, :w] = a
         a = pad
     b = a.reshape((R // s, s, Wp // s, s) + a.shape[2:])
@@ -196,7 +259,8 @@ def _block_reduce(a: np.ndarray, s: int, how: str) -> np.ndarray:
 def downscale(array, max_side: int = OVERLAY_MAX_SIDE, how: str = "mean") -> np.ndarray:
     """Shrink an image (numpy or lazy) by an integer factor so its long side <= ``max_side``.
 
-    Reads bands of rows (about 64 MB at a time), so it works on images larger than memory.
+    Reads bands of rows (about :data:`DOWNSCALE_BAND` bytes at a time), so it works on
+    images larger than memory.  The result is a new array, never a view of ``array``.
 
     Parameters
     ----------
@@ -210,8 +274,8 @@ def downscale(array, max_side: int = OVERLAY_MAX_SIDE, how: str = "mean") -> np.
     s = max(1, -(-max(shape[:2]) // max_side))
     if s == 1:
         a = np.asarray(array[...])
-        return a.astype(np.float32) if how == "mean" else a
-    step = _row_step(shape, np.dtype(array.dtype).itemsize, s)
+        return a.astype(np.float32) if how == "mean" else a.copy()
+    step = _row_step(shape, np.dtype(array.dtype).itemsize, s, DOWNSCALE_BAND)
     parts = []
     for y in range(0, shape[0], step):
         block = np.asarray(array[y : min(y + step, shape[0])])
@@ -285,7 +349,7 @@ class _BoolView:
         self.dtype = np.dtype(np.uint8)
 
     def __getitem__(self, key) -> np.ndarray:
-        return np.asarray(self.mask[key], dtype=bool).astype(np.uint8)
+        return np.asarray(self.mask[key], dtype=bool).view(np.uint8)  # 0 / 1, no copy
 
 
 # ---------------------------------------------------------------------------- motion
