@@ -152,9 +152,26 @@ def _children_cpu() -> float:
     return ru.ru_utime + ru.ru_stime
 
 
-def run_case(case: Path, src: Path | None = None) -> dict:
-    """``reblur detect`` on a case in a fresh process; stage times and peak RSS."""
-    with tempfile.TemporaryDirectory() as tmp:
+def file_create_ms(root: Path | None = None, n: int = 300) -> float:
+    """Milliseconds to create, write (3 KB) and close one file in a new folder under
+    ``root`` (default: the temporary folder), the median of ``n``.  The viewer writes one
+    file per tile (2300 at 100 MP): where creating a file is slow, that shows in the
+    writing's time.  (On the development VM it varied from 0.03 to 1 ms within minutes,
+    in any folder of its disk.)"""
+    with tempfile.TemporaryDirectory(dir=root) as tmp:
+        times = []
+        for i in range(n):
+            t = time.perf_counter()
+            with open(Path(tmp) / f"{i}.png", "wb") as f:
+                f.write(b"\0" * 3000)
+            times.append(time.perf_counter() - t)
+    return 1000.0 * float(np.median(times))
+
+
+def run_case(case: Path, src: Path | None = None, out_root: Path | None = None) -> dict:
+    """``reblur detect`` on a case in a fresh process, its outputs in a new folder under
+    ``out_root`` (default: the temporary folder); stage times and peak RSS."""
+    with tempfile.TemporaryDirectory(dir=out_root) as tmp:
         out = Path(tmp) / "out"
         cmd = [sys.executable, "-m", "reblur", "detect", str(case / "ref.tif"),
                str(case / "obs.tif"), "--out", str(out), "-q"]
@@ -212,7 +229,7 @@ def _compile_package(src: Path | None) -> None:
 
 
 def measure(sizes: list[int], contents: list[str], cache: Path,
-            src: Path | None = None) -> list[dict]:
+            src: Path | None = None, out_root: Path | None = None) -> list[dict]:
     from benchmarks.scale import io_floor
 
     _compile_package(src)
@@ -222,7 +239,9 @@ def measure(sizes: list[int], contents: list[str], cache: Path,
             t = time.perf_counter()
             case = make_case(mp, content, cache)
             made = time.perf_counter() - t
-            row = {"mp": mp, "content": content, "make_s": made, **run_case(case, src)}
+            row = {"mp": mp, "content": content, "make_s": made,
+                   "file_create_ms": file_create_ms(out_root),
+                   **run_case(case, src, out_root)}
             if content == contents[0]:
                 row["io_floor_s"] = io_floor(case)["time_s"]
             print(json.dumps(row, default=float), flush=True)
@@ -284,6 +303,10 @@ def targets(rows: list[dict]) -> str:
     loads = [r["load"] for r in rows if "load" in r]
     out = [f"- host load average while the rows ran: {min(loads):.1f}-{max(loads):.1f} on "
            f"{os.cpu_count()} cores"] if loads else []
+    made = [r["file_create_ms"] for r in rows if "file_create_ms" in r]
+    if made:
+        out.append(f"- creating a file in the output folder took {min(made):.2f}-"
+                   f"{max(made):.2f} ms (`--out-root`; the viewer writes one per tile)")
     small = [r for r in rows if r["mp"] <= 1]
     if small:
         worst = max(small, key=lambda r: r["seconds"])
@@ -334,12 +357,13 @@ def section(rows: list[dict]) -> str:
 
 
 def main(sizes: list[int] | None = None, contents: list[str] | None = None,
-         cache: Path | None = None, src: Path | None = None, label: str | None = None) -> str:
+         cache: Path | None = None, src: Path | None = None, label: str | None = None,
+         out_root: Path | None = None) -> str:
     """Run the cases; return the markdown section (with ``src``: save the "before" rows)."""
     sizes = [1, 25] if sizes is None else sizes
     contents = CONTENTS if contents is None else contents
     cache = cache or CACHE
-    rows = measure(sizes, contents, cache, src)
+    rows = measure(sizes, contents, cache, src, out_root)
     if src is not None:
         old = json.loads(BEFORE.read_text())["rows"] if BEFORE.exists() else []
         rows = _merged(old, rows)
@@ -369,6 +393,9 @@ if __name__ == "__main__":
     ap.add_argument("--src", type=Path, default=None,
                     help="run reblur from another checkout's src folder: the 'before' rows")
     ap.add_argument("--label", default=None, help="name of that checkout (e.g. its commit)")
+    ap.add_argument("--out-root", type=Path, default=None,
+                    help="folder under which each run writes its outputs (default: the "
+                    "temporary folder)")
     ap.add_argument("--saved", action="store_true",
                     help="only rewrite the section from docs/cost_runs.json")
     a = ap.parse_args()
@@ -378,7 +405,8 @@ if __name__ == "__main__":
         body = section(json.loads(RUNS.read_text()))
     else:
         sizes = [1] if a.quick else [int(s) for s in a.sizes.split(",") if s]
-        body = main(sizes, [c for c in a.contents.split(",") if c], a.cache, a.src, a.label)
+        body = main(sizes, [c for c in a.contents.split(",") if c], a.cache, a.src, a.label,
+                    a.out_root)
     if a.src is None:
         write_section("cost", body)
     print(body)
