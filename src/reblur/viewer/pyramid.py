@@ -107,8 +107,8 @@ class Layer:
     quality : int
         JPEG quality.
     flat : bool
-        PNG tiles of few flat colours (masks): written in run-length mode without row
-        filters (:func:`reblur.io.encode_png`), several times faster and smaller.
+        PNG tiles of few flat colours (masks): written in run-length mode
+        (:func:`reblur.io.encode_png` with ``flat``), several times faster and as small.
     """
 
     name: str
