@@ -518,3 +518,29 @@ def test_statistic_reused_on_a_larger_halo_equals_computing_it_whole():
         if small[0] > 0:
             edge = stat(small)[0, 20:-20]
             assert not np.allclose(edge, whole[sy, sx + 20 : sx + small[3] - 20], rtol=1e-6)
+
+
+def test_poly_field_fit_recovers_a_quadratic_gain_and_offset():
+    """The illumination field's IRLS on more samples than it fits on (an even subset of
+    those near the start model's band): a known quadratic gain and offset over the image,
+    10 % of the samples changed by +0.5, comes back to within the noise's reach."""
+    from reblur.decide.photometry import FIELD_FIT_SAMPLES, _fit_poly_field
+
+    rng = np.random.default_rng(3)
+    shape = (400, 500)
+    n = shape[0] * shape[1]
+    assert n > FIELD_FIT_SAMPLES
+    ys, xs = np.divmod(np.arange(n), shape[1])
+    u = 2.0 * (xs + 0.5) / shape[1] - 1.0
+    v = 2.0 * (ys + 0.5) / shape[0] - 1.0
+    a_true = np.array([1.1, 0.1, 0.0, 0.0, 0.0, -0.05])  # 1, u, v, u^2, uv, v^2
+    b_true = np.array([0.01, 0.02, 0.0, 0.0, 0.01, 0.0])
+    terms = np.stack([np.ones(n), u, v, u * u, u * v, v * v], axis=1)
+    x = rng.random(n)
+    y = (terms @ a_true) * x + terms @ b_true + 0.005 * rng.standard_normal(n)
+    y[rng.random(n) < 0.1] += 0.5
+    # the start (a global model) leaves the ramp in its residuals: their inlier scale,
+    # 0.03, keeps the whole ramp within its 8-scale band and the changes out of it
+    a, b = _fit_poly_field(ys, xs, x, y, shape, (1.1, 0.01), 0.03)
+    np.testing.assert_allclose(a, a_true, atol=3e-3)
+    np.testing.assert_allclose(b, b_true, atol=2e-3)

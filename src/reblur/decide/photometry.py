@@ -350,18 +350,21 @@ def _fit_poly_field(ys, xs, x, y, shape, start, scale, n_iter: int = 15
     and offset over the image (ramps, vignetting, haze and cloud-shadow gradients).  Samples
     farther than 8 inlier ``scale`` s from the ``start`` model's band get no say, then the
     Huber weights use the residuals' MAD.  Returns the coefficients ``a``, ``b``."""
-    T = _poly_terms(ys, xs, shape)
-    A = np.concatenate([T * x[:, None], T], axis=1)
     p = np.zeros(12)
     p[0], p[6] = start
-    r = y - A @ p
+    # the start model's residuals (its design row is x, 0, .., 0, 1, 0, ..: the product
+    # with p is x p0 + p6), then the design of the samples kept only: built for all of
+    # them it was 12 float64 columns of every sample (1 MP: 96 MB, twice)
+    r = y - (x * p[0] + p[6])
     use = np.abs(r - np.median(r)) < 8.0 * scale if scale > 0 else np.ones(r.size, bool)
     if np.count_nonzero(use) < 100:
         use = np.ones(r.size, bool)
-    A, yy = A[use], y[use]
-    if yy.size > FIELD_FIT_SAMPLES:  # an even subset (the samples are in image order)
-        k = -(-yy.size // FIELD_FIT_SAMPLES)
-        A, yy = A[::k], yy[::k]
+    idx = np.flatnonzero(use)
+    if idx.size > FIELD_FIT_SAMPLES:  # an even subset (the samples are in image order)
+        idx = idx[::-(-idx.size // FIELD_FIT_SAMPLES)]
+    T = _poly_terms(np.asarray(ys)[idx], np.asarray(xs)[idx], shape)
+    A = np.concatenate([T * x[idx, None], T], axis=1)
+    yy = y[idx]
     for _ in range(n_iter):
         r = yy - A @ p
         s = mad(r)
