@@ -6,8 +6,10 @@ cores; the CPU time (``time.process_time``: every thread of the process) of a st
 not.  The run is the CLI's (``reblur.cli.main``), with timers wrapped around the functions
 of :data:`STAGES` (a stage called several times adds up; nested stages count in both).
 Prints one line per stage, slowest first, then the import of ``reblur.cli`` and the whole
-run; ``--profile module:function`` adds a cProfile of that function (threads other than
-the caller's are not profiled: their work shows as waits).  Cases of
+run, with the minor page faults of the process meanwhile (fresh pages touched, 4 KB each:
+on a VM that backs memory lazily they are kernel time); ``--profile module:function``
+adds a cProfile of that function (threads other than the caller's are not profiled: their
+work shows as waits).  Cases of
 ``python -m benchmarks.cost`` are in its cache folder
 (``$TMPDIR/reblur-cost/1mp_unchanged/ref.tif`` ...).
 """
@@ -19,6 +21,7 @@ import cProfile
 import functools
 import importlib
 import pstats
+import resource
 import sys
 import tempfile
 import time
@@ -53,14 +56,15 @@ def _timed(spec: str, acc: dict[str, list[float]]) -> None:
 
     @functools.wraps(f)
     def wrapper(*args, **kwargs):
-        w, c = time.perf_counter(), time.process_time()
+        w, c, m = time.perf_counter(), time.process_time(), _minflt()
         try:
             return f(*args, **kwargs)
         finally:
-            row = acc.setdefault(spec, [0, 0.0, 0.0])
+            row = acc.setdefault(spec, [0, 0.0, 0.0, 0])
             row[0] += 1
             row[1] += time.perf_counter() - w
             row[2] += time.process_time() - c
+            row[3] += _minflt() - m
 
     setattr(mod, name, wrapper)
 
@@ -81,11 +85,12 @@ def main(argv: list[str] | None = None) -> dict[str, list[float]]:
     ap.add_argument("--workers", type=int, default=None,
                     help="reblur detect's --workers (1: every tile in the profiled thread)")
     a = ap.parse_args(argv)
-    w0, c0 = time.perf_counter(), time.process_time()
+    w0, c0, m0 = time.perf_counter(), time.process_time(), _minflt()
     import reblur.cli
 
     acc: dict[str, list[float]] = {"import reblur.cli": [1, time.perf_counter() - w0,
-                                                         time.process_time() - c0]}
+                                                         time.process_time() - c0,
+                                                         _minflt() - m0]}
     for spec in a.stages.split(","):
         _timed(spec, acc)
     prof = _profiled(a.profile) if a.profile else None
@@ -98,15 +103,21 @@ def main(argv: list[str] | None = None) -> dict[str, list[float]]:
         try:
             reblur.cli.main(args, standalone_mode=False)
         finally:
-            acc["whole run"] = [1, time.perf_counter() - w0, time.process_time() - c0]
-    print(f"{'stage':45s} {'calls':>5s} {'wall s':>7s} {'CPU s':>7s}")
-    for spec, (n, wall, cpu) in sorted(acc.items(), key=lambda kv: -kv[1][2]):
-        print(f"{spec:45s} {n:5d} {wall:7.2f} {cpu:7.2f}")
+            acc["whole run"] = [1, time.perf_counter() - w0, time.process_time() - c0,
+                                _minflt() - m0]
+    print(f"{'stage':45s} {'calls':>5s} {'wall s':>7s} {'CPU s':>7s} {'faults':>8s}")
+    for spec, (n, wall, cpu, flt) in sorted(acc.items(), key=lambda kv: -kv[1][2]):
+        print(f"{spec:45s} {n:5d} {wall:7.2f} {cpu:7.2f} {flt:8d}")
     if prof is not None:
         print(f"\nprofile of {a.profile} (internal time, then cumulative):")
         for key in ("tottime", "cumulative"):
             pstats.Stats(prof).sort_stats(key).print_stats(a.top)
     return acc
+
+
+def _minflt() -> int:
+    """Minor page faults of this process so far (every thread)."""
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 
 
 def _profiled(spec: str) -> cProfile.Profile:

@@ -228,3 +228,57 @@ def test_estimate_runs_in_small_pages(monkeypatch):
     with pytest.raises(RuntimeError, match="solver failed"):
         estimate_motion(f, f, grid, boxes=[(8, 8, 48, 48)])
     assert calls == [False, "previous"]
+
+
+_HEAP_PROBE = """
+import ctypes, sys
+import numpy as np
+from reblur import _memory
+
+
+class MallInfo2(ctypes.Structure):
+    _fields_ = [(n, ctypes.c_size_t) for n in ("arena", "ordblks", "smblks", "hblks",
+                                                 "hblkhd", "usmblks", "fsmblks", "uordblks",
+                                                 "fordblks", "keepcost")]
+
+
+libc = ctypes.CDLL(None)
+libc.mallinfo2.restype = MallInfo2
+took = _memory.retain_freed_memory() if sys.argv[1] == "on" else None
+a = np.ones(16 * 2**20, np.uint8)
+alive = libc.mallinfo2()
+del a
+freed = libc.mallinfo2()
+print(took, alive.hblkhd, freed.fordblks)
+"""
+
+
+def test_retain_freed_memory_keeps_a_freed_block_in_the_heap():
+    """glibc's own accounting (mallinfo2), in fresh processes: by default a 16 MB block is
+    mapped apart (``hblkhd``) and given back when freed; after ``retain_freed_memory`` it
+    comes from the heap, and once freed stays there as free heap (``fordblks``) for the
+    next allocation.  A user's MALLOC_* variables stand."""
+    import ctypes
+    import os
+    import subprocess
+    import sys
+
+    try:
+        ctypes.CDLL(None).mallinfo2  # noqa: B018 - glibc >= 2.33
+    except AttributeError:
+        pytest.skip("not glibc (>= 2.33)")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+
+    def probe(mode, extra=None):
+        out = subprocess.run([sys.executable, "-c", _HEAP_PROBE, mode], check=True,
+                             capture_output=True, text=True, env={**env, **(extra or {})})
+        took, mapped, free = out.stdout.split()
+        return took, int(mapped), int(free)
+
+    block = 16 * 2**20
+    took, mapped, free = probe("off")
+    assert mapped >= block and free < block
+    took, mapped, free = probe("on")
+    assert took == "True" and mapped < block and free >= block
+    took, mapped, _ = probe("on", {"MALLOC_MMAP_THRESHOLD_": "131072"})
+    assert took == "False" and mapped >= block

@@ -30,6 +30,7 @@ from typing import Any
 import click
 import numpy as np
 
+from ._memory import retain_freed_memory
 from .io import (
     DEFAULT_MAX_PIXELS,
     Image,
@@ -489,6 +490,7 @@ def main() -> None:
     Run 'reblur demo' for a first look, 'reblur COMMAND --help' for each command.
     """
     _quiet_libtiff()
+    retain_freed_memory()  # this process is the command's: later stages reuse pages
 
 
 def _quiet_libtiff() -> bool:
