@@ -86,10 +86,14 @@ def build(d: Path, side: int, tile: int = 1024, seed: int = 0):
     return change, unknown, rb
 
 
-def main(megapixels: float = 25.0) -> str:
+def main(megapixels: float = 25.0, gdal_cache: int | None = None) -> str:
     from affine import Affine
     from rasterio.crs import CRS
 
+    import reblur.gis
+
+    if gdal_cache is not None:  # GDAL's block cache while a COG is assembled, bytes
+        reblur.gis._GDAL_CACHE_BYTES = int(gdal_cache)
     from reblur.gis import (
         geopackage_available,
         region_features,
@@ -140,7 +144,8 @@ def main(megapixels: float = 25.0) -> str:
         n_feat = len(feats)
     lines = [
         f"## GIS outputs at {side * side / 1e6:.1f} MP (`python -m benchmarks.gis_outputs "
-        f"--megapixels {megapixels:g}`)",
+        f"--megapixels {megapixels:g}"
+        + ("" if gdal_cache is None else f" --gdal-cache {gdal_cache}") + "`)",
         "",
         f"{side} x {side} px, georeferenced; inputs built tile by tile on disk in "
         f"{t_build:.1f} s; {n_feat} change regions.  Memory: the largest growth of the "
@@ -156,4 +161,8 @@ def main(megapixels: float = 25.0) -> str:
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--megapixels", type=float, default=25.0)
-    print(main(ap.parse_args().megapixels))
+    ap.add_argument("--gdal-cache", type=int, default=None,
+                    help="GDAL's block cache while a COG is assembled, bytes (default: "
+                    "reblur.gis's)")
+    a = ap.parse_args()
+    print(main(a.megapixels, a.gdal_cache))

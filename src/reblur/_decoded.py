@@ -246,7 +246,7 @@ def png_to_disk(path: Path, shape: tuple[int, ...], dtype: np.dtype, fail: Fail,
     opaque = [True]
 
     def fill(z, root: Path) -> None:
-        env = dict(GDAL_CACHEMAX=GDAL_CACHE_MB, GDAL_PNG_WHOLE_IMAGE_OPTIM="NO",
+        env = dict(GDAL_CACHEMAX=GDAL_CACHE_MB * 2**20, GDAL_PNG_WHOLE_IMAGE_OPTIM="NO",
                    CPL_LOG="/dev/null")
         with _quiet(), rasterio.Env(**env):
             src = _gdal(lambda: rasterio.open(path, driver="PNG"), path, fail)

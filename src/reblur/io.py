@@ -1140,7 +1140,9 @@ def _check_jpeg_data(path: Path) -> None:
     from rasterio.windows import Window
 
     # set when the dataset is opened: GDAL sizes libjpeg's memory then
-    env = dict(GDAL_ERROR_ON_LIBJPEG_WARNING=True, CPL_LOG="/dev/null", GDAL_CACHEMAX=64,
+    # GDAL_CACHEMAX in bytes: rasterio.Env hands an integer to GDALSetCacheMax64
+    env = dict(GDAL_ERROR_ON_LIBJPEG_WARNING=True, CPL_LOG="/dev/null",
+               GDAL_CACHEMAX=64 * 2**20,
                JPEGMEM=f"{IN_MEMORY_MAX_BYTES // 2**20}M")
     with warnings.catch_warnings(), rasterio.Env(**env):
         warnings.simplefilter("ignore")
