@@ -520,12 +520,13 @@ def test_chunk_cached_wraps_only_tiled_on_disk_arrays():
     assert chunk_cached(rows, 1024, 80) is rows
 
 
-def test_mask_u8_of_zarr_and_numpy_masks(tmp_path, rng):
-    """The report's whole-mask read (``changes.png``, ``unknown.png``): ``change & ~unknown``
-    as 0 / 255 uint8, from zarr masks on disk (read by bands of their chunks, the last one
-    partial) and from in-memory arrays, which stay as they were."""
-    from reblur.io import zarr_masks
-    from reblur.report import _mask_u8
+def test_mask_bands_and_their_png_of_zarr_and_numpy_masks(tmp_path, rng):
+    """The report's PNG masks (``changes.png``, ``unknown.png``): ``change & ~unknown`` as
+    0 / 255 uint8 bands, from zarr masks on disk (bands of their chunks, the last one
+    partial) and from in-memory arrays, which stay as they were; written band by band, the
+    PNG decodes (OpenCV) to the mask and holds what ``encode_png(flat=True)`` encodes."""
+    from reblur.io import write_png_bands, zarr_masks
+    from reblur.report import _mask_bands
 
     shape = (203, 150)
     c = rng.random(shape) > 0.7
@@ -536,9 +537,28 @@ def test_mask_u8_of_zarr_and_numpy_masks(tmp_path, rng):
     want = np.where(c & ~u, 255, 0).astype(np.uint8)
     c0, u0 = c.copy(), u.copy()
     for change, unknown in ((zc, zu), (c, u)):
-        got = _mask_u8(change, unknown)
-        assert got.dtype == np.uint8
-        np.testing.assert_array_equal(got, want)
-        np.testing.assert_array_equal(_mask_u8(unknown), np.where(u, 255, 0))
+        bands = list(_mask_bands(change, unknown))
+        assert all(b.dtype == np.uint8 for b in bands)
+        assert len(bands) == (4 if change is zc else 1)
+        np.testing.assert_array_equal(np.concatenate(bands), want)
+        np.testing.assert_array_equal(np.concatenate(list(_mask_bands(unknown))),
+                                      np.where(u, 255, 0))
+        p = write_png_bands(tmp_path / "c.png", shape, _mask_bands(change, unknown))
+        np.testing.assert_array_equal(cv2.imread(str(p), cv2.IMREAD_UNCHANGED), want)
+        hdr, rows = _png_rows(p.read_bytes())
+        assert (hdr["depth"], hdr["colour"]) == (8, 0) and {r[0] for r in rows} == {0}
+        assert _png_rows(encode_png(want, flat=True))[1] == rows
     np.testing.assert_array_equal(c, c0)
     np.testing.assert_array_equal(u, u0)
+
+
+def test_write_png_bands_refuses_bands_that_do_not_fit(tmp_path):
+    """Too few rows, a band of another width or type: an error, and no file."""
+    from reblur.io import write_png_bands
+
+    band = np.zeros((10, 20), np.uint8)
+    for bands in ([band], [band, band, band], [np.zeros((20, 21), np.uint8)],
+                  [np.zeros((20, 20), np.float32)]):
+        with pytest.raises(ValueError):
+            write_png_bands(tmp_path / "m.png", (20, 20), iter(bands))
+        assert not list(tmp_path.iterdir())

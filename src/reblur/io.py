@@ -56,6 +56,7 @@ import struct
 import tempfile
 import threading
 import warnings
+import zlib
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -2051,6 +2052,71 @@ def write_png(path: str | os.PathLike, array: np.ndarray, *, compression: int = 
     path = Path(path)
     with atomic_path(path) as tmp:
         tmp.write_bytes(data)
+    return path
+
+
+#: Bytes of deflate output gathered into one IDAT chunk by :func:`write_png_bands`.
+_IDAT_BYTES = 2**20
+
+
+def write_png_bands(path: str | os.PathLike, shape: tuple[int, int],
+                    bands: Iterable[np.ndarray], *, compression: int = 1) -> Path:
+    """Write an 8-bit gray mask as PNG band by band, atomically: memory for one band, not
+    the image (OpenCV encodes whole arrays only: a 1 Gpx ``changes.png`` held 1 GB).
+
+    Parameters
+    ----------
+    path : path-like
+    shape : (H, W)
+    bands : iterable of uint8 (h, W) arrays
+        The rows from top to bottom; their heights add up to ``H``.
+    compression : int
+        zlib level, 0-9 (in run-length mode level 1 gave a 100 MP mask the same size as
+        level 6, in 0.15 s against 0.26).
+
+    Returns
+    -------
+    Path
+
+    Notes
+    -----
+    The PNG is what :func:`encode_png` makes of the same mask with ``flat``: rows without
+    filter, deflate in run-length mode (a mask's runs of 0 and 255), in IDAT chunks of
+    about a megabyte.  Deterministic: the same bands give the same bytes.
+    """
+    H, W = (int(v) for v in shape)
+    if not (0 < H < 2**31 and 0 < W < 2**31):
+        raise ValueError(f"a PNG is 1 to 2^31 - 1 pixels a side, got {W}x{H}")
+
+    def chunk(f, kind: bytes, data: bytes) -> None:
+        f.write(struct.pack(">I", len(data)) + kind + data)
+        f.write(struct.pack(">I", zlib.crc32(data, zlib.crc32(kind)) & 0xFFFFFFFF))
+
+    path = Path(path)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(b"\x89PNG\r\n\x1a\n")
+        chunk(f, b"IHDR", struct.pack(">IIBBBBB", W, H, 8, 0, 0, 0, 0))
+        z = zlib.compressobj(int(compression), zlib.DEFLATED, 15, 9, zlib.Z_RLE)
+        out, rows = bytearray(), 0
+        raw = np.zeros((0, W + 1), np.uint8)  # per row: filter type 0, then the pixels
+        for band in bands:
+            b = np.asarray(band)
+            if b.dtype != np.uint8 or b.ndim != 2 or b.shape[1] != W or rows + len(b) > H:
+                raise ValueError(f"band of {b.dtype} {b.shape} at row {rows} does not fit a "
+                                 f"{W}x{H} 8-bit gray PNG")
+            if len(raw) < len(b):
+                raw = np.zeros((len(b), W + 1), np.uint8)
+            raw[: len(b), 1:] = b
+            out += z.compress(raw[: len(b)])
+            rows += b.shape[0]
+            if len(out) >= _IDAT_BYTES:
+                chunk(f, b"IDAT", bytes(out))
+                out.clear()
+        if rows != H:
+            raise ValueError(f"the bands hold {rows} rows, the PNG {H}")
+        out += z.flush()
+        chunk(f, b"IDAT", bytes(out))
+        chunk(f, b"IEND", b"")
     return path
 
 

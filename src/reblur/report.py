@@ -59,7 +59,7 @@ import resource
 import shutil
 import sys
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -77,7 +77,7 @@ from .gis import (
     write_geojson,
     write_geopackage,
 )
-from .io import Image, iter_windows, to_jsonable, write_json, write_png
+from .io import Image, iter_windows, to_jsonable, write_json, write_png, write_png_bands
 from .result import ChangeResult, MotionEstimate
 from .viewer import ViewerOptions
 
@@ -150,21 +150,19 @@ class _MaskView:
         return m.astype(np.uint8) * np.uint8(255)
 
 
-def _mask_u8(change, unknown=None) -> np.ndarray:
-    """The whole ``change & ~unknown`` as uint8 255/0, read by row bands of the masks' chunks
-    into one new array: the only full-size allocation (whole, with its bool temporaries, a
-    100 MP pair of zarr masks took 2.2 s in a fresh process, 0.7 s by bands)."""
+def _mask_bands(change, unknown=None) -> Iterator[np.ndarray]:
+    """``change & ~unknown`` as uint8 255/0, band by band of rows (the masks' chunks, or
+    about 16 MB): what the PNG masks are written from, never the whole image at once (a
+    1 Gpx ``changes.png`` from one array held 1 GB more than the detection's peak)."""
     view = _MaskView(change, unknown)
     H, W = view.shape
-    out = np.empty((H, W), np.uint8)
     step = int(view.chunks[0]) if view.chunks else _row_step((H, W), 3, 1, 16 * 2**20)
     for y0 in range(0, H, step):
         y1 = min(H, y0 + step)
         m = np.asarray(change[y0:y1], dtype=bool)
         if unknown is not None:  # a new band: ``change`` itself may be the caller's array
             m = m & ~np.asarray(unknown[y0:y1], dtype=bool)
-        np.multiply(m.view(np.uint8), np.uint8(255), out=out[y0:y1])
-    return out
+        yield np.multiply(m.view(np.uint8), np.uint8(255))
 
 
 def _row_step(shape: tuple[int, ...], itemsize: int, multiple: int,
@@ -1042,9 +1040,9 @@ def _write_masks(result: ChangeResult, out: Path, observed: Image | None,
     files: dict[str, str] = {}
     notes: list[str] = []
     if H * W <= PNG_MAX_PIXELS:
-        write_png(out / "changes.png", _mask_u8(change, unknown), flat=True)
+        write_png_bands(out / "changes.png", (H, W), _mask_bands(change, unknown))
         files["changes.png"] = "changes.png"
-        write_png(out / "unknown.png", _mask_u8(unknown), flat=True)
+        write_png_bands(out / "unknown.png", (H, W), _mask_bands(unknown))
         files["unknown.png"] = "unknown.png"
     else:
         notes.append(f"image of {H * W:,} pixels: masks written as TIFF only (PNG limit)")
