@@ -62,11 +62,12 @@ def retain_freed_memory(trim_bytes: int = 256 * 2**20) -> bool:
     once more than twice that is free.  Every stage then touches fresh pages, and a page
     fault costs 1-7 ms per MB on the VM the benchmarks run on (``python -m
     benchmarks.first_touch``).  With blocks up to 32 MB taken from the heap and up to
-    ``trim_bytes`` of free heap kept, a stage reuses the pages its predecessor freed: the
-    1 MP cost pair took 2.85-3.10 s against 3.21-3.34 s end to end with 30 % fewer page
-    faults, 50 MB more peak memory; at 100 MP half the faults, the same time and peak
-    (``MALLOC_MMAP_THRESHOLD_`` / ``MALLOC_TRIM_THRESHOLD_``, alternated).  Larger blocks
-    (whole images, a 1 Gpx mask) are still mapped and returned as before.
+    ``trim_bytes`` of free heap kept, a stage reuses the pages its predecessor freed
+    (``reblur detect`` on the cost pairs of ``python -m benchmarks.cost``, alternated with
+    and without): 1 MP 2.73-2.86 s against 3.09-3.14 s end to end, half the page faults,
+    50 MB more peak memory; 25 MP 6.1-6.2 s against 7.0-7.1 s; 100 MP (45 % changed)
+    27.6-28.4 s against 26.6-27.2 s and 40-110 MB more peak, within that size's noise.
+    Larger blocks (whole images, full-size masks) are still mapped and returned.
 
     Returns whether the allocator took the settings (False elsewhere than glibc, or where
     the environment sets them itself).

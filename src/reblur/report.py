@@ -172,8 +172,9 @@ def _row_step(shape: tuple[int, ...], itemsize: int, multiple: int,
     return k * multiple
 
 
-#: dtypes OpenCV's dilation takes as they are (block maxima)
-_CV_DEPTHS = (np.uint8, np.uint16, np.int16, np.float32, np.float64)
+#: dtypes whose block maxima OpenCV's dilation takes (integers: a float NaN keeps numpy's
+#: rule, a block holding one is NaN)
+_CV_DEPTHS = (np.uint8, np.uint16, np.int16)
 
 
 #: Bytes of the working buffer of :func:`_block_reduce` (reused band after band: a fresh
