@@ -39,6 +39,8 @@ BENCHES = {
     "viewer": ("benchmarks.viewer", "main"),
     # the coarse alignment alone on the cost pairs, 1-100 MP (issue #28)
     "align_cost": ("benchmarks.align_cost", "bench"),
+    # the mask PNGs' encodings: viewer tiles and a 100 MP change mask (issues #28, #31)
+    "png_masks": ("benchmarks.png_masks", "main"),
 }
 
 

@@ -1999,11 +1999,11 @@ def encode_png(array: np.ndarray, *, compression: int = 6, flat: bool = False) -
         codes runs of a repeated byte.  A gray image goes unfiltered (its pixels are the
         bytes); a colour one with the Sub filter of every row, which turns a pixel equal to
         its left neighbour into zero bytes (unfiltered, a flat RGBA colour repeats with a
-        4-byte period that run-length mode cannot code: a blank 512 px tile took 225 KB
-        instead of 3 KB).  A 100 MP gray change mask encodes about 5x faster than with the
-        default filters and strategy, into a smaller file; a 512 px RGBA mask tile 4x
-        faster, about as small; a photograph would compress badly.  Either way the PNG
-        holds the same pixels in the same type.
+        4-byte period that run-length mode cannot code: a blank 512 px tile takes 100
+        times the bytes).  Masks encode 2-5 times faster than with the default filters
+        and strategy, about as small (``python -m benchmarks.png_masks``); a
+        photograph would compress badly.  Either way the PNG holds the same pixels in the
+        same type.
 
     Returns
     -------
@@ -2071,8 +2071,8 @@ def write_png_bands(path: str | os.PathLike, shape: tuple[int, int],
     bands : iterable of uint8 (h, W) arrays
         The rows from top to bottom; their heights add up to ``H``.
     compression : int
-        zlib level, 0-9 (in run-length mode level 1 gave a 100 MP mask the same size as
-        level 6, in 0.15 s against 0.26).
+        zlib level, 0-9 (in run-length mode levels 1 and 6 gave a 100 MP mask the same
+        size in about the same time: ``python -m benchmarks.png_masks``).
 
     Returns
     -------
@@ -2080,9 +2080,9 @@ def write_png_bands(path: str | os.PathLike, shape: tuple[int, int],
 
     Notes
     -----
-    The PNG is what :func:`encode_png` makes of the same mask with ``flat``: rows without
-    filter, deflate in run-length mode (a mask's runs of 0 and 255), in IDAT chunks of
-    about a megabyte.  Deterministic: the same bands give the same bytes.
+    The PNG holds the rows :func:`encode_png` makes of the same mask with ``flat``: rows
+    without filter, deflate in run-length mode (a mask's runs of 0 and 255), in IDAT chunks
+    of about a megabyte.  Deterministic: the same bands give the same bytes.
     """
     H, W = (int(v) for v in shape)
     if not (0 < H < 2**31 and 0 < W < 2**31):

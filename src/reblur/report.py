@@ -158,11 +158,7 @@ def _mask_bands(change, unknown=None) -> Iterator[np.ndarray]:
     H, W = view.shape
     step = int(view.chunks[0]) if view.chunks else _row_step((H, W), 3, 1, 16 * 2**20)
     for y0 in range(0, H, step):
-        y1 = min(H, y0 + step)
-        m = np.asarray(change[y0:y1], dtype=bool)
-        if unknown is not None:  # a new band: ``change`` itself may be the caller's array
-            m = m & ~np.asarray(unknown[y0:y1], dtype=bool)
-        yield np.multiply(m.view(np.uint8), np.uint8(255))
+        yield view[y0:min(H, y0 + step)]
 
 
 def _row_step(shape: tuple[int, ...], itemsize: int, multiple: int,
