@@ -455,17 +455,18 @@ def test_statistic_with_model_error_matches_explicit_formula():
 
 
 def test_label_statistics_match_ndimage():
-    # the candidate-only max / median against scipy's whole-array versions (the reference)
+    # the candidate-only reach / median against scipy's whole-array versions (the reference)
     from scipy import ndimage as ndi
 
-    from reblur.decide import _label_max, _label_median
+    from reblur.decide import _label_median, _label_reaches
 
     rng = np.random.default_rng(5)
     for _ in range(10):
         S = rng.random((120, 170)).astype(np.float32)
         lab, n = ndi.label(rng.random((120, 170)) > 0.55)
         idx = np.arange(1, n + 1)
-        np.testing.assert_array_equal(_label_max(S, lab, n), ndi.maximum(S, lab, idx))
+        np.testing.assert_array_equal(_label_reaches(S, lab, n, np.float32(0.9)),
+                                      ndi.maximum(S, lab, idx) >= np.float32(0.9))
         np.testing.assert_allclose(_label_median(S, lab, n), ndi.median(S, lab, idx),
                                    rtol=0, atol=1e-7)
 

@@ -20,7 +20,6 @@ from reblur.decide import (
     _clear_of,
     _components,
     _decide_core,
-    _label_max,
     _label_median,
     _region_records,
     change_statistic,
@@ -324,9 +323,6 @@ def test_label_statistics_from_components():
     for _ in range(10):
         S = rng.random((120, 170)).astype(np.float32)
         cc = _components(rng.random((120, 170)) > 0.55)
-        idx = np.arange(1, cc.n + 1)
-        np.testing.assert_array_equal(_label_max(S, cc.lab, cc.n, cc),
-                                      ndi.maximum(S, cc.lab, idx))
         np.testing.assert_array_equal(_label_median(S, cc.lab, cc.n, cc),
                                       _label_median(S, cc.lab, cc.n))
 
@@ -382,6 +378,110 @@ def test_hull_pixels_match_convex_hull_image():
         assert _hull_pixels(sub) == int(np.count_nonzero(convex_hull_image(sub)))
         n += 1
     assert n > 300
+
+
+def test_octagon_bounds_the_hull_and_settles_solid_regions():
+    """``_octagon_pixels`` (the box cut by the ranges of ``r + c`` and ``c - r``) is never
+    below scikit-image's hull, equals it on a rectangle and a diamond, and is what lets
+    ``_shape_ok`` skip the hull: it must settle some solid regions."""
+    from reblur.decide.regions import _octagon_pixels
+
+    def octagon(sub):
+        rows = np.flatnonzero(sub.any(axis=1))
+        first = np.argmax(sub[rows], axis=1)
+        last = sub.shape[1] - 1 - np.argmax(sub[rows, ::-1], axis=1)
+        return _octagon_pixels(sub.shape, rows, first, last)
+
+    rng = np.random.default_rng(33)
+    p = DecisionParams()
+    settled = n = 0
+    for _ in range(300):
+        shape = tuple(int(v) for v in rng.integers(2, 80, 2))
+        m = _blobs(rng, shape, rng.uniform(0.1, 0.9), rng.uniform(0.5, 8.0))
+        lab, k = ndi.label(m, structure=_EIGHT)
+        for i, sl in enumerate(ndi.find_objects(lab)):
+            sub = lab[sl] == i + 1
+            hull = int(np.count_nonzero(convex_hull_image(sub)))
+            bound = octagon(sub)
+            assert hull <= bound <= sub.size
+            area = int(sub.sum())
+            settled += area >= p.min_solidity * bound and area < p.min_solidity * sub.size
+            n += 1
+    assert n > 500 and settled > 10
+    yy, xx = np.mgrid[:21, :21]
+    for sub in (np.ones((7, 12), bool), np.abs(yy - 10) + np.abs(xx - 10) <= 10):
+        assert octagon(sub) == int(np.count_nonzero(convex_hull_image(sub))) == sub.sum()
+
+
+def test_label_reaches_matches_ndimage_maximum():
+    """Which labels hold a pixel at a level, against ``ndimage.maximum``, with the level on
+    pixel values and between them."""
+    from reblur.decide.regions import _label_reaches
+
+    rng = np.random.default_rng(34)
+    for _ in range(10):
+        S = rng.random((90, 130)).astype(np.float32)
+        lab, n = ndi.label(_blobs(rng, S.shape, 0.4, 2.0), structure=_EIGHT)
+        top = ndi.maximum(S, lab, np.arange(1, n + 1))
+        for level in (np.float32(np.median(top)), np.float32(top.min()), np.float32(0.9)):
+            np.testing.assert_array_equal(_label_reaches(S, lab, n, level), top >= level)
+
+
+@pytest.mark.parametrize("connectivity", [8, 4])
+def test_components_with_boxes_on_sparse_and_dense_masks(connectivity):
+    """``_components(boxes=True)`` -- OpenCV's statistics pass on masks more than a
+    quarter foreground, pixel lists and ``find_objects`` below -- against ``ndimage``:
+    the same partition, areas and bounding boxes."""
+    from reblur.decide.regions import _STATS_SHARE
+
+    rng = np.random.default_rng(35)
+    struct = _EIGHT if connectivity == 8 else _FOUR
+    paths = set()
+    for density in (0.03, 0.15, 0.4, 0.75):
+        for _ in range(3):
+            m = _blobs(rng, (150, 210), density, rng.uniform(0.7, 3.0))
+            cc = _components(m, connectivity=connectivity, pixels=False, boxes=True)
+            paths.add(cc.box is not None)
+            assert (cc.box is not None) == (m.mean() > _STATS_SHARE)
+            lab, n = ndi.label(m, structure=struct)
+            assert cc.n == n
+            pairs = np.unique(np.stack([lab[m], cc.lab[m]]), axis=1)  # the same partition
+            assert pairs.shape[1] == n == np.unique(pairs[1]).size
+            got = _boxes(cc, np.arange(1, n + 1))
+            for a, b in pairs.T:
+                assert got[int(b)] == ndi.find_objects((lab == a).astype(np.int32))[0]
+                assert cc.area[b] == np.count_nonzero(lab == a)
+            assert cc.area[0] == 0 and (cc.lab[~m] == 0).all()
+    assert paths == {True, False}
+
+
+def test_fill_holes_matches_background_labelling():
+    """Holes filled by flooding the outside away against the labelling of the whole
+    background (4-connected, clear of the border, at most ``max_area`` pixels)."""
+    from reblur.decide.regions import _fill_holes
+
+    rng = np.random.default_rng(36)
+    filled = kept = 0
+    for _ in range(40):
+        shape = tuple(int(v) for v in rng.integers(20, 160, 2))
+        m = _blobs(rng, shape, rng.uniform(0.3, 0.8), rng.uniform(0.7, 4.0))
+        max_area = int(rng.integers(1, 60))
+        lab, n = ndi.label(~m, structure=_FOUR)
+        area = np.bincount(lab.ravel(), minlength=n + 1)
+        border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
+        fill = area <= max_area
+        fill[0] = False
+        fill[border] = False
+        want = m | fill[lab]
+        hole = np.ones(n + 1, bool)
+        hole[0] = False
+        hole[border] = False
+        filled += int(np.count_nonzero(fill))
+        kept += int(np.count_nonzero(hole & ~fill))
+        got = m.copy()
+        _fill_holes(got, max_area)
+        np.testing.assert_array_equal(got, want)
+    assert filled > 20 and kept > 5  # holes filled and holes too large to fill
 
 
 def test_inradius_matches_scipy():

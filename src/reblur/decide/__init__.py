@@ -34,8 +34,8 @@ from .regions import _boxes as _boxes
 from .regions import _clear_of as _clear_of
 from .regions import _components as _components
 from .regions import _decide_core as _decide_core
-from .regions import _label_max as _label_max
 from .regions import _label_median as _label_median
+from .regions import _label_reaches as _label_reaches
 from .regions import _region_records as _region_records
 from .statistic import change_statistic, fit_model_error
 from .statistic import gaussian_zero as gaussian_zero

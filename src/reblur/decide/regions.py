@@ -83,6 +83,26 @@ def _hull_pixels(sub: np.ndarray) -> int:
     return int(np.maximum(hi - lo + 1, 0)[(lo <= hi)].sum())
 
 
+def _octagon_pixels(shape: tuple[int, int], rows: np.ndarray, first: np.ndarray,
+                    last: np.ndarray) -> int:
+    """Pixels of a box of ``shape`` whose row ``r`` and column ``c`` keep ``r + c`` and
+    ``c - r`` within their ranges over a region (``rows``: its non-empty rows, ``first``,
+    ``last``: its first and last column on each): an upper bound of
+    :func:`_hull_pixels`.
+
+    The hull's vertices are the region's edge midpoints ``(r +- 1/2, c)``,
+    ``(r, c +- 1/2)``, whose ``r + c`` lies within half a unit of the region's range, and
+    so does every point of the hull; a pixel centre, with integer ``r + c``, lies inside
+    only within the range itself.  The same holds for ``c - r``, the rows and the columns.
+    """
+    s_lo, s_hi = int((rows + first).min()), int((rows + last).max())
+    d_lo, d_hi = int((first - rows).min()), int((last - rows).max())
+    r = np.arange(shape[0])
+    lo = np.maximum(np.maximum(s_lo - r, r + d_lo), 0)
+    hi = np.minimum(np.minimum(s_hi - r, r + d_hi), shape[1] - 1)
+    return int(np.maximum(hi - lo + 1, 0).sum())
+
+
 def _shape_ok(sub: np.ndarray, area: int, p: DecisionParams) -> bool:
     # the hull lies inside the bounding box: area / box >= min_solidity settles the
     # solidity test without the hull
@@ -90,13 +110,17 @@ def _shape_ok(sub: np.ndarray, area: int, p: DecisionParams) -> bool:
         # the hull holds every pixel between the first and the last of a row (their centres
         # lie on a segment between two of the region's): a region whose rows' spans
         # already hold too many pixels fails without the hull
-        first = np.argmax(sub, axis=1)
-        last = sub.shape[1] - np.argmax(sub[:, ::-1], axis=1)
-        if area < p.min_solidity * int(np.sum((last - first)[sub.any(axis=1)])):
+        rows = np.flatnonzero(sub.any(axis=1))
+        first = np.argmax(sub[rows], axis=1)
+        last = sub.shape[1] - 1 - np.argmax(sub[rows, ::-1], axis=1)
+        if area < p.min_solidity * int(np.sum(last - first + 1)):
             return False
-        hull = _hull_pixels(sub)
-        if hull and area / hull < p.min_solidity:
-            return False
+        # ... and it lies inside the region's octagon: a region filling enough of that
+        # passes without the hull (43 % of the hulls of 25 MP years-levir's regions)
+        if area < p.min_solidity * _octagon_pixels(sub.shape, rows, first, last):
+            hull = _hull_pixels(sub)
+            if hull and area / hull < p.min_solidity:
+                return False
     r_in = _inradius(sub)
     return area / (4.0 * r_in * r_in) <= p.max_aspect
 
@@ -135,7 +159,11 @@ class _Components(NamedTuple):
     area : (n + 1,) int ndarray
         Pixel count per label (``area[0]``: 0).
     ys, xs, lv : (k,) int ndarray
-        Row, column and label of every foreground pixel, in raster order.
+        Row, column and label of every foreground pixel, in raster order (empty unless
+        listed: ``pixels`` of :func:`_components`).
+    box : (n + 1, 4) int ndarray or None
+        Tight bounding box ``(y0, x0, y1, x1)`` per label (row 0: the background's), when
+        asked for (``boxes`` of :func:`_components`); :func:`_boxes` uses it.
     """
 
     lab: np.ndarray
@@ -144,16 +172,22 @@ class _Components(NamedTuple):
     ys: np.ndarray
     xs: np.ndarray
     lv: np.ndarray
+    box: np.ndarray | None = None
 
 
-def _components(mask: np.ndarray, connectivity: int = 8, pixels: bool = True) -> _Components:
+#: Share of foreground above which :func:`_components` takes areas and boxes from OpenCV's
+#: statistics pass: on the candidate masks of the 25 MP years-levir and 45 % pairs of
+#: ``benchmarks.cost`` (levels of ``_decide_core``) it cost 1.7-1.9x the pixel list and
+#: ``find_objects`` below 10 % foreground, the same at 20-30 %, 0.4-0.7x above.
+_STATS_SHARE = 0.25
+
+
+def _components(mask: np.ndarray, connectivity: int = 8, pixels: bool = True,
+                boxes: bool = False) -> _Components:
     """Connected components of a 2-D mask, labelled by OpenCV (which releases the GIL).
 
     The same partition as ``scipy.ndimage.label`` with the full 3 x 3 (``connectivity=8``)
     or the cross (``4``) structure; the numbering may differ, so callers never rely on it.
-    Areas come from the foreground pixels only
-    (``cv2.findNonZero``; the components are a small part of a tile): OpenCV's own
-    statistics pass is several times slower than the labelling.
 
     Parameters
     ----------
@@ -161,9 +195,16 @@ def _components(mask: np.ndarray, connectivity: int = 8, pixels: bool = True) ->
         Foreground: non-zero pixels.
     connectivity : {8, 4}
     pixels : bool
-        Also list the foreground pixels (``ys``, ``xs``, ``lv``); False for a dense
-        foreground (e.g. the background of a mask), whose areas come from a count over the
-        whole label image instead.
+        Also list the foreground pixels (``ys``, ``xs``, ``lv``), and count the areas from
+        them (``cv2.findNonZero``: cheap when the components are a small part of the
+        array); False for a dense foreground (e.g. the background of a mask), whose areas
+        come from a count over the whole label image instead.
+    boxes : bool
+        Also the bounding boxes (``box``, for :func:`_boxes`).  With ``pixels`` False and
+        more than :data:`_STATS_SHARE` of the mask foreground, areas and boxes come from
+        OpenCV's statistics pass (``connectedComponentsWithStats``, one thread), which
+        then costs less than listing the pixels and scanning the label image for the
+        boxes (``ndimage.find_objects``); on sparser masks it costs more.
 
     Returns
     -------
@@ -172,36 +213,56 @@ def _components(mask: np.ndarray, connectivity: int = 8, pixels: bool = True) ->
     m = np.ascontiguousarray(mask)
     if m.dtype == bool:
         m = m.view(np.uint8)
+    e = np.zeros(0, np.int32)
+    if boxes and not pixels and cv2.countNonZero(m) > _STATS_SHARE * m.size:
+        n, lab, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=connectivity,
+                                                            ltype=cv2.CV_32S)
+        area = stats[:, cv2.CC_STAT_AREA].astype(np.intp)
+        area[0] = 0
+        y0, x0 = stats[:, cv2.CC_STAT_TOP], stats[:, cv2.CC_STAT_LEFT]
+        box = np.stack([y0, x0, y0 + stats[:, cv2.CC_STAT_HEIGHT],
+                        x0 + stats[:, cv2.CC_STAT_WIDTH]], axis=1)
+        return _Components(lab, int(n) - 1, area, e, e, e, box)
+    if boxes:  # sparse, or the pixels wanted too
+        pixels = True
     n, lab = cv2.connectedComponents(m, connectivity=connectivity, ltype=cv2.CV_32S)
     n = int(n) - 1
     if not pixels:
-        e = np.zeros(0, np.int32)
         area = np.bincount(lab.ravel(), minlength=n + 1)
         area[0] = 0
         return _Components(lab, n, area, e, e, e)
-    pts = cv2.findNonZero(m) if n else None
+    return _with_pixels(_Components(lab, n, np.zeros(n + 1, np.intp), e, e, e), m)
+
+
+def _with_pixels(cc: _Components, m: np.ndarray) -> _Components:
+    """``cc`` with the foreground pixels of ``m`` listed and the areas counted from them."""
+    pts = cv2.findNonZero(m) if cc.n else None
     if pts is None:
-        e = np.zeros(0, np.int32)
-        return _Components(lab, n, np.zeros(n + 1, np.intp), e, e, e)
+        return cc
     pts = pts.reshape(-1, 2)
     xs, ys = pts[:, 0], pts[:, 1]
     # a 1-D take at the flat positions: a third faster than the 2-D fancy index
-    lv = np.take(lab, ys.astype(np.intp) * lab.shape[1] + xs)
-    area = np.bincount(lv, minlength=n + 1)
+    lv = np.take(cc.lab, ys.astype(np.intp) * cc.lab.shape[1] + xs)
+    area = np.bincount(lv, minlength=cc.n + 1)
     area[0] = 0
-    return _Components(lab, n, area, ys, xs, lv)
+    return cc._replace(area=area, ys=ys, xs=xs, lv=lv)
 
 
 def _boxes(cc: _Components, labels) -> dict[int, tuple[slice, slice]]:
     """Tight bounding boxes (as slices) of some labels of ``cc``.
 
-    One pass of ``scipy.ndimage.find_objects`` over the label image, whatever the number
-    and size of the components (an unbuffered ``np.minimum.at`` over the foreground pixels
-    cost ~40 ms per megapixel of components, four times per call).
+    From ``cc.box`` when the components carry their boxes; else one pass of
+    ``scipy.ndimage.find_objects`` over the label image, whatever the number and size of
+    the components (an unbuffered ``np.minimum.at`` over the foreground pixels cost ~40 ms
+    per megapixel of components, four times per call).
     """
     labels = np.asarray(labels, np.intp).reshape(-1)
     if labels.size == 0:
         return {}
+    if cc.box is not None:
+        b = cc.box[labels].tolist()
+        return {int(k): (slice(y0, y1), slice(x0, x1))
+                for k, (y0, x0, y1, x1) in zip(labels.tolist(), b, strict=True)}
     found = ndi.find_objects(cc.lab, max_label=int(labels.max()))
     return {int(k): found[k - 1] for k in labels}
 
@@ -227,15 +288,18 @@ def _labelled(
     return lab[sel], S[sel].astype(np.float64)
 
 
-def _label_max(
-    S: np.ndarray, lab: np.ndarray, n: int, comps: _Components | None = None
-) -> np.ndarray:
-    """``ndimage.maximum(S, lab, 1..n)`` over the labelled pixels only (``comps``: their
-    positions and labels, from :func:`_components` of ``lab``)."""
-    lv, v = _labelled(S, lab, comps)
-    out = np.full(n + 1, -np.inf)
-    np.maximum.at(out, lv, v)
-    return out[1:]
+def _label_reaches(S: np.ndarray, lab: np.ndarray, n: int, level: float) -> np.ndarray:
+    """``ndimage.maximum(S, lab, 1..n) >= level`` for labels whose pixels have no NaN in
+    ``S`` (the candidates of a threshold on ``S``): which labels hold a pixel at ``level``
+    or above.
+
+    One comparison over the array and a gather of the labels where it holds: no reduction
+    over every labelled pixel (``np.maximum.at`` over the candidates of a densely changed
+    tile took a quarter of its region decision).
+    """
+    hit = np.zeros(n + 1, bool)
+    hit[lab[S >= level]] = True
+    return hit[1:]
 
 
 def _sort_keys(v: np.ndarray) -> np.ndarray:
@@ -322,16 +386,15 @@ def _decide_core(
             m = cv2.morphologyEx(m.view(np.uint8), cv2.MORPH_OPEN, kernel)
         if candidates is None:  # level 0: the window is the whole array
             candidates = m.view(bool)
-        cc = _components(m)
+        cc = _components(m, pixels=False, boxes=True)
         if li == 0 and stop is not None and stop(cc):
             return None, candidates, counts
         lab, n = cc.lab, cc.n
         if n == 0:
             break
         area = cc.area[1:]
-        smax = _label_max(Sw, lab, n, cc)
         small = area < p.min_area
-        weak = ~small & (smax < strong)
+        weak = ~small & ~_label_reaches(Sw, lab, n, strong)
         counts["small"] += int(np.count_nonzero(small))
         counts["weak"] += int(np.count_nonzero(weak))
         last = li == len(levels) - 1
@@ -378,34 +441,52 @@ def _decide_core(
         acc = accepted[win]
         Sw = S[win]
         cc = _components(acc)
-        lab, n = cc.lab, cc.n
-        level = _label_median(Sw, lab, n, cc)
-        cut = np.concatenate([[np.inf], np.maximum(p.boundary_fraction * level, threshold)])
-        acc &= Sw >= cut[lab]
+        level = _label_median(Sw, cc.lab, cc.n, cc)
+        cut = np.maximum(p.boundary_fraction * level, threshold)
+        # acc &= Sw >= cut[label], on the accepted pixels only
+        drop = ~(Sw[cc.ys, cc.xs] >= cut[cc.lv - 1])
+        acc[cc.ys[drop], cc.xs[drop]] = False
+        # then pieces below min_area go
         cc = _components(acc)
-        big = cc.area >= p.min_area
-        big[0] = False
-        acc[...] = big[cc.lab]
-        if not big.any():
+        if not cc.n:
             return accepted, candidates, counts
-        win = _union_box([(b[0].start + win[0].start, b[1].start + win[1].start,
-                           b[0].stop + win[0].start, b[1].stop + win[1].start)
-                          for b in _boxes(cc, np.flatnonzero(big)).values()], 0, shape)
+        small = (cc.area < p.min_area)[cc.lv]
+        acc[cc.ys[small], cc.xs[small]] = False
+        if small.all():
+            return accepted, candidates, counts
+        # the window of what is left: the box of its pixels (listed in raster order)
+        ys, xs = cc.ys[~small], cc.xs[~small]
+        oy, ox = win[0].start, win[1].start
+        win = (slice(oy + int(ys[0]), oy + int(ys[-1]) + 1),
+               slice(ox + int(xs.min()), ox + int(xs.max()) + 1))
     if p.close_radius > 0:
         _close_regions(accepted, win, p.close_radius)
     if p.max_hole_area > 0:
         # a hole (a background component clear of the array's border) lies inside the
         # box of the accepted pixels; one pixel of margin keeps the outside connected
         win = _union_box([(win[0].start, win[1].start, win[0].stop, win[1].stop)], 1, shape)
-        acc = accepted[win]
-        cc = _components(~acc, connectivity=4, pixels=False)
-        bg = cc.lab
-        fill = cc.area <= p.max_hole_area
-        fill[0] = False
-        fill[np.concatenate([bg[0], bg[-1], bg[:, 0], bg[:, -1]])] = False
-        acc |= fill[bg]
+        _fill_holes(accepted[win], p.max_hole_area)
     accepted[win] &= known[win]
     return accepted, candidates, counts
+
+
+def _fill_holes(mask: np.ndarray, max_area: int) -> None:
+    """Fill, in place, the holes of ``mask`` of at most ``max_area`` pixels: the
+    4-connected components of its background that do not touch the array's border.
+
+    The outside (the background connected to the border) is flood-filled away on a copy
+    bordered by one background pixel, so that only the holes remain; they are labelled and
+    measured alone.  Labelling the whole background and counting its labels gives the same
+    holes at 4-6x the cost (the background is most of the window of a changed tile).
+    """
+    inv = np.pad((~mask).view(np.uint8), 1, constant_values=1)
+    cv2.floodFill(inv, None, (0, 0), 0, flags=4)
+    holes = inv[1:-1, 1:-1]
+    if not cv2.countNonZero(holes):
+        return
+    cc = _components(holes, connectivity=4)
+    fill = (cc.area <= max_area)[cc.lv]
+    mask[cc.ys[fill], cc.xs[fill]] = True
 
 
 def persistence_test(
@@ -452,7 +533,7 @@ def persistence_test(
         cc = _components(part)
         keep = np.zeros(cc.n + 1, bool)
         if cc.n:
-            keep[1:] = (cc.area[1:] >= p.min_area) & (_label_max(L, cc.lab, cc.n, cc) >= strong)
+            keep[1:] = (cc.area[1:] >= p.min_area) & _label_reaches(L, cc.lab, cc.n, strong)
         part = keep[cc.lab]
         return part if part.any() else None
 
@@ -468,7 +549,7 @@ def _close_regions(mask: np.ndarray, win: tuple[slice, slice], radius: int) -> N
     not act as foreground), and regions never merge, however close.
     """
     sub = mask[win]
-    cc = _components(sub)
+    cc = _components(sub, pixels=False, boxes=True)
     if cc.n == 0:
         return
     kernel = _disc(radius)
@@ -604,7 +685,7 @@ def _edge_regions(
     if not band:
         return [], 0
     if cc is None:
-        cc = _components(mask)
+        cc = _components(mask, pixels=False, boxes=True)
     lab, n = cc.lab, cc.n
     if n == 0:
         return [], 0
