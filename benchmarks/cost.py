@@ -298,6 +298,17 @@ def _tile_pass(row: dict) -> float:
     return tiles if tiles else float(row["stages"].get("reblur_decide", np.nan))
 
 
+def _decided(ok: list[tuple[int, dict]]) -> tuple[np.ndarray, np.ndarray] | None:
+    """Pixels the tile pass decided per row of ``ok`` (``(mp, row)`` pairs) and their
+    ratio to the image's pixels (the halos' and re-runs' overhead), if every row has them."""
+    px = [(r.get("tile_work") or {}).get("pixels") for _, r in ok]
+    if not all(px):
+        return None
+    px = np.array(px, float)
+    image = np.array([(1024 * SIZES[m]) ** 2 if m in SIZES else np.nan for m, _ in ok])
+    return px, px / image
+
+
 def targets(rows: list[dict]) -> str:
     """The issue's targets, met or not, on ``rows`` (and the host's load while they ran)."""
     loads = [r["load"] for r in rows if "load" in r]
@@ -336,6 +347,14 @@ def targets(rows: list[dict]) -> str:
         out.append(f"- per-pixel stage ({what}) log-log slope 0.9-1.1: {s:.2f} "
                    f"over {', '.join(f'{m:g}' for m in mp)} MP: "
                    f"{'met' if 0.9 <= s <= 1.1 else 'NOT met'}")
+        decided = _decided(ok)
+        if decided is not None:
+            px, halo = decided
+            out.append(f"  - against the pixels the tile pass decides (halos and re-runs "
+                       f"included; `decision.backend.work.pixels`): slope "
+                       f"{_slope(px, per):.2f}; decided / image pixels "
+                       f"{' / '.join(f'{h:.2f}' for h in halo)}: a single tile has no halo, "
+                       f"so the slope against MP holds that step")
     return "\n".join(out)
 
 

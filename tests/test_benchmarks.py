@@ -117,3 +117,24 @@ def test_cost_lattice_covers_the_asked_share_and_blocks_read_the_other_scene():
     top, bottom = mixed[0:500, 0:1200], mixed[500:1000, 0:1200]
     assert (top.sum() + bottom.sum()) / (1000 * 1200) == pytest.approx(0.45, rel=0.02)
     assert mixed[0:10, 0:10].sum() == 0 and mixed[495:505, 595:605].sum() == 100
+
+
+def test_cost_targets_give_the_slope_against_the_decided_pixels():
+    """Tile-pass seconds proportional to the pixels decided -- one tile without halo at
+    1 MP, 1.3x the image with halos above: the slope against those pixels is 1, the one
+    against MP holds the halos' step (computed here from the rows' own numbers)."""
+    from benchmarks.cost import targets
+
+    rows, mps, secs = [], [1, 25, 100], []
+    for mp, factor, halo in ((1, 1, 1.0), (25, 5, 1.3), (100, 10, 1.3)):
+        px = int((1024 * factor) ** 2 * halo)
+        t = px * 4e-8
+        secs.append(t)
+        rows.append(dict(mp=mp, content="unchanged", seconds=3.0 + t,
+                         stages={"report": 0.5, "reblur_decide": t + 0.1},
+                         decide_seconds={"tiles": t}, tile_work={"pixels": px}))
+    text = targets(rows)
+    assert "slope 1.00; decided / image pixels 1.00 / 1.30 / 1.30" in text
+    want = np.polyfit(np.log(mps), np.log(secs), 1)[0]
+    assert f"log-log slope 0.9-1.1: {want:.2f} over 1, 25, 100 MP" in text
+    assert 1.05 < want < 1.1
