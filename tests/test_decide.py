@@ -328,6 +328,59 @@ def test_photometry_robust_global_fit():
     assert d["field_block"] is None and len(d["gain"]) == 3
 
 
+@pytest.mark.parametrize("illumination", ["global", "field"])
+def test_photometry_bands_fitted_side_by_side_equal_each_band_alone(illumination):
+    """The bands of a colour pair are fitted on threads side by side: each band's gain,
+    offset, scale, robust fit and illumination field equal those of fitting that band
+    alone, bit for bit (Huber's fit in two bands, the high-breakdown one in the third,
+    where half of the pixels changed)."""
+    rng = np.random.default_rng(6)
+    reb = _texture((200, 220), 3, rng)
+    yy, xx = np.mgrid[:200, :220] / 200.0
+    ramp = (1 + 0.2 * xx * yy)[:, :, None]
+    obs = reb * GAIN * ramp + OFFSET + 0.01 * rng.standard_normal(reb.shape)
+    obs = obs.astype(np.float32)
+    obs[:, :30, 0] += 0.3
+    obs[:, :110, 2] = 0.9 - obs[:, :110, 2]  # half the third band: another scene
+    both = fit_photometry(obs, reb, illumination=illumination, edge_error=False)
+    methods = set()
+    for c in range(3):
+        one = fit_photometry(obs[:, :, c], reb[:, :, c], illumination=illumination,
+                             edge_error=False)
+        assert (both.gain[c], both.offset[c], both.sigma[c]) == (
+            one.gain[0], one.offset[0], one.sigma[0])
+        assert both.info["huber"][c] == one.info["huber"][0]
+        if illumination == "field":
+            ill = both.info["illumination"]
+            assert ill["sigma_field"][c] == one.info["illumination"]["sigma_field"][0]
+            assert ill["sigma_global"][c] == one.info["illumination"]["sigma_global"][0]
+        methods.add(one.info["method"].split()[0])
+    assert methods == {"Huber", "high-breakdown"}
+
+
+def test_prefit_bands_side_by_side_equal_each_band_alone():
+    """The low-resolution photometric prefit of a colour pair (its bands on threads): each
+    band's gain and offset equal prefitting that band alone, bit for bit, and the agreement
+    map is where every band alone agrees (a change in one band only shows in it)."""
+    from reblur.pipeline import photometric_prefit
+
+    rng = np.random.default_rng(7)
+    ref = (255 * np.clip(_texture((300, 340), 3, rng), 0, 1)).astype(np.uint8)
+    obs = np.clip(ref * GAIN + 255 * OFFSET + rng.normal(0, 2, ref.shape), 0, 255)
+    obs = obs.astype(np.uint8)
+    obs[60:140, 80:200, 1] = 250  # a change in the second band only
+    H0 = np.eye(3)
+    both = photometric_prefit(ref, obs, H0, 255.0, 255.0)
+    alone = [photometric_prefit(ref[:, :, c], obs[:, :, c], H0, 255.0, 255.0)
+             for c in range(3)]
+    for c, one in enumerate(alone):
+        assert (both.gain[c], both.offset[c]) == (one.gain[0], one.offset[0])
+    agree = np.logical_and.reduce([one.agreement == 1 for one in alone])
+    np.testing.assert_array_equal(both.agreement == 1, agree)
+    np.testing.assert_array_equal(np.isnan(both.agreement), np.isnan(alone[0].agreement))
+    assert (alone[0].agreement == 1).sum() > (both.agreement == 1).sum() > 0
+
+
 def test_photometry_from_tiles_and_downsampled(colour):
     obs, reb, _, unknown = colour
     whole = fit_photometry(obs, reb, ~unknown, field_block=96)

@@ -31,7 +31,7 @@ from .decide import (
     tile_boxes,
 )
 from .decide.calibrate import calibrate_tolerance, marked_pixels, unchanged_pixels
-from .decide.photometry import FIT_BLAS_THREADS, with_model_error
+from .decide.photometry import FIT_BLAS_THREADS, band_map, with_model_error
 from .estimate import estimate_motion, intensity_scale
 from .grid import GridParams, PoseGrid
 from .io import chunk_cached
@@ -202,27 +202,34 @@ def photometric_prefit(
     offset = np.zeros(C)
     if cover.sum() < 100:
         return Prefit(gain, offset)
-    agree = cover.copy()
-    infos = []
     sigma = max(2.0, float(sigma_px) / ko)
-    for c in range(C):
+
+    def fit_band(c: int) -> tuple[float, float, dict, np.ndarray | None]:
         r = cv2.warpPerspective(np.ascontiguousarray(ref[:, :, c]), Hs, (w, h),
                                 flags=cv2.INTER_LINEAR)
         r = cv2.GaussianBlur(r, (0, 0), sigma)
         o = cv2.GaussianBlur(np.ascontiguousarray(obs[:, :, c]), (0, 0), sigma)
         g, b, fit = robust_line(r[cover].astype(float), o[cover].astype(float))
-        infos.append(fit)
-        if g > 0.05:  # a sane gain; otherwise keep the identity
-            gain[c], offset[c] = g, b
+        if not g > 0.05:  # not a sane gain: keep the identity
+            g, b = 1.0, 0.0
         scale = fit.get("scale")
-        if scale is not None and scale > 0:
-            res = o.astype(np.float64) - (gain[c] * r + offset[c])
-            centre, scale, _ = inlier_scale(res[cover], scale)
-            # a disagreement is also a visible one: at least 5 % of the scene's range (on
-            # noise-free data the inliers' scale is the blur's residual, near zero)
-            lo, hi = np.percentile(r[cover], [2, 98])
-            band = max(3.5 * scale, _MIN_DISAGREEMENT * float(hi - lo) * abs(gain[c]))
-            agree &= np.abs(res - centre) < band
+        if scale is None or not scale > 0:
+            return g, b, fit, None
+        res = o.astype(np.float64) - (np.float64(g) * r + np.float64(b))
+        centre, scale, _ = inlier_scale(res[cover], scale)
+        # a disagreement is also a visible one: at least 5 % of the scene's range (on
+        # noise-free data the inliers' scale is the blur's residual, near zero)
+        lo, hi = np.percentile(r[cover], [2, 98])
+        band = max(3.5 * scale, _MIN_DISAGREEMENT * float(hi - lo) * abs(g))
+        return g, b, fit, np.abs(res - centre) < band
+
+    agree = cover.copy()
+    infos = []
+    for c, (g, b, fit, ok) in enumerate(band_map(fit_band, C)):
+        gain[c], offset[c] = g, b
+        infos.append(fit)
+        if ok is not None:
+            agree &= ok
     agreement = np.where(cover, agree.astype(np.float32), np.float32(np.nan))
     return Prefit(gain, offset, agreement, int(ko), infos)
 
