@@ -27,6 +27,11 @@ per-pixel stage's log-log slope 0.9-1.1: the decision's tile pass
 (``decision.seconds.tiles`` of the report; ``reblur_decide`` also holds the decision's fit
 on a sample of windows, work that does not grow with the image).
 
+``--real`` adds the real pairs of at most 1 MP of the shared data, in colour at their own
+size (:data:`REAL_PAIRS`: LEVIR and WHU years apart, GoPro's real camera shake): the
+test bed's gray pairs are not all a user's 1 MP pairs cost (``--sizes "" --real``: those
+alone).
+
 ``--src OLD/src --label COMMIT`` runs another checkout (the "before" figures, saved in
 ``docs/cost_before.json``); ``--sizes 1,25`` when time is short.
 """
@@ -168,13 +173,56 @@ def file_create_ms(root: Path | None = None, n: int = 300) -> float:
     return 1000.0 * float(np.median(times))
 
 
+#: Real pairs of at most 1 MP from the shared data (``--real``), as a user runs them: the
+#: reference first, the later (or blurred) image second.  LEVIR and WHU: 1024 px RGB
+#: aerial pairs years apart (WHU's are refused: too few of their features agree); GoPro:
+#: the sharp middle frame against the mean of eight hand-held 240 fps frames, 1280 x 720
+#: RGB, real camera shake.
+REAL_PAIRS = {
+    **{f"LEVIR {n}": (f"levir_whu_1024/samples_LEVIR/A/{n}.png",
+                      f"levir_whu_1024/samples_LEVIR/B/{n}.png")
+       for n in ("test_7", "test_12", "test_102")},
+    **{f"WHU {n}": (f"levir_whu_1024/samples_WHU-CD/prev/{n}.png",
+                    f"levir_whu_1024/samples_WHU-CD/curr/{n}.png")
+       for n in ("000121", "000213", "000241")},
+    **{f"GoPro {n[:8]}": (f"gopro/pairs/{n}_gt.png", f"gopro/pairs/{n}.png")
+       for n in ("GOPR0374_11_00_st_frame-614_n_avg-8", "GOPR0384_11_00_st_frame-203_n_avg-8",
+                 "GOPR0410_11_00_st_frame-326_n_avg-8")},
+}
+
+
+def measure_real(src: Path | None = None, out_root: Path | None = None) -> list[dict]:
+    """:data:`REAL_PAIRS` through ``reblur detect`` (rows of size 1 MP, content ``real:
+    NAME``); a pair whose files are missing is skipped with a line on stderr."""
+    from benchmarks.common import DATA
+
+    _compile_package(src)
+    rows = []
+    for name, (ref, obs) in REAL_PAIRS.items():
+        ref_p, obs_p = Path(DATA) / ref, Path(DATA) / obs
+        if not (ref_p.exists() and obs_p.exists()):
+            print(f"skipped {name}: {ref_p} or {obs_p} missing", file=sys.stderr)
+            continue
+        row = {"mp": 1, "content": f"real: {name}", "file_create_ms": file_create_ms(out_root),
+               **run_pair(ref_p, obs_p, src, out_root)}
+        print(json.dumps(row, default=float), flush=True)
+        rows.append(row)
+    return rows
+
+
 def run_case(case: Path, src: Path | None = None, out_root: Path | None = None) -> dict:
-    """``reblur detect`` on a case in a fresh process, its outputs in a new folder under
+    """:func:`run_pair` on a generated case's ``ref.tif`` and ``obs.tif``."""
+    return run_pair(case / "ref.tif", case / "obs.tif", src, out_root)
+
+
+def run_pair(ref: Path, obs: Path, src: Path | None = None,
+             out_root: Path | None = None) -> dict:
+    """``reblur detect REF OBS`` in a fresh process, its outputs in a new folder under
     ``out_root`` (default: the temporary folder); stage times and peak RSS."""
     with tempfile.TemporaryDirectory(dir=out_root) as tmp:
         out = Path(tmp) / "out"
-        cmd = [sys.executable, "-m", "reblur", "detect", str(case / "ref.tif"),
-               str(case / "obs.tif"), "--out", str(out), "-q"]
+        cmd = [sys.executable, "-m", "reblur", "detect", str(ref), str(obs), "--out",
+               str(out), "-q"]
         env = dict(os.environ)
         if src is not None:
             env["PYTHONPATH"] = str(src)
@@ -368,7 +416,9 @@ def section(rows: list[dict]) -> str:
     return ("## Cost over content (`python -m benchmarks.cost`)\n\n"
             "`reblur detect` in a fresh process per case, as a user runs it, on test-bed pairs "
             "(LEVIR test_7 / WHU 000213 scenes, gray, upsampled; 64-sub-pose shake, 20 px "
-            "viewpoint, 8-bit). Stage times (s) from `report.json` (`estimate` includes the "
+            "viewpoint, 8-bit); rows `real: ...` are the shared data's real pairs of at most "
+            "1 MP, colour, at their own size (`--real`). Stage times (s) from `report.json` "
+            "(`estimate` includes the "
             "window selection, `reblur_decide` its tile pass in brackets, `report` writes "
             "the outputs and the viewer); peak RSS of the process. The host "
             "is shared with other jobs: timings are noisy. Rows in `docs/cost_runs.json`.\n\n"
@@ -377,12 +427,15 @@ def section(rows: list[dict]) -> str:
 
 def main(sizes: list[int] | None = None, contents: list[str] | None = None,
          cache: Path | None = None, src: Path | None = None, label: str | None = None,
-         out_root: Path | None = None) -> str:
-    """Run the cases; return the markdown section (with ``src``: save the "before" rows)."""
+         out_root: Path | None = None, real: bool = False) -> str:
+    """Run the cases (and with ``real`` the real pairs); return the markdown section (with
+    ``src``: save the "before" rows)."""
     sizes = [1, 25] if sizes is None else sizes
     contents = CONTENTS if contents is None else contents
     cache = cache or CACHE
-    rows = measure(sizes, contents, cache, src, out_root)
+    rows = measure(sizes, contents, cache, src, out_root) if sizes and contents else []
+    if real:
+        rows += measure_real(src, out_root)
     if src is not None:
         old = json.loads(BEFORE.read_text())["rows"] if BEFORE.exists() else []
         rows = _merged(old, rows)
@@ -399,7 +452,7 @@ def _merged(old: list[dict], new: list[dict]) -> list[dict]:
     by size then content (a run at some sizes keeps the saved rows of the others)."""
     keys = {(r["mp"], r["content"]) for r in new}
     rows = [r for r in old if (r["mp"], r["content"]) not in keys] + new
-    order = {c: i for i, c in enumerate(CONTENTS)}
+    order = {c: i for i, c in enumerate(CONTENTS + [f"real: {n}" for n in REAL_PAIRS])}
     return sorted(rows, key=lambda r: (r["mp"], order.get(r["content"], 99)))
 
 
@@ -415,6 +468,8 @@ if __name__ == "__main__":
     ap.add_argument("--out-root", type=Path, default=None,
                     help="folder under which each run writes its outputs (default: the "
                     "temporary folder)")
+    ap.add_argument("--real", action="store_true",
+                    help="also the real pairs of at most 1 MP of the shared data (REAL_PAIRS)")
     ap.add_argument("--saved", action="store_true",
                     help="only rewrite the section from docs/cost_runs.json")
     a = ap.parse_args()
@@ -425,7 +480,7 @@ if __name__ == "__main__":
     else:
         sizes = [1] if a.quick else [int(s) for s in a.sizes.split(",") if s]
         body = main(sizes, [c for c in a.contents.split(",") if c], a.cache, a.src, a.label,
-                    a.out_root)
+                    a.out_root, a.real)
     if a.src is None:
         write_section("cost", body)
     print(body)
