@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -26,9 +25,8 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from threadpoolctl import threadpool_limits
 
-from .._memory import available_cpus
 from ..robust import huber_line, inlier_scale, mad, robust_line
-from ._common import _box, _channels, _float, _robust_scale
+from ._common import FIT_BLAS_THREADS, _box, _channels, _float, _robust_scale, band_map
 from .params import DecisionParams
 from .statistic import fit_model_error
 from .tolerance import ModelTolerance
@@ -443,31 +441,6 @@ def _illumination(ys, xs, obs, reb, shape, gain, offset, sigma, fits, mode):
         return None, None, None, record
     record["gain_range"] = [float(fg.min()), float(fg.max())]
     return block, fg, fo, record
-
-
-#: BLAS threads of the photometric fits: their products are vectors of at most a few
-#: hundred thousand samples, where more threads mostly wait (on 2 busy cores a Huber
-#: step took 10x the single-threaded time).
-FIT_BLAS_THREADS = 1
-
-
-def band_map(fit, n_bands: int) -> list:
-    """``[fit(c) for c in range(n_bands)]``, the bands side by side on the CPUs available.
-
-    Each band's robust fit is computed alone, on its own samples, exactly as in a loop;
-    most of its time is numpy's selections and products, which release the GIL: three
-    bands of 260 000 samples (:func:`reblur.robust.robust_line`) took 0.27 s on two
-    threads against 0.40 s in a loop.  BLAS stays on :data:`FIT_BLAS_THREADS` (the
-    callers' limit, which the fits' own limit of one thread leaves as it is), and OpenCV
-    keeps its thread count (its Gaussian filter splits an image into as many stripes as it
-    has threads, and the stripes' sums differ in the last bits: a band's prefit gain moved
-    by 1e-11 with OpenCV on one thread), so the values are the loop's.
-    """
-    n = min(n_bands, available_cpus())
-    if n <= 1:
-        return [fit(c) for c in range(n_bands)]
-    with ThreadPoolExecutor(n) as ex:
-        return list(ex.map(fit, range(n_bands)))
 
 
 @threadpool_limits.wrap(limits=FIT_BLAS_THREADS, user_api="blas")

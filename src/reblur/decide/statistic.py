@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 import scipy.ndimage as ndi
 
-from ._common import _channels, _float
+from ._common import _channels, _float, band_map
 from .tolerance import ModelTolerance, tolerant_reference
 
 
@@ -264,8 +264,6 @@ def fit_model_error(observed, matched, known, sigma, *, bins: int = 8,
     -------
     edge_k, curv_k : (C,) ndarray
     """
-    from scipy.optimize import nnls
-
     if isinstance(observed, np.ndarray):
         observed, matched, known = [observed], [matched], [known]
     rng = np.random.default_rng(rng)
@@ -274,62 +272,84 @@ def fit_model_error(observed, matched, known, sigma, *, bins: int = 8,
     # per band: observed, matched, |grad m|^2 and lap m at the usable pixels, in their own
     # (single) precision; the float64 products are formed on the sample only (the same
     # values, element by element, as on whole tiles: a float32 -> float64 cast is exact)
-    acc: list[list[list[np.ndarray]]] = [[[], [], [], []] for _ in range(C)]
+    tiles, masks = [], []
     for o, m, k in zip(observed, matched, known, strict=True):
-        o, m = _channels(_float(o)), _channels(_float(m))
+        tiles.append((_channels(_float(o)), _channels(_float(m))))
         # pixels whose 3x3 stencil is known: the values at unknown pixels are arbitrary
         k = np.asarray(k, bool)
         if k.all():  # the erosion (border value 1) keeps every pixel: no masked copies
-            k = None
+            masks.append(None)
         else:
             reach = max(1, tolerance.reach if tolerance is not None else 0)
-            k = ndi.binary_erosion(k, np.ones((3, 3), bool), iterations=reach, border_value=1)
-        for c in range(C):
+            masks.append(ndi.binary_erosion(k, np.ones((3, 3), bool), iterations=reach,
+                                            border_value=1))
+
+    def predictors(c: int) -> list[list[np.ndarray]]:
+        acc: list[list[np.ndarray]] = [[], [], [], []]
+        for (o, m), k in zip(tiles, masks, strict=True):
             mt = tolerant_reference(o[:, :, c], m[:, :, c], tolerance)
             for j, v in enumerate((o[:, :, c], mt, _grad2_f32(m[:, :, c]),
                                    _laplacian_f32(m[:, :, c]))):
-                acc[c][j].append(v.ravel() if k is None else v[k])
+                acc[j].append(v.ravel() if k is None else v[k])
+        return acc
+
+    # the bands side by side, each exactly as alone; the samples drawn first, in band order
+    # (one generator for all of them)
+    accs = band_map(predictors, C)
+    n = sum(a.size for a in accs[0][0]) if C else 0  # the same pixels in every band
+    if n < 20 * bins * bins:
+        return np.zeros(C), np.zeros(C)
+    picks = [rng.choice(n, max_samples, replace=False) if n > max_samples else None
+             for _ in range(C)]
+    fits = band_map(lambda c: _fit_band_error(accs[c], picks[c], s[c], bins), C)
     ek, ck = np.zeros(C), np.zeros(C)
-    for c in range(C):
-        n = sum(a.size for a in acc[c][0])
-        if n < 20 * bins * bins:
-            continue
-        if n > max_samples:
-            # the sample drawn from the (never built) concatenation of the tiles
-            pick = rng.choice(n, max_samples, replace=False)
-            ov, mv, g2, lp = _take_concatenated(acc[c], pick)
-        else:
-            ov, mv, g2, lp = (np.concatenate(a) for a in acc[c])
-        r2 = (ov.astype(np.float64) - mv) ** 2
-        g2 = g2.astype(np.float64)
-        l2 = lp.astype(np.float64)
-        l2 *= l2
-        qg = np.searchsorted(np.quantile(g2, np.linspace(0, 1, bins + 1)[1:-1]), g2, "right")
-        ql = np.searchsorted(np.quantile(l2, np.linspace(0, 1, bins + 1)[1:-1]), l2, "right")
-        cell = qg * bins + ql
-        rows, rhs, wts = [], [], []
-        # the cells' pixels in their sample order (a stable sort groups them: the same
-        # elements in the same order as a boolean mask per cell, one pass instead of one
-        # per cell)
-        by_cell = np.argsort(cell, kind="stable")
-        starts = np.flatnonzero(np.diff(cell[by_cell], prepend=-1))
-        for s0, s1 in zip(starts, np.append(starts[1:], cell.size), strict=True):
-            sel = by_cell[s0:s1]
-            n = int(s1 - s0)
-            if n < 20:
-                continue
-            rows.append([g2[sel].mean(), l2[sel].mean()])
-            rhs.append(float(np.median(r2[sel])) / 0.455 - s[c] ** 2)
-            wts.append(np.sqrt(n))
-        if len(rows) < 2:
-            continue
-        A = np.asarray(rows) * np.asarray(wts)[:, None]
-        scale = np.maximum(A.max(axis=0), 1e-300)  # conditioning: columns to unit range
-        coef, _ = nnls(A / scale, np.asarray(rhs) * np.asarray(wts))
-        a, b = coef / scale
-        ek[c] = min(np.sqrt(max(a, 0.0)), k_max)
-        ck[c] = min(np.sqrt(max(b, 0.0)), c_max)
+    for c, ab in enumerate(fits):
+        if ab is not None:
+            ek[c] = min(np.sqrt(max(ab[0], 0.0)), k_max)
+            ck[c] = min(np.sqrt(max(ab[1], 0.0)), c_max)
     return ek, ck
+
+
+def _fit_band_error(acc: list[list[np.ndarray]], pick: np.ndarray | None, sigma: float,
+                    bins: int) -> tuple[float, float] | None:
+    """One band's ``(a, b)`` of :func:`fit_model_error` from its predictors' pieces ``acc``
+    (observed, tolerant reference, ``|grad m|^2``, ``lap m``) and the sample ``pick`` of
+    their concatenation (None: all of it); None when fewer than two cells are filled."""
+    from scipy.optimize import nnls
+
+    if pick is not None:
+        # the sample drawn from the (never built) concatenation of the tiles
+        ov, mv, g2, lp = _take_concatenated(acc, pick)
+    else:
+        ov, mv, g2, lp = (np.concatenate(a) for a in acc)
+    r2 = (ov.astype(np.float64) - mv) ** 2
+    g2 = g2.astype(np.float64)
+    l2 = lp.astype(np.float64)
+    l2 *= l2
+    qg = np.searchsorted(np.quantile(g2, np.linspace(0, 1, bins + 1)[1:-1]), g2, "right")
+    ql = np.searchsorted(np.quantile(l2, np.linspace(0, 1, bins + 1)[1:-1]), l2, "right")
+    cell = qg * bins + ql
+    rows, rhs, wts = [], [], []
+    # the cells' pixels in their sample order (a stable sort groups them: the same
+    # elements in the same order as a boolean mask per cell, one pass instead of one
+    # per cell)
+    by_cell = np.argsort(cell, kind="stable")
+    starts = np.flatnonzero(np.diff(cell[by_cell], prepend=-1))
+    for s0, s1 in zip(starts, np.append(starts[1:], cell.size), strict=True):
+        sel = by_cell[s0:s1]
+        n = int(s1 - s0)
+        if n < 20:
+            continue
+        rows.append([g2[sel].mean(), l2[sel].mean()])
+        rhs.append(float(np.median(r2[sel])) / 0.455 - sigma ** 2)
+        wts.append(np.sqrt(n))
+    if len(rows) < 2:
+        return None
+    A = np.asarray(rows) * np.asarray(wts)[:, None]
+    scale = np.maximum(A.max(axis=0), 1e-300)  # conditioning: columns to unit range
+    coef, _ = nnls(A / scale, np.asarray(rhs) * np.asarray(wts))
+    a, b = coef / scale
+    return float(a), float(b)
 
 
 def _take_concatenated(lists: list[list[np.ndarray]], idx: np.ndarray) -> list[np.ndarray]:
