@@ -200,11 +200,13 @@ def _components(mask: np.ndarray, connectivity: int = 8, pixels: bool = True,
         array); False for a dense foreground (e.g. the background of a mask), whose areas
         come from a count over the whole label image instead.
     boxes : bool
-        Also the bounding boxes (``box``, for :func:`_boxes`).  With ``pixels`` False and
-        more than :data:`_STATS_SHARE` of the mask foreground, areas and boxes come from
-        OpenCV's statistics pass (``connectedComponentsWithStats``, one thread), which
-        then costs less than listing the pixels and scanning the label image for the
-        boxes (``ndimage.find_objects``); on sparser masks it costs more.
+        The caller will ask for bounding boxes (:func:`_boxes`).  With ``pixels`` False
+        and more than :data:`_STATS_SHARE` of the mask foreground, areas and boxes come
+        from OpenCV's statistics pass (``connectedComponentsWithStats``, one thread) and
+        travel in ``box``: there it costs less than listing the pixels and scanning the
+        label image for the boxes.  On sparser masks it costs more: the pixels are listed
+        (the areas counted from them) and :func:`_boxes` scans the label image
+        (``ndimage.find_objects``).
 
     Returns
     -------
