@@ -204,11 +204,16 @@ def photometric_prefit(
         return Prefit(gain, offset)
     sigma = max(2.0, float(sigma_px) / ko)
 
-    def fit_band(c: int) -> tuple[float, float, dict, np.ndarray | None]:
+    # the images in this thread (OpenCV), the fits on the bands' threads (numpy only)
+    low_passed = []
+    for c in range(C):
         r = cv2.warpPerspective(np.ascontiguousarray(ref[:, :, c]), Hs, (w, h),
                                 flags=cv2.INTER_LINEAR)
-        r = cv2.GaussianBlur(r, (0, 0), sigma)
-        o = cv2.GaussianBlur(np.ascontiguousarray(obs[:, :, c]), (0, 0), sigma)
+        low_passed.append((cv2.GaussianBlur(r, (0, 0), sigma),
+                           cv2.GaussianBlur(np.ascontiguousarray(obs[:, :, c]), (0, 0), sigma)))
+
+    def fit_band(c: int) -> tuple[float, float, dict, np.ndarray | None]:
+        r, o = low_passed[c]
         g, b, fit = robust_line(r[cover].astype(float), o[cover].astype(float))
         if not g > 0.05:  # not a sane gain: keep the identity
             g, b = 1.0, 0.0

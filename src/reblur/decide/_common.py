@@ -72,10 +72,11 @@ def band_map(fit, n_bands: int) -> list:
     most of its time is numpy's selections and products, which release the GIL: three
     bands of 260 000 samples (:func:`reblur.robust.robust_line`) took 0.27 s on two
     threads against 0.40 s in a loop.  BLAS stays on :data:`FIT_BLAS_THREADS` (the
-    callers' limit, which the fits' own limit of one thread leaves as it is), and OpenCV
-    keeps its thread count (its Gaussian filter splits an image into as many stripes as it
-    has threads, and the stripes' sums differ in the last bits: a band's prefit gain moved
-    by 1e-11 with OpenCV on one thread), so the values are the loop's.
+    callers' limit, which the fits' own limit of one thread leaves as it is), so the
+    values are the loop's.  ``fit`` must not call OpenCV: its filters split an image into
+    as many stripes as it has threads, and the stripes' sums differ in the last bits (a
+    band's prefit gain moved by 1e-11 with OpenCV on one thread); two threads filtering at
+    once would get one stripe or several by timing.  Filter first, then fit here.
     """
     n = min(n_bands, available_cpus())
     if n <= 1:

@@ -284,18 +284,16 @@ def fit_model_error(observed, matched, known, sigma, *, bins: int = 8,
             masks.append(ndi.binary_erosion(k, np.ones((3, 3), bool), iterations=reach,
                                             border_value=1))
 
-    def predictors(c: int) -> list[list[np.ndarray]]:
-        acc: list[list[np.ndarray]] = [[], [], [], []]
-        for (o, m), k in zip(tiles, masks, strict=True):
+    # the predictors in this thread (OpenCV's filters), band after band
+    accs: list[list[list[np.ndarray]]] = [[[], [], [], []] for _ in range(C)]
+    for (o, m), k in zip(tiles, masks, strict=True):
+        for c in range(C):
             mt = tolerant_reference(o[:, :, c], m[:, :, c], tolerance)
             for j, v in enumerate((o[:, :, c], mt, _grad2_f32(m[:, :, c]),
                                    _laplacian_f32(m[:, :, c]))):
-                acc[j].append(v.ravel() if k is None else v[k])
-        return acc
-
-    # the bands side by side, each exactly as alone; the samples drawn first, in band order
-    # (one generator for all of them)
-    accs = band_map(predictors, C)
+                accs[c][j].append(v.ravel() if k is None else v[k])
+    # the fits (numpy) side by side, each exactly as alone; the samples drawn first, in
+    # band order (one generator for all of them)
     n = sum(a.size for a in accs[0][0]) if C else 0  # the same pixels in every band
     if n < 20 * bins * bins:
         return np.zeros(C), np.zeros(C)
