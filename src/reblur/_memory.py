@@ -24,15 +24,15 @@ from __future__ import annotations
 
 import os
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 
 import cv2
 import numpy as np
 
-__all__ = ["available_cpus", "parts", "retain_freed_memory", "small_pages", "split_sum",
-           "thread_map", "zeros"]
+__all__ = ["available_cpus", "glibc_mallopt", "parts", "retain_freed_memory", "small_pages",
+           "split_sum", "thread_map", "zeros"]
 
 #: Arrays below this size are zeroed by the calling thread alone.
 _PARALLEL_BYTES = 32 * 2**20
@@ -47,9 +47,9 @@ def available_cpus() -> int:
 
 
 #: glibc's ``mallopt`` parameters (malloc.h)
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
 #: glibc's largest mmap threshold on 64-bit (``DEFAULT_MMAP_THRESHOLD_MAX``)
-_MMAP_THRESHOLD_MAX = 32 * 2**20
+MMAP_THRESHOLD_MAX = 32 * 2**20
 
 
 def retain_freed_memory(trim_bytes: int = 256 * 2**20) -> bool:
@@ -74,6 +74,16 @@ def retain_freed_memory(trim_bytes: int = 256 * 2**20) -> bool:
     """
     if "MALLOC_MMAP_THRESHOLD_" in os.environ or "MALLOC_TRIM_THRESHOLD_" in os.environ:
         return False  # the user's own settings stand
+    mallopt = glibc_mallopt()
+    if mallopt is None:  # pragma: no cover - not glibc
+        return False
+    return bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_MAX)
+                and mallopt(M_TRIM_THRESHOLD, int(trim_bytes)))
+
+
+def glibc_mallopt() -> Callable[[int, int], int] | None:
+    """glibc's ``mallopt(param, value)``, or None where the C library is not glibc (musl,
+    macOS, Windows)."""
     try:
         import ctypes
 
@@ -81,10 +91,9 @@ def retain_freed_memory(trim_bytes: int = 256 * 2**20) -> bool:
         libc.gnu_get_libc_version  # noqa: B018 - glibc, not musl or macOS
         mallopt = libc.mallopt
     except (OSError, AttributeError):  # pragma: no cover - not glibc
-        return False
+        return None
     mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
-    return bool(mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_MAX)
-                and mallopt(_M_TRIM_THRESHOLD, int(trim_bytes)))
+    return mallopt
 
 
 def _hugepage_switch():

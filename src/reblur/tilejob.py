@@ -10,7 +10,6 @@ ships it once per worker.
 
 from __future__ import annotations
 
-import ctypes
 import os
 import sys
 import threading
@@ -21,6 +20,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ._memory import M_MMAP_THRESHOLD, M_TRIM_THRESHOLD, MMAP_THRESHOLD_MAX, glibc_mallopt
 from .decide import DecisionParams, Photometry, decide_tile
 from .tiled import SparsePoses, reblur_tile
 from .warp import as_box, read_window
@@ -56,9 +56,6 @@ def tile_work(results: Sequence[dict[str, Any]]) -> dict[str, int]:
 #: Serialises in-process writes into outputs whose chunks straddle tiles.
 _WRITE_LOCK = threading.Lock()
 
-#: Largest allocation glibc serves from the heap after :func:`tune_worker_malloc` (its own
-#: upper bound for the dynamic threshold).
-_MMAP_THRESHOLD = 32 * 2**20
 _MALLOC_TUNED: list[bool] = []
 
 
@@ -92,14 +89,14 @@ def tune_worker_malloc() -> bool:
     if (not sys.platform.startswith("linux") or "MALLOC_TRIM_THRESHOLD_" not in env
             or "MALLOC_MMAP_THRESHOLD_" in env):
         return False
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        trim = _trim_threshold(env["MALLOC_TRIM_THRESHOLD_"])
-        if trim < 2 * _MMAP_THRESHOLD and not libc.mallopt(-1, 2 * _MMAP_THRESHOLD):
-            return False  # -1: M_TRIM_THRESHOLD
-        return bool(libc.mallopt(-3, _MMAP_THRESHOLD))  # -3: M_MMAP_THRESHOLD
-    except (OSError, AttributeError):  # not glibc
+    mallopt = glibc_mallopt()
+    if mallopt is None:  # not glibc
         return False
+    # the largest block glibc then serves from the heap: its own dynamic threshold's ceiling
+    trim = _trim_threshold(env["MALLOC_TRIM_THRESHOLD_"])
+    if trim < 2 * MMAP_THRESHOLD_MAX and not mallopt(M_TRIM_THRESHOLD, 2 * MMAP_THRESHOLD_MAX):
+        return False
+    return bool(mallopt(M_MMAP_THRESHOLD, MMAP_THRESHOLD_MAX))
 
 
 def _trim_threshold(value: str) -> int:
