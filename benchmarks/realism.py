@@ -153,13 +153,16 @@ def _read(path: Path) -> np.ndarray:
     return tifffile.imread(path)
 
 
-def run_reblur(case: Path, out: Path, src: Path | None = None) -> dict:
+def run_reblur(case: Path, out: Path, src: Path | None = None,
+               config: Path | None = None) -> dict:
     """``reblur detect`` on a case, as a user runs it; scores against the truth.  ``src``:
     another checkout's ``src`` folder to run instead (e.g. an earlier commit's, for the
-    figures before a change)."""
+    figures before a change); ``config``: a parameter file (``reblur detect --config``)."""
     t = time.perf_counter()
     cmd = [sys.executable, "-m", "reblur", "detect", str(case / "reference.tif"),
            str(case / "observed.tif"), "--out", str(out), "--overwrite"]
+    if config is not None:
+        cmd += ["--config", str(config)]
     env = dict(os.environ, PYTHONPATH=str(src)) if src is not None else None
     r = subprocess.run(cmd, capture_output=True, text=True, env=env)
     seconds = time.perf_counter() - t
@@ -208,7 +211,8 @@ def run_baseline(case: Path) -> dict:
 
 
 def matrix(sizes: list[int], cache: Path, baseline: bool = True,
-           src: Path | None = None, hard: bool = False) -> list[dict]:
+           src: Path | None = None, hard: bool = False,
+           config: Path | None = None) -> list[dict]:
     rows = []
     for mp in sizes:
         for bits, noise in (HARD_ROWS if hard else ROWS):
@@ -216,7 +220,7 @@ def matrix(sizes: list[int], cache: Path, baseline: bool = True,
             case = make_case(mp, bits, noise, cache, hard)
             made = time.perf_counter() - t
             with tempfile.TemporaryDirectory() as tmp:
-                rb = run_reblur(case, Path(tmp) / "out", src)
+                rb = run_reblur(case, Path(tmp) / "out", src, config)
             row = {"mp": mp, "bits": bits, "noise": noise, "reblur": rb, "make_s": made,
                    "hard": hard}
             if baseline:
@@ -258,16 +262,20 @@ BEFORE = REPO / "docs" / "realism_before.json"
 
 def main(sizes: list[int] | None = None, cache: Path | None = None,
          src: Path | None = None, label: str | None = None,
-         hard_sizes: list[int] | None = None) -> str:
+         hard_sizes: list[int] | None = None, config: Path | None = None) -> str:
     """Run the matrix (and its hard-geometry rows at ``hard_sizes``); return the markdown
     section of ``docs/benchmarks.md``.
 
     With ``src`` (another checkout's ``src``), the rows are saved as the "before" figures
-    (``docs/realism_before.json``, under ``label``) and only printed."""
+    (``docs/realism_before.json``, under ``label``) and only printed.  With ``config`` (a
+    ``reblur detect --config`` file: a variant of the defaults) they are only printed."""
     sizes = [1, 25] if sizes is None else sizes
     hard_sizes = [4] if hard_sizes is None else hard_sizes
     cache = cache or Path(tempfile.gettempdir()) / "reblur-realism"
-    rows = matrix(sizes, cache, src=src) + matrix(hard_sizes, cache, src=src, hard=True)
+    rows = (matrix(sizes, cache, src=src, config=config)
+            + matrix(hard_sizes, cache, src=src, hard=True, config=config))
+    if config is not None:
+        return table(rows)
     if src is not None:
         BEFORE.write_text(json.dumps({"label": label or str(src), "rows": rows}, indent=1,
                                      default=float))
@@ -314,6 +322,9 @@ if __name__ == "__main__":
     ap.add_argument("--src", type=Path, default=None,
                     help="run reblur from another checkout's src folder: the 'before' rows")
     ap.add_argument("--label", default=None, help="name of that checkout (e.g. its commit)")
+    ap.add_argument("--config", type=Path, default=None,
+                    help="a reblur detect --config file (a variant of the defaults): the rows "
+                         "are printed, not saved")
     ap.add_argument("--saved", action="store_true",
                     help="only rewrite the section from docs/realism_runs.json")
     a = ap.parse_args()
@@ -323,7 +334,8 @@ if __name__ == "__main__":
         body = section(json.loads((REPO / "docs" / "realism_runs.json").read_text()))
     else:
         body = main([int(s) for s in a.sizes.split(",") if s],
-                    a.cache, a.src, a.label, [int(s) for s in a.hard_sizes.split(",") if s])
-    if a.src is None:
+                    a.cache, a.src, a.label, [int(s) for s in a.hard_sizes.split(",") if s],
+                    a.config)
+    if a.src is None and a.config is None:
         write_section("realism", body)
     print(body)

@@ -41,6 +41,8 @@ BENCHES = {
     "align_cost": ("benchmarks.align_cost", "bench"),
     # the mask PNGs' encodings: viewer tiles and a 100 MP change mask (issues #28, #31)
     "png_masks": ("benchmarks.png_masks", "main"),
+    # the estimation windows' side: time against blur-model fidelity on real shake (#28)
+    "window_side": ("benchmarks.window_side", "main"),
 }
 
 

@@ -138,3 +138,18 @@ def test_cost_targets_give_the_slope_against_the_decided_pixels():
     want = np.polyfit(np.log(mps), np.log(secs), 1)[0]
     assert f"log-log slope 0.9-1.1: {want:.2f} over 1, 25, 100 MP" in text
     assert 1.05 < want < 1.1
+
+
+def test_window_side_boxes_are_the_windows_central_parts():
+    """``benchmarks.window_side``: the ``--box`` of each window's central part, by hand;
+    a window smaller than the side is left out (its part would not be smaller)."""
+    from benchmarks.window_side import _centred
+
+    wins = [[100, 700, 500, 500], [100, 200, 500, 500], [0, 0, 300, 300]]
+    assert _centred(wins, 400) == ["150,750,400,400", "150,250,400,400"]
+    assert _centred(wins, 256) == ["222,822,256,256", "222,322,256,256", "22,22,256,256"]
+    # the part lies inside its window, centred to within a pixel
+    for (y, x, h, w), b in zip(wins, _centred(wins, 255), strict=True):
+        by, bx, bh, bw = map(int, b.split(","))
+        assert y <= by and by + bh <= y + h and x <= bx and bx + bw <= x + w
+        assert abs((by - y) - (y + h - by - bh)) <= 1
