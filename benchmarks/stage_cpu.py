@@ -3,7 +3,7 @@
 
 On a shared host the wall times of ``report.json`` hold the other jobs' share of the
 cores; the CPU time (``time.process_time``: every thread of the process) of a stage does
-not.  The run is the CLI's (``reblur.cli.main``), with timers wrapped around the functions
+not.  The run is the CLI's (``reblur.cli.run``), with timers wrapped around the functions
 of :data:`STAGES` (a stage called several times adds up; nested stages count in both).
 Prints one line per stage, slowest first, then the import of ``reblur.cli`` and the whole
 run, with the minor page faults of the process meanwhile (fresh pages touched, 4 KB each:
@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> dict[str, list[float]]:
         if a.workers is not None:
             args += ["--workers", str(a.workers)]
         try:
-            reblur.cli.main(args, standalone_mode=False)
+            reblur.cli.run(args, standalone_mode=False)
         finally:
             acc["whole run"] = [1, time.perf_counter() - w0, time.process_time() - c0,
                                 _minflt() - m0]

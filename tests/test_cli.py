@@ -836,3 +836,20 @@ def test_demo(tmp_path):
     assert (out / "overlay.png").is_file()
     rep = json.loads((out / "report.json").read_text())
     assert rep["metrics"] is not None and rep["options"]["command"] == "demo"
+
+
+def test_only_the_command_entry_point_changes_the_allocator(monkeypatch):
+    """``reblur.cli.run`` (the console script, ``python -m reblur``) keeps freed memory in
+    its own process; ``main`` called inside a host's process (CliRunner here, a test, a
+    notebook) leaves the host's allocator alone."""
+    from click.testing import CliRunner
+
+    from reblur import cli
+
+    calls = []
+    monkeypatch.setattr(cli, "retain_freed_memory", lambda: calls.append(1) or True)
+    r = CliRunner().invoke(cli.main, ["--version"])
+    assert r.exit_code == 0 and calls == []
+    with pytest.raises(SystemExit) as exc:
+        cli.run(["--version"])
+    assert exc.value.code == 0 and calls == [1]

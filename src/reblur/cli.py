@@ -490,7 +490,18 @@ def main() -> None:
     Run 'reblur demo' for a first look, 'reblur COMMAND --help' for each command.
     """
     _quiet_libtiff()
+
+
+def run(args: list[str] | None = None, **kwargs) -> Any:
+    """The ``reblur`` command (its console script and ``python -m reblur``): :func:`main`
+    in a process of its own, whose allocator keeps freed memory for the later stages
+    (:func:`reblur._memory.retain_freed_memory`).  :func:`main` called in a host's
+    process (a test, a notebook) leaves that process's allocator as it is.
+
+    ``kwargs`` go to :func:`main` (click's ``standalone_mode`` ...).
+    """
     retain_freed_memory()  # this process is the command's: later stages reuse pages
+    return main(args=args, prog_name="reblur", **kwargs)
 
 
 def _quiet_libtiff() -> bool:
