@@ -219,3 +219,83 @@ def test_detect_changes_meets_the_bounds_on_test_bed_geometry(case):
     assert np.sqrt(np.mean(err**2)) <= 0.5
     known = pair.valid & ~res.unknown
     assert np.count_nonzero(res.change & known) <= 0.003 * np.count_nonzero(known)
+
+
+def _distorted_pair(corner_px: float, side: int = 1024):
+    """A textured reference and the observation resampled at p + d(p) for the radial d of
+    ``corner_px`` at the corners (the identity pose: no blur)."""
+    shape = (side, side)
+    ref = _texture(shape, 5)
+    y, x = np.mgrid[0:side, 0:side].astype(np.float64)
+    d = _radial(np.stack([x.ravel(), y.ravel()], axis=1), shape, corner_px).reshape(side, side, 2)
+    obs = cv2.remap(ref, (x + d[..., 0]).astype(np.float32), (y + d[..., 1]).astype(np.float32),
+                    cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
+    grid = PoseGrid.from_ranges(shape, t_max=0, rz_max=0.0, rz_step=1.0)
+    return ref, obs, SparsePoses(np.ones(grid.shape), grid)
+
+
+def _counting(monkeypatch):
+    """Count the tie-point windows ``estimate_field`` measures."""
+    import reblur.align.refine as refine
+
+    seen = []
+    real = refine.measure_shifts
+
+    def measure(reference, observed, poses, boxes, **kw):
+        seen.extend(boxes)
+        return real(reference, observed, poses, boxes, **kw)
+
+    monkeypatch.setattr(refine, "measure_shifts", measure)
+    return seen
+
+
+@pytest.mark.parametrize("corner_px", [0.0, 2.5])
+def test_first_pass_settles_only_what_the_whole_lattice_would(monkeypatch, corner_px):
+    """A 16 x 16 lattice: on an undistorted pair the first pass (every other tie point of
+    every other row, 64) settles that no field is needed, as the whole lattice does; on a
+    distorted one every tie point is measured and the field is the one-pass field, node
+    for node."""
+    import reblur.align.field as field_mod
+
+    ref, obs, poses = _distorted_pair(corner_px)
+    p = FieldParams(probe_px=64)
+    seen = _counting(monkeypatch)
+    est = estimate_field(ref, obs, poses, params=p)
+    n_first = len(seen)
+    seen.clear()
+    monkeypatch.setattr(field_mod, "_FIRST_PASS_MIN", 10**9)  # the one-pass reference
+    one = estimate_field(ref, obs, poses, params=p)
+    assert one.info["probes"] == est.info["probes"] == 256
+    if corner_px == 0:
+        assert est.field is None and one.field is None
+        assert est.info["first_pass"] == n_first == 64 and len(seen) == 256
+        assert est.info["rms_before_px"] < 0.075 and one.info["rms_before_px"] < 0.15
+        return
+    assert "first_pass" not in est.info and est.info["applied"] and one.info["applied"]
+    np.testing.assert_array_equal(est.field.d, one.field.d)
+    assert est.info["rms_after_px"] == one.info["rms_after_px"]
+
+
+def test_settled_needs_enough_quiet_inliers_or_no_correlation():
+    """``_settled`` on a 10 x 10 lattice of synthetic tie points: none correlating, or at
+    least ``min_points`` inliers under half of ``min_rms_px``, settle it; a residual at
+    or above half the threshold, or too few points, do not."""
+    from reblur.align.field import _settled
+    from reblur.align.refine import ProbeShift
+
+    p = FieldParams()
+    rng = np.random.default_rng(8)
+    cy, cx = np.mgrid[0:10, 0:10] * 100.0
+
+    def lattice(sigma, cc=0.99, n=100):
+        d = rng.normal(0, sigma, (n, 2))
+        return [ProbeShift(float(x), float(y), float(a), float(b), cc)
+                for x, y, (a, b) in zip(cx.ravel()[:n], cy.ravel()[:n], d, strict=True)]
+
+    none = _settled(lattice(0.01, cc=0.5), 100.0, p)
+    assert none is not None and none["measured"] == 0 and "none of 100" in none["reason"]
+    quiet = _settled(lattice(0.02), 100.0, p)
+    assert quiet is not None and quiet["rms_before_px"] < 0.5 * p.min_rms_px
+    assert quiet["inliers"] >= p.min_points
+    assert _settled(lattice(0.1), 100.0, p) is None  # RMS ~0.14 px: the whole lattice decides
+    assert _settled(lattice(0.02, n=12), 100.0, p) is None  # fewer than min_points

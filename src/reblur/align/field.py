@@ -476,6 +476,43 @@ def _rms(shifts: list, idx: list[int]) -> float:
     return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
 
 
+#: Fewest tie points in :func:`estimate_field`'s first pass (every other one of every
+#: other row); a smaller lattice is measured whole.
+_FIRST_PASS_MIN = 36
+
+
+def _settled(shifts: list, spacing: float, p: FieldParams) -> dict[str, Any] | None:
+    """Why no field is needed, judged from the first pass's tie points ``shifts`` (on a
+    lattice of ``spacing``), or None when the whole lattice must be measured.
+
+    Two outcomes are settled by a quarter of the lattice: none of its tie points
+    correlates (``min_cc``: content changed or unrelated all over; the whole lattice then
+    holds too few to fit a field), or the homography leaves at least ``min_points`` of
+    its inliers (the median test) below half of ``min_rms_px`` RMS.  A residual a field
+    would be fitted for spans several tie points (the median test rejects a lone one),
+    so every other tie point sees it; half the threshold keeps a margin for the
+    sampling.
+    """
+    good = [s for s in shifts if s.measured and s.cc >= p.min_cc]
+    if not good:
+        return {"measured": 0, "inliers": 0,
+                "reason": f"none of {len(shifts)} tie points (every other one of every other "
+                          f"row) correlates at {p.min_cc:g}: no field fitted"}
+    centres = np.array([[s.cx, s.cy] for s in good])
+    vec = np.array([[s.dx, s.dy] for s in good])
+    keep = reject_outliers(centres, vec, spacing, p)
+    n = int(keep.sum())
+    if n < p.min_points:
+        return None
+    zero = float(np.sqrt(np.mean(np.sum(vec[keep] ** 2, axis=1))))
+    if zero >= 0.5 * p.min_rms_px:
+        return None
+    return {"measured": len(good), "inliers": n, "rms_before_px": round(zero, 4),
+            "reason": f"the homography leaves {n} tie points (every other one of every other "
+                      f"row) at {zero:.3f} px RMS (< half of {p.min_rms_px:g}): no field "
+                      f"needed"}
+
+
 def estimate_field(
     reference,
     observed,
@@ -504,7 +541,10 @@ def estimate_field(
         ``info`` holds ``probes`` (tie-point windows), ``measured`` (correlating at least
         ``min_cc``), ``inliers``, the cross-validation numbers of :func:`fit_field`,
         ``rms_before_px`` / ``rms_after_px`` (the inliers' residual without and with the
-        field, measured through the reblur), ``applied`` and ``reason``.
+        field, measured through the reblur), ``applied`` and ``reason``; ``first_pass``
+        (tie points measured) when a quarter of the lattice settled that no field is
+        needed (:func:`_settled`), the rest unmeasured.  Otherwise every tie point is
+        measured and the result is the same as measuring them in one pass.
     """
     from .refine import measure_shifts
 
@@ -512,14 +552,31 @@ def estimate_field(
     shape = tuple(int(v) for v in poses.grid.image_shape[:2])
     boxes = lattice_boxes(shape, p)
     kw = dict(ref_scale=ref_scale, obs_scale=obs_scale, min_valid=p.min_cover)
-    before = measure_shifts(reference, observed, poses, boxes, **kw)
-    good = [i for i, s in enumerate(before) if s.measured and s.cc >= p.min_cc]
-    info: dict[str, Any] = {"probes": len(boxes), "probe_px": boxes[0].w,
-                            "measured": len(good), "applied": False}
     xs = sorted({b.x0 for b in boxes})
     ys = sorted({b.y0 for b in boxes})
     steps = [b - a for v in (xs, ys) for a, b in zip(v, v[1:], strict=False)]
     spacing = float(min(steps) if steps else boxes[0].w)
+    info: dict[str, Any] = {"probes": len(boxes), "probe_px": boxes[0].w, "applied": False}
+    # every other tie point of every other row first: where the homography leaves them
+    # well below the smallest residual a field is fitted for, the rest cannot change that
+    first = [r * len(xs) + c for r in range(0, len(ys), 2) for c in range(0, len(xs), 2)]
+    if len(first) < _FIRST_PASS_MIN:
+        first = []
+    before: list = [None] * len(boxes)
+    if first:
+        part = measure_shifts(reference, observed, poses, [boxes[i] for i in first], **kw)
+        for i, s in zip(first, part, strict=True):
+            before[i] = s
+        settled = _settled(part, 2.0 * spacing, p)
+        if settled is not None:
+            info.update(settled, first_pass=len(first))
+            return FieldEstimate(None, info)
+    rest = [i for i, s in enumerate(before) if s is None]
+    for i, s in zip(rest, measure_shifts(reference, observed, poses, [boxes[i] for i in rest],
+                                         **kw), strict=True):
+        before[i] = s
+    good = [i for i, s in enumerate(before) if s.measured and s.cc >= p.min_cc]
+    info["measured"] = len(good)
     centres = np.array([[before[i].cx, before[i].cy] for i in good]).reshape(-1, 2)
     vec = np.array([[before[i].dx, before[i].dy] for i in good]).reshape(-1, 2)
     keep = reject_outliers(centres, vec, spacing, p)
