@@ -34,6 +34,7 @@ import tifffile
 
 from benchmarks.common import psnr
 from benchmarks.cost import REAL_PAIRS
+from benchmarks.quality import _rgb
 
 #: Window sides (px) tried besides the default.
 SIDES = (400, 320, 256)
@@ -60,13 +61,9 @@ def _centred(windows: list[list[int]], side: int) -> list[str]:
             for y, x, h, w in windows if min(h, w) >= side]
 
 
-def _rgb(path: Path) -> np.ndarray:
-    return cv2.imread(str(path), cv2.IMREAD_COLOR)[:, :, ::-1].astype(np.float64) / 255.0
-
-
 def measure_pair(name: str, ref: Path, obs: Path, sides=SIDES) -> list[dict]:
     """Rows of one pair: the default run, then one per side."""
-    g = _rgb(obs)
+    g = _rgb(obs).astype(np.float64)
     rows, images = [], []
     keep = np.ones(g.shape[:2], bool)
     with tempfile.TemporaryDirectory() as tmp:

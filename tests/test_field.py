@@ -142,16 +142,9 @@ def test_estimate_field_measures_a_known_distortion_through_the_reblur(corner_px
     blur, the identity pose): the estimated field matches d inside the lattice, and an
     undistorted pair gets no field."""
     shape = (512, 512)
-    ref = _texture(shape, 3)
-    y, x = np.mgrid[0:512, 0:512].astype(np.float64)
-    pts = np.stack([x.ravel(), y.ravel()], axis=1)
-    d = _radial(pts, shape, corner_px).reshape(512, 512, 2)
-    obs = cv2.remap(ref, (x + d[..., 0]).astype(np.float32), (y + d[..., 1]).astype(np.float32),
-                    cv2.INTER_CUBIC, borderMode=cv2.BORDER_REFLECT)
-    grid = PoseGrid.from_ranges(shape, t_max=0, rz_max=0.0, rz_step=1.0)
-    w = np.ones(grid.shape)
-    assert w.size == 1  # the identity pose alone
-    est = estimate_field(ref, obs, SparsePoses(w, grid), params=FieldParams(probe_px=64))
+    ref, obs, poses = _distorted_pair(corner_px, side=512, seed=3)
+    assert poses.n_poses == 1  # the identity pose alone
+    est = estimate_field(ref, obs, poses, params=FieldParams(probe_px=64))
     if corner_px == 0:
         assert est.field is None and not est.info["applied"]
         return
@@ -221,11 +214,11 @@ def test_detect_changes_meets_the_bounds_on_test_bed_geometry(case):
     assert np.count_nonzero(res.change & known) <= 0.003 * np.count_nonzero(known)
 
 
-def _distorted_pair(corner_px: float, side: int = 1024):
+def _distorted_pair(corner_px: float, side: int = 1024, seed: int = 5):
     """A textured reference and the observation resampled at p + d(p) for the radial d of
     ``corner_px`` at the corners (the identity pose: no blur)."""
     shape = (side, side)
-    ref = _texture(shape, 5)
+    ref = _texture(shape, seed)
     y, x = np.mgrid[0:side, 0:side].astype(np.float64)
     d = _radial(np.stack([x.ravel(), y.ravel()], axis=1), shape, corner_px).reshape(side, side, 2)
     obs = cv2.remap(ref, (x + d[..., 0]).astype(np.float32), (y + d[..., 1]).astype(np.float32),

@@ -476,6 +476,16 @@ def _rms(shifts: list, idx: list[int]) -> float:
     return float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
 
 
+def _tie_points(shifts: list, spacing: float, p: FieldParams):
+    """The tie points of ``shifts`` (on a lattice of ``spacing``) correlating at least
+    ``min_cc``: their indices, centres and displacements, and which of them pass the
+    median test (:func:`reject_outliers`)."""
+    good = [i for i, s in enumerate(shifts) if s.measured and s.cc >= p.min_cc]
+    centres = np.array([[shifts[i].cx, shifts[i].cy] for i in good]).reshape(-1, 2)
+    vec = np.array([[shifts[i].dx, shifts[i].dy] for i in good]).reshape(-1, 2)
+    return good, centres, vec, reject_outliers(centres, vec, spacing, p)
+
+
 #: Fewest tie points in :func:`estimate_field`'s first pass (every other one of every
 #: other row); a smaller lattice is measured whole.
 _FIRST_PASS_MIN = 36
@@ -493,18 +503,15 @@ def _settled(shifts: list, spacing: float, p: FieldParams) -> dict[str, Any] | N
     so every other tie point sees it; half the threshold keeps a margin for the
     sampling.
     """
-    good = [s for s in shifts if s.measured and s.cc >= p.min_cc]
+    good, _, _, keep = _tie_points(shifts, spacing, p)
     if not good:
         return {"measured": 0, "inliers": 0,
                 "reason": f"none of {len(shifts)} tie points (every other one of every other "
                           f"row) correlates at {p.min_cc:g}: no field fitted"}
-    centres = np.array([[s.cx, s.cy] for s in good])
-    vec = np.array([[s.dx, s.dy] for s in good])
-    keep = reject_outliers(centres, vec, spacing, p)
     n = int(keep.sum())
     if n < p.min_points:
         return None
-    zero = float(np.sqrt(np.mean(np.sum(vec[keep] ** 2, axis=1))))
+    zero = _rms(shifts, [i for i, k in zip(good, keep, strict=True) if k])
     if zero >= 0.5 * p.min_rms_px:
         return None
     return {"measured": len(good), "inliers": n, "rms_before_px": round(zero, 4),
@@ -575,11 +582,8 @@ def estimate_field(
     for i, s in zip(rest, measure_shifts(reference, observed, poses, [boxes[i] for i in rest],
                                          **kw), strict=True):
         before[i] = s
-    good = [i for i, s in enumerate(before) if s.measured and s.cc >= p.min_cc]
+    good, centres, vec, keep = _tie_points(before, spacing, p)
     info["measured"] = len(good)
-    centres = np.array([[before[i].cx, before[i].cy] for i in good]).reshape(-1, 2)
-    vec = np.array([[before[i].dx, before[i].dy] for i in good]).reshape(-1, 2)
-    keep = reject_outliers(centres, vec, spacing, p)
     info["inliers"] = int(keep.sum())
     fld, fit_info = fit_field(centres[keep], vec[keep], shape, spacing, p)
     info.update(fit_info)
