@@ -81,6 +81,35 @@ def test_threaded_shifts_equal_the_serial_ones(reference):
         measure_shifts(reference, obs, poses, boxes, workers=0)
 
 
+def test_rows_of_probes_are_reblurred_as_strips(reference, monkeypatch):
+    """Dense rows of probes are reblurred once (one job per row); the shifts are those of
+    each probe reblurred alone (the per-probe path, forced by an unreachable cover) within
+    the reblur's window-dependent rounding; a sparse row and a lone probe go alone."""
+    from reblur.align import refine
+    from reblur.warp import Box
+
+    err = pose_homography(0.3, -0.2, 3e-4, 0.0, 0.0, 0.02, center=C)
+    obs, grid, w = _observe(reference, err)
+    boxes = probe_boxes((H, W), size=128, n=8)  # 7 rows of 8: 79 % of each row's span
+    jobs = refine._strip_jobs(boxes)
+    assert [len(j) for j in jobs] == [8] * 7
+    assert sorted(i for j in jobs for i in j) == list(range(len(boxes)))
+    sparse = [Box(0, 0, 64, 64), Box(0, 200, 64, 64), Box(100, 0, 64, 64)]  # 128 of 264 px
+    assert refine._strip_jobs(sparse) == [[0], [1], [2]]
+    assert refine._strip_jobs([Box(0, 0, 64, 64), Box(0, 64, 64, 64)]) == [[0, 1]]
+    poses = SparsePoses(w, grid)
+    strips = measure_shifts(reference, obs, poses, boxes)
+    monkeypatch.setattr(refine, "_STRIP_COVER", np.inf)
+    assert all(len(j) == 1 for j in refine._strip_jobs(boxes))
+    alone = measure_shifts(reference, obs, poses, boxes)
+    assert sum(s.measured for s in alone) >= 40
+    for a, b in zip(strips, alone, strict=True):
+        assert a.measured == b.measured and (a.cx, a.cy) == (b.cx, b.cy)
+        if a.measured:
+            assert abs(a.dx - b.dx) < 1e-3 and abs(a.dy - b.dy) < 1e-3
+            assert abs(a.cc - b.cc) < 1e-5
+
+
 def test_refinement_removes_a_residual_scale_error(reference):
     err = pose_homography(0.4, -0.3, 2e-4, 0.0, 0.0, 0.015, center=C)
     obs, grid, w = _observe(reference, err)

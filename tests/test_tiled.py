@@ -184,3 +184,36 @@ def test_grow_tile_equals_loading_the_larger_window(levir_gray):
     assert np.max(np.abs(grown[1] - direct[1])) < 1e-5
     with pytest.raises(ValueError, match="contain"):
         grow_tile(poses, ref, obs, large, direct, small, **kw)
+
+
+def test_reblur_windows_equal_each_window_reblurred_alone(levir_gray):
+    """Windows reblurred together on their span (a row of tie points, overlapping ones, a
+    window on the border, one of another size) are each the window reblurred alone, with
+    and without a displacement field: the same validity, and values within OpenCV's
+    window-dependent rounding of its warp coordinates (the reference's range is 1)."""
+    from reblur.align.field import DisplacementField
+    from reblur.tiled import SparsePoses, reblur_tile, reblur_windows
+    from reblur.warp import Box
+
+    ref = levir_gray[:600, :640]
+    grid = PoseGrid((600, 640), tx=np.arange(-4, 5), ty=np.arange(-4, 5),
+                    rz=[-1.5, 0.0, 1.0])
+    w = grid_path(grid, rng=5, n_poses=12)
+    yy, xx = np.mgrid[0:11, 0:11].astype(np.float64)
+    d = np.stack([1.2 * np.sin(xx / 3.0), -0.8 * np.cos(yy / 4.0)], axis=2)  # smooth, +-1 px
+    fld = DisplacementField(0.0, 0.0, 64.0, d)
+    boxes = [Box(0, 0, 64, 64), Box(0, 100, 64, 64), Box(0, 140, 64, 64),  # overlapping
+             Box(0, 576, 64, 64), Box(300, 200, 90, 130)]
+    for poses in (SparsePoses(w, grid), SparsePoses(w, grid, field=fld)):
+        together = reblur_windows(poses, ref, boxes)
+        assert len(together) == len(boxes)
+        for b, (img, ok) in zip(boxes, together, strict=True):
+            alone, ok_alone = reblur_tile(poses, ref, b)
+            assert img.shape == alone.shape and img.dtype == alone.dtype
+            np.testing.assert_array_equal(ok, ok_alone)
+            assert np.max(np.abs(img - alone)) < 1e-5
+        assert not together[0][1].all()  # the border window: the partial-validity path
+    # the field moved the samples: the windows differ from the plain ones
+    plain = reblur_windows(SparsePoses(w, grid), ref, boxes)
+    moved = reblur_windows(SparsePoses(w, grid, field=fld), ref, boxes)
+    assert np.max(np.abs(plain[4][0] - moved[4][0])) > 0.05

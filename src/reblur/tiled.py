@@ -21,7 +21,7 @@ from ._memory import thread_map
 from .grid import PoseGrid, translation
 from .warp import Box, as_box, read_window, source_box, warp_source
 
-__all__ = ["reblur", "reblur_tile", "iter_tiles", "SparsePoses"]
+__all__ = ["reblur", "reblur_tile", "reblur_windows", "iter_tiles", "SparsePoses"]
 
 
 class SparsePoses:
@@ -74,6 +74,41 @@ def reblur_tile(poses: SparsePoses, reference, box, *, dtype=np.float32):
         return _reblur_poses(poses, reference, box, dtype)
     # the local displacement: reblur a window grown by its reach, resample at p + d(p)
     return fld.displaced(lambda b: _reblur_poses(poses, reference, b, dtype), box)
+
+
+def reblur_windows(poses: SparsePoses, reference, boxes, *, dtype=np.float32
+                   ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """:func:`reblur_tile` on several windows, reblurred together on the box spanning them.
+
+    A window's reblur costs about as much per rotation group of the poses as per pixel,
+    so many small windows close together (a row of tie points) cost several times one
+    reblur of their span.  Each result is a view of that span's reblur, then resampled
+    on its own by a displacement field if the poses have one (the field's bicubic
+    resampling rounds its coordinates differently on a larger window): it equals
+    :func:`reblur_tile` on the window up to the rounding of OpenCV's single-precision warp
+    coordinates, which depend on the window a warp is built for (bit for bit with an
+    8-bit reference, whose warps run in fixed point).  Pose models with their own tile
+    reblur (:class:`reblur.rolling.RollingPoses`) reblur each window alone.
+
+    Returns
+    -------
+    list of (out, valid)
+        As :func:`reblur_tile`, one per window, in the order of ``boxes``.
+    """
+    boxes = [as_box(b) for b in boxes]
+    if len(boxes) < 2 or hasattr(poses, "reblur_tile"):
+        return [reblur_tile(poses, reference, b, dtype=dtype) for b in boxes]
+    fld = getattr(poses, "field", None)
+    pads = [0] * len(boxes) if fld is None else [fld.pad(b) for b in boxes]
+    grown = [b.grow(p, p, p, p) for b, p in zip(boxes, pads, strict=True)]
+    y0, x0 = min(g.y0 for g in grown), min(g.x0 for g in grown)
+    span = Box(y0, x0, max(g.y1 for g in grown) - y0, max(g.x1 for g in grown) - x0)
+    img, ok = _reblur_poses(poses, reference, span, dtype)
+    out = []
+    for b, g, p in zip(boxes, grown, pads, strict=True):
+        sl = (slice(g.y0 - y0, g.y1 - y0), slice(g.x0 - x0, g.x1 - x0))
+        out.append((img[sl], ok[sl]) if fld is None else fld.resample(img[sl], b, ok[sl], p))
+    return out
 
 
 def _reblur_poses(poses: SparsePoses, reference, box: Box, dtype) -> tuple[np.ndarray,

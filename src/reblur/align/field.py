@@ -289,9 +289,14 @@ class DisplacementField:
         the window grown by the field's reach, resampled at ``p + d(p)``
         (:meth:`resample`)."""
         b = as_box(box)
-        pad = int(np.ceil(self.bound(b))) + 3
+        pad = self.pad(b)
         img, ok = reblur(b.grow(pad, pad, pad, pad))
         return self.resample(img, b, ok, pad)
+
+    def pad(self, box) -> int:
+        """Pixels by which :meth:`displaced` grows a window before resampling it: the
+        field's reach there and the bicubic footprint."""
+        return int(np.ceil(self.bound(box))) + 3
 
     def resample(self, image: np.ndarray, box, valid: np.ndarray, pad: int
                  ) -> tuple[np.ndarray, np.ndarray]:
