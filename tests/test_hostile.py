@@ -6,11 +6,14 @@ all at once or not at all; two runs into one output directory cannot mix their f
 
 from __future__ import annotations
 
+import csv
+import json
 import os
 import re
 import subprocess
 import sys
 from pathlib import Path
+from urllib.parse import quote
 
 import cv2
 import numpy as np
@@ -732,6 +735,41 @@ def test_error_lines_escape_control_characters(tmp_path, pair, name):
     assert line == f"reblur: error: {display_path(tmp_path / name)}: no such file\n"
     assert line.count("\n") == 1 and "\x1b" not in line and "\x07" not in line
     assert display_path(name) in (r"no\nsuch\x1b]0;owned\x07.png", r"bad\xff\x9b2J.png")
+
+
+def test_names_that_are_not_utf8_reach_every_text_output_escaped(tmp_path, pair):
+    """A reference and observations whose names are Latin-1, not UTF-8 (bytes 0xff, 0xe9):
+    the run succeeds, every text output (report.json, report.html, the viewer's data,
+    summary.csv, index.html) is UTF-8, and the names appear with those bytes as ``\\xNN``
+    (report.html used to fail to write: a UTF-8 file cannot hold the undecodable bytes)."""
+    d = os.fsencode(tmp_path)
+    ref, obs, obs2 = d + b"/ref\xff.png", d + b"/obs\xe9.png", d + b"/obs2.png"
+    for src, dst in ((pair[0], ref), (pair[1], obs), (pair[1], obs2)):
+        with open(dst, "wb") as f:
+            f.write(Path(src).read_bytes())
+    single, many = d + b"/one", d + b"/many"
+    for out, observed in ((single, [obs]), (many, [obs, obs2])):
+        res = subprocess.run([sys.executable, "-m", "reblur", "detect", ref, *observed,
+                              "--out", out, *map(str, FAST)], capture_output=True)
+        assert res.returncode == 0, res.stderr.decode("utf-8", "backslashreplace")
+    texts = [p for p in Path(os.fsdecode(d)).rglob("*")
+             if p.suffix in (".json", ".html", ".js", ".csv")]
+    assert len(texts) >= 10
+    for p in texts:
+        p.read_bytes().decode("utf-8")  # strict: fails on any byte that is not UTF-8
+    one = Path(os.fsdecode(single))
+    rep = json.loads((one / "report.json").read_text(encoding="utf-8"))
+    assert rep["inputs"]["reference"]["path"].endswith("/ref\\xff.png")
+    assert rep["inputs"]["observed"]["path"].endswith("/obs\\xe9.png")
+    page = (one / "report.html").read_text(encoding="utf-8")
+    assert "ref\\xff.png" in page and "obs\\xe9.png" in page
+    rows = list(csv.DictReader((Path(os.fsdecode(many)) / "summary.csv").open(encoding="utf-8")))
+    assert [r["status"] for r in rows] == ["ok", "ok"]
+    assert rows[0]["source"].endswith("obs\\xe9.png")
+    index = (Path(os.fsdecode(many)) / "index.html").read_text(encoding="utf-8")
+    for r in rows:  # every link leads to the observation's folder
+        assert f'href="{quote(os.fsencode(r["name"]), safe="")}/report.html"' in index
+        assert (Path(os.fsdecode(many)) / r["name"] / "report.html").is_file()
 
 
 # ---------------------------------------------------------------------------- work store

@@ -2282,10 +2282,36 @@ def write_geotiff(
     return path
 
 
+def printable(text: str) -> str:
+    """``text`` as any UTF-8 file can hold it: the bytes of a file name that is not UTF-8
+    (which Python decodes to lone surrogates, ``surrogateescape``) become ``\\xNN``
+    escapes, e.g. ``ref\\xff.tif`` for the Latin-1 name ``ref\xff.tif``.
+
+    Examples
+    --------
+    >>> import os
+    >>> printable(os.fsdecode(b"caf\xe9.tif"))
+    'caf\\xe9.tif'
+    >>> printable("café.tif")
+    'café.tif'
+    """
+    try:
+        text.encode("utf-8")
+        return text
+    except UnicodeEncodeError:
+        pass
+    try:
+        raw = text.encode("utf-8", "surrogateescape")
+    except UnicodeEncodeError:  # a lone surrogate that stands for no byte
+        return text.encode("utf-8", "backslashreplace").decode("utf-8")
+    return raw.decode("utf-8", "backslashreplace")
+
+
 def to_jsonable(obj: Any) -> Any:
-    """Convert numpy scalars/arrays, paths, tuples and non-finite floats (-> None) for JSON."""
+    """Convert numpy scalars/arrays, paths, tuples and non-finite floats (-> None) for JSON;
+    text as UTF-8 can hold it (:func:`printable`)."""
     if isinstance(obj, dict):
-        return {str(k): to_jsonable(v) for k, v in obj.items()}
+        return {printable(str(k)): to_jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [to_jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
@@ -2298,12 +2324,14 @@ def to_jsonable(obj: Any) -> Any:
         v = float(obj)
         return v if math.isfinite(v) else None
     if isinstance(obj, os.PathLike):
-        return str(obj)
-    if obj is None or isinstance(obj, str):
+        return printable(str(obj))
+    if isinstance(obj, str):
+        return printable(obj)
+    if obj is None:
         return obj
     if hasattr(obj, "to_dict"):
         return to_jsonable(obj.to_dict())
-    return str(obj)
+    return printable(str(obj))
 
 
 def write_json(path: str | os.PathLike, obj: Any, *, indent: int = 2) -> Path:

@@ -25,10 +25,11 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote
 
 import numpy as np
 
-from .io import InputError, atomic_path, display_path
+from .io import InputError, atomic_path, display_path, printable
 from .refcache import ReferenceCache
 from .result import ChangeResult
 
@@ -464,7 +465,7 @@ def write_summary_csv(path: str | os.PathLike, rows: Iterable[dict[str, str]]) -
         w = csv.DictWriter(f, fieldnames=list(SUMMARY_COLUMNS))
         w.writeheader()
         for r in rows:
-            w.writerow({k: r.get(k, "") for k in SUMMARY_COLUMNS})
+            w.writerow({k: printable(str(r.get(k, ""))) for k in SUMMARY_COLUMNS})
     return Path(path)
 
 
@@ -483,10 +484,13 @@ def write_index_html(path: str | os.PathLike, rows: Sequence[dict[str, str]], *,
     body = []
     for r in rows:
         name = html.escape(r["name"])
+        # the folder's name as a URL path segment: its bytes percent-encoded ('#', '?', '%'
+        # or a name that is not UTF-8 would otherwise break the link)
+        href = quote(os.fsencode(r["name"]), safe="")
         if r["status"] == "ok":
-            link = (f'<a href="{name}/report.html">{name}</a> '
-                    f'(<a href="{name}/viewer/index.html">viewer</a>)')
-            pic = f'<a href="{name}/report.html"><img src="{name}/overlay.png" alt=""></a>'
+            link = (f'<a href="{href}/report.html">{name}</a> '
+                    f'(<a href="{href}/viewer/index.html">viewer</a>)')
+            pic = f'<a href="{href}/report.html"><img src="{href}/overlay.png" alt=""></a>'
             status = "ok"
         else:
             link, pic = name, ""
@@ -511,5 +515,5 @@ def write_index_html(path: str | os.PathLike, rows: Sequence[dict[str, str]], *,
         + "\n".join(body) + "</table></body></html>\n"
     )
     with atomic_path(path) as tmp:
-        Path(tmp).write_text(page, encoding="utf-8")
+        Path(tmp).write_text(printable(page), encoding="utf-8")
     return Path(path)

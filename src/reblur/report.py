@@ -77,7 +77,15 @@ from .gis import (
     write_geojson,
     write_geopackage,
 )
-from .io import Image, iter_windows, to_jsonable, write_json, write_png, write_png_bands
+from .io import (
+    Image,
+    iter_windows,
+    printable,
+    to_jsonable,
+    write_json,
+    write_png,
+    write_png_bands,
+)
 from .result import ChangeResult, MotionEstimate
 from .viewer import ViewerOptions
 
@@ -958,7 +966,7 @@ table {{ border-collapse: collapse; }} th, td {{ padding: 2px 10px; text-align: 
 </body></html>
 """
     with atomic_path(path) as tmp:
-        tmp.write_text(page, encoding="utf-8")
+        tmp.write_text(printable(page), encoding="utf-8")
     return path
 
 
