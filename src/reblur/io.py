@@ -2283,9 +2283,10 @@ def write_geotiff(
 
 
 def printable(text: str) -> str:
-    """``text`` as any UTF-8 file can hold it: the bytes of a file name that is not UTF-8
-    (which Python decodes to lone surrogates, ``surrogateescape``) become ``\\xNN``
-    escapes, e.g. ``ref\\xff.tif`` for the Latin-1 name ``ref\xff.tif``.
+    r"""``text`` as any UTF-8 file can hold it: the bytes of a file name that is not UTF-8
+    (which Python decodes to lone surrogates, ``surrogateescape``) become ``\xNN``
+    escapes (the four characters), e.g. ``ref\xff.tif`` for a Latin-1 file name whose
+    fourth byte is 0xff.
 
     Examples
     --------

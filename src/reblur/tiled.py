@@ -85,10 +85,11 @@ def reblur_windows(poses: SparsePoses, reference, boxes, *, dtype=np.float32
     reblur of their span.  Each result is a view of that span's reblur, then resampled
     on its own by a displacement field if the poses have one (the field's bicubic
     resampling rounds its coordinates differently on a larger window): it equals
-    :func:`reblur_tile` on the window up to the rounding of OpenCV's single-precision warp
-    coordinates, which depend on the window a warp is built for (bit for bit with an
-    8-bit reference, whose warps run in fixed point).  Pose models with their own tile
-    reblur (:class:`reblur.rolling.RollingPoses`) reblur each window alone.
+    :func:`reblur_tile` on the window up to the rounding of OpenCV's warp coordinates,
+    which depend on the window a warp is built for (a sample moved by one 1/32 px step
+    here and there; the GoPro pairs' tie points came out bit for bit the same).  Pose
+    models with their own tile reblur (:class:`reblur.rolling.RollingPoses`) reblur each
+    window alone.
 
     Returns
     -------

@@ -224,7 +224,7 @@ def measure_shifts(
     measured on its slices: a probe's reblur costs about as much per rotation group of
     the poses as per pixel, and a dense lattice (a 1 MP image's field) covers whole rows.
     The reblurred values are those of a probe's own window, up to the rounding of OpenCV's
-    single-precision warp coordinates (see :mod:`reblur.tiled`).
+    warp coordinates (:func:`reblur.tiled.reblur_windows`).
     """
     n = available_cpus() if workers is None else int(workers)
     if n < 1:
