@@ -30,8 +30,9 @@ from .decide import (
     fit_photometry,
     tile_boxes,
 )
+from .decide._common import FIT_BLAS_THREADS, band_map
 from .decide.calibrate import calibrate_tolerance, marked_pixels, unchanged_pixels
-from .decide.photometry import FIT_BLAS_THREADS, band_map, with_model_error
+from .decide.photometry import with_model_error
 from .estimate import estimate_motion, intensity_scale
 from .grid import GridParams, PoseGrid
 from .io import chunk_cached

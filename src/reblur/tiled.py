@@ -105,11 +105,14 @@ def reblur_windows(poses: SparsePoses, reference, boxes, *, dtype=np.float32
     y0, x0 = min(g.y0 for g in grown), min(g.x0 for g in grown)
     span = Box(y0, x0, max(g.y1 for g in grown) - y0, max(g.x1 for g in grown) - x0)
     img, ok = _reblur_poses(poses, reference, span, dtype)
-    out = []
-    for b, g, p in zip(boxes, grown, pads, strict=True):
+
+    def cut(g: Box) -> tuple[np.ndarray, np.ndarray]:  # a window's part of the span
         sl = (slice(g.y0 - y0, g.y1 - y0), slice(g.x0 - x0, g.x1 - x0))
-        out.append((img[sl], ok[sl]) if fld is None else fld.resample(img[sl], b, ok[sl], p))
-    return out
+        return img[sl], ok[sl]
+
+    if fld is None:
+        return [cut(b) for b in boxes]
+    return [fld.displaced(cut, b) for b in boxes]  # each grown by its own pad, as alone
 
 
 def _reblur_poses(poses: SparsePoses, reference, box: Box, dtype) -> tuple[np.ndarray,
