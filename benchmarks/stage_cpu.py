@@ -110,8 +110,14 @@ def main(argv: list[str] | None = None) -> dict[str, list[float]]:
         print(f"{spec:45s} {n:5d} {wall:7.2f} {cpu:7.2f} {flt:8d}")
     if prof is not None:
         print(f"\nprofile of {a.profile} (internal time, then cumulative):")
-        for key in ("tottime", "cumulative"):
-            pstats.Stats(prof).sort_stats(key).print_stats(a.top)
+        try:
+            stats = pstats.Stats(prof)
+        except TypeError:  # nothing was recorded
+            print(f"{a.profile} was not called through that name: name the module that "
+                  "calls it (e.g. reblur.select:estimate_motion)")
+        else:
+            for key in ("tottime", "cumulative"):
+                stats.sort_stats(key).print_stats(a.top)
     return acc
 
 

@@ -8,7 +8,9 @@ image under 2500 px) with every pose of the path, whose Gram products grow with 
 windows' pixels times the active poses.  This benchmark measures the trade the target
 asks for: each pair through ``reblur detect`` in a fresh process with its defaults, then
 again with the central ``S x S`` part of each window the default run chose (``--box``),
-for every side ``S`` of ``--sides``.
+for every side ``S`` of ``--sides``, and with each configuration file of ``--configs``
+(``reblur detect --config``; by default ``benchmarks/configs/bands_all.toml``, the
+weights solved on every band instead of their mean).
 
 Per run: the estimate's and the whole run's time (``report.json``), its outer iterations,
 the share flagged, and the fidelity of the blur model away from the windows: the PSNR of
@@ -38,14 +40,19 @@ from benchmarks.quality import _rgb
 
 #: Window sides (px) tried besides the default.
 SIDES = (400, 320, 256)
+#: Configurations tried besides the default: the motion solved on every band.
+CONFIGS = (str(Path(__file__).parent / "configs" / "bands_all.toml"),)
 
 
-def _detect(ref: Path, obs: Path, out: Path, boxes: list[str]) -> dict:
+def _detect(ref: Path, obs: Path, out: Path, boxes: list[str], config: str | None = None
+            ) -> dict:
     """``reblur detect`` in a fresh process; its report, with the wall time."""
     cmd = [sys.executable, "-m", "reblur", "detect", str(ref), str(obs), "--out", str(out),
            "-q"]
     for b in boxes:
         cmd += ["--box", b]
+    if config is not None:
+        cmd += ["--config", config]
     t = time.perf_counter()
     r = subprocess.run(cmd, capture_output=True, text=True, check=False)
     if r.returncode:
@@ -61,20 +68,21 @@ def _centred(windows: list[list[int]], side: int) -> list[str]:
             for y, x, h, w in windows if min(h, w) >= side]
 
 
-def measure_pair(name: str, ref: Path, obs: Path, sides=SIDES) -> list[dict]:
-    """Rows of one pair: the default run, then one per side."""
+def measure_pair(name: str, ref: Path, obs: Path, sides=SIDES, configs=()) -> list[dict]:
+    """Rows of one pair: the default run, then one per side and one per configuration."""
     g = _rgb(obs).astype(np.float64)
     rows, images = [], []
     keep = np.ones(g.shape[:2], bool)
     with tempfile.TemporaryDirectory() as tmp:
-        runs = [("default", [])]
+        runs = [("default", [], None)]
         rep = _detect(ref, obs, Path(tmp) / "default", [])
         windows = rep["motion"]["info"]["windows"]
-        runs += [(str(s), _centred(windows, s)) for s in sides]
-        for label, boxes in runs:
-            out = Path(tmp) / label
-            if label != "default":
-                rep = _detect(ref, obs, out, boxes)
+        runs += [(str(s), _centred(windows, s), None) for s in sides]
+        runs += [(Path(c).stem, [], c) for c in configs]
+        for i, (label, boxes, config) in enumerate(runs):
+            out = Path(tmp) / (label if i == 0 else f"{i}")
+            if i > 0:
+                rep = _detect(ref, obs, out, boxes, config)
             reb = tifffile.imread(out / "reblurred.tif").astype(np.float64) / 255.0
             keep &= cv2.imread(str(out / "changes.png"), cv2.IMREAD_GRAYSCALE) == 0
             keep &= cv2.imread(str(out / "unknown.png"), cv2.IMREAD_GRAYSCALE) == 0
@@ -103,7 +111,7 @@ def table(rows: list[dict]) -> str:
     return "\n".join(out)
 
 
-def main(sides=SIDES) -> str:
+def main(sides=SIDES, configs=CONFIGS) -> str:
     """Run the GoPro pairs; return the markdown section."""
     from benchmarks.common import DATA
 
@@ -115,14 +123,15 @@ def main(sides=SIDES) -> str:
         if not (ref_p.exists() and obs_p.exists()):
             print(f"skipped {name}: {ref_p} or {obs_p} missing", file=sys.stderr)
             continue
-        for r in measure_pair(name, ref_p, obs_p, sides):
+        for r in measure_pair(name, ref_p, obs_p, sides, configs):
             print(json.dumps(r), flush=True)
             rows.append(r)
     load = os.getloadavg()[0]
     return ("## Estimation window side on real shake (`python -m benchmarks.window_side`)\n\n"
             "Each GoPro pair with its default windows, then with the central part of each "
-            "(`--box`). PSNR of `reblurred.tif` against the observation over the pixels "
-            "every run of the pair left known and unflagged.\n\n"
+            "(`--box`), then with each `--configs` file. PSNR of `reblurred.tif` against "
+            "the observation over the pixels every run of the pair left known and "
+            "unflagged.\n\n"
             f"{table(rows)}\n\n- host load average at the end: {load:.1f} on 2 cores\n")
 
 
@@ -130,5 +139,9 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(prog="python -m benchmarks.window_side")
     ap.add_argument("--sides", default=",".join(map(str, SIDES)),
                     help="window sides (px) to try besides the default, comma-separated")
+    ap.add_argument("--configs", default=",".join(CONFIGS),
+                    help="reblur detect --config files to run besides the default, "
+                         "comma-separated")
     a = ap.parse_args()
-    print(main(tuple(int(s) for s in a.sides.split(",") if s)))
+    print(main(tuple(int(s) for s in a.sides.split(",") if s),
+               tuple(c for c in a.configs.split(",") if c)))

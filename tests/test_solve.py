@@ -702,3 +702,77 @@ def test_kkt_scale_is_the_gradient_at_zero_for_any_start(one_sided):
     psi_w = 2 * np.clip(r0, -delta, delta) if s is None else np.where(r0 > delta, 2 * delta,
                                                                         2 * r0)
     assert np.abs(A.T @ psi_w).max() < 0.1 * scale
+
+
+def test_band_mean_estimate_keeps_the_change_term_per_band(levir_rgb, paper_grid):
+    """Weights solved on the band mean of an RGB pair (``bands="mean"``): the path is
+    found, and the change term, the fit's PSNR and the change share are those of the
+    weights' residual in every band, checked against the slow explicit blur
+    (``blur_weights``): a change in one band shows in that band only."""
+    w_true = grid_path(paper_grid, rng=3, n_poses=20)
+    g, _ = blur_weights(levir_rgb, paper_grid, w_true, BOX, dtype=np.float64)
+    g[100:160, 200:260, 0] += 0.4  # the red band only
+    est = estimate_motion(levir_rgb, _embed(g, levir_rgb.shape), paper_grid, boxes=[BOX],
+                          lam=0.1, bands="mean")
+    assert est.info["bands"] == "mean"
+    assert mass_near_truth(est.weights, w_true) >= 0.9
+    fit, valid = blur_weights(levir_rgb, paper_grid, est.weights, BOX, dtype=np.float32)
+    assert valid.all()
+    r = g - fit
+    chi = est.chi[0]
+    assert chi.shape == g.shape
+    np.testing.assert_allclose(chi, soft_threshold(r, 0.05), atol=1e-5)
+    assert (chi[100:160, 200:260, 0] != 0).mean() >= 0.95
+    assert not chi[100:160, 200:260, 1:].any()
+    assert est.info["psnr"][0] == pytest.approx(psnr(fit, g), abs=1e-4)
+    share = float((chi != 0).any(axis=2).mean())
+    assert est.info["occluded"][0] == pytest.approx(share, abs=1e-9)
+    assert share >= 60 * 60 / 512**2
+
+
+def test_band_mean_refit_gives_an_offset_per_band(levir_rgb, paper_grid):
+    """An offset on every band of an RGB observation (synthetic truth): the refit on the
+    band mean reports it once per band, as the solve on every band does."""
+    w_true = grid_path(paper_grid, rng=11, n_poses=25)
+    clean, _ = blur_weights(levir_rgb, paper_grid, w_true, BOX, dtype=np.float64)
+    obs = _embed(0.95 * clean + 0.03, levir_rgb.shape)
+    for bands in ("mean", "all"):
+        est = estimate_motion(levir_rgb, obs, paper_grid, boxes=[BOX], refit_photometry=True,
+                              bands=bands)
+        offset = est.info["photometry"]["offset"]
+        assert len(offset) == 3
+        np.testing.assert_allclose(offset, 0.03, atol=1e-3)
+        assert mass_near_truth(est.weights, w_true) >= 0.9
+
+
+def test_support_grid_holds_every_weighted_pose():
+    """The sub-grid of the poses with weight: the same poses (values, not indices) with
+    the same weights, and nothing else with weight; fewer poses than the grid."""
+    from reblur.estimate import _support_grid
+
+    grid = PoseGrid((300, 400), tx=np.arange(-4, 5), ty=np.arange(-3, 4),
+                    rz=[-1.0, -0.5, 0.0, 0.5, 1.0], tz=[-0.01, 0.0, 0.01])
+    rng = np.random.default_rng(5)
+    w = np.zeros(grid.shape)
+    for _ in range(12):
+        b = rng.choice([1, 2, 6, 7])  # tz -0.01 / 0.0, rz -0.5 / 0.0 / 1.0 among them
+        w[b, rng.integers(2, 6), rng.integers(1, 5)] = rng.random() + 0.1
+    sub, w_sub = _support_grid(w, grid)
+
+    def poses(g, ws):
+        return {(g.bases[b], g.ty[i], g.tx[j], v) for b, i, j, v in g.nonzero(ws)}
+
+    assert poses(sub, w_sub) == poses(grid, w)
+    assert sub.size < grid.size and w_sub.sum() == pytest.approx(w.sum())
+    empty, w_empty = _support_grid(np.zeros(grid.shape), grid)
+    assert empty is grid and not w_empty.any()
+
+
+def test_bands_option_is_checked(levir_gray):
+    from reblur.select import SelectParams
+
+    with pytest.raises(ValueError, match="bands"):
+        SelectParams(bands="red")
+    with pytest.raises(ValueError, match="bands"):
+        estimate_motion(levir_gray, levir_gray, PoseGrid.paper(levir_gray.shape),
+                        bands="luma")

@@ -743,7 +743,8 @@ def _estimate_stage(
     sp = select or SelectParams(lam=lam, windows=windows)
     if boxes is not None:
         motion = estimate_motion(reference, obs_view, grid, boxes=boxes, base=H0, lam=lam,
-                                 scale=None, refit_photometry=sp.refit_photometry)
+                                 scale=None, refit_photometry=sp.refit_photometry,
+                                 bands=sp.bands)
         crop = CropChoice(boxes=[tuple(b) for b in motion.boxes], size=int(boxes[0][2]))
     else:
         crop, motion = select_windows(

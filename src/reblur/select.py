@@ -75,6 +75,10 @@ class SelectParams:
     #: remove the photometric offset on the final windows after the motion
     #: (``estimate_motion(refit_photometry=True)``)
     refit_photometry: bool = True
+    #: what the weights are solved on for images of several bands: ``"mean"``, their
+    #: band mean (a third of the solver's cost for RGB; the change term and the fit's
+    #: figures stay per band), or ``"all"`` (``estimate_motion(bands=)``)
+    bands: str = "mean"
     overview_side: int = 1024  #: resolution of the region-score map
     extra: dict = field(default_factory=dict)
 
@@ -96,6 +100,8 @@ class SelectParams:
                                                      and 0 <= self.unfit_rtol < 1):
             raise ValueError(f"SelectParams.unfit_rtol must lie in [0, 1), got "
                              f"{self.unfit_rtol!r}")
+        if self.bands not in ("mean", "all"):
+            raise ValueError(f"SelectParams.bands must be 'mean' or 'all', got {self.bands!r}")
         if self.s_start > self.s_max:
             raise ValueError(f"SelectParams.s_start ({self.s_start}) must be at most s_max "
                              f"({self.s_max})")
@@ -616,7 +622,8 @@ class _Runs:
         p = self.p
         est = estimate_motion(*self.args, boxes=[c.as_tuple() for c in chosen],
                               base=self.base, lam=p.lam, refit_photometry=p.refit_photometry,
-                              stop_occluded=p.max_occluded if stop else None, **kw)
+                              stop_occluded=p.max_occluded if stop else None, bands=p.bands,
+                              **kw)
         self.n_outer += int(est.info["n_outer"])
         self.runs.append((list(chosen), est))
         return est
@@ -641,7 +648,7 @@ class _Runs:
                                   base=self.base, lam=p.lam,
                                   refit_photometry=p.refit_photometry,
                                   resume=est.info["resume"], max_outer=p.unfit_outer,
-                                  rtol=p.unfit_rtol)
+                                  rtol=p.unfit_rtol, bands=p.bands)
             self.n_outer += int(est.info["n_outer"])
         est.info.pop("resume", None)
         est.info["selection"] = dict(estimates=len(self.runs), n_outer=self.n_outer,
