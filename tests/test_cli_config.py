@@ -59,6 +59,7 @@ def pair(tmp_path_factory) -> tuple[Path, Path]:
     ("[select]\nwindows = 0\n", "SelectParams.windows must be an integer >= 1, got 0"),
     ("[rolling]\nn_bands = 0\n", "RollingParams.n_bands must be >= 1"),
     ("[select]\nextra = 1\n", "[select] unknown key 'extra'"),
+    ("[select]\nbands = \"red\"\n", "SelectParams.bands must be 'mean' or 'all', got 'red'"),
     ("[decision\nmin_area = 50\n", "not valid TOML"),
     # TOML's nan and inf are numbers, never settings (nan passed `smooth < 0` silently)
     ("[decision]\nsmooth = nan\n", "[decision] smooth must be a finite number, got nan"),
@@ -130,6 +131,30 @@ def test_config_and_flags_in_a_run(tmp_path, pair, explicit_lam):
     assert rep["options"]["decision"]["min_area"] == 50
     assert rep["options"]["config"] == str(cfg)
     assert rep["motion"]["boxes"] == [[20, 30, 200, 250]]
+
+
+def test_colour_motion_on_the_band_mean_or_every_band(tmp_path):
+    """The demo pair (RGB): by default the motion is solved on the band mean, with
+    ``[select] bands = "all"`` on every band; report.json says which, the change term of
+    the windows stays per band, and both masks score alike against the pair's truth."""
+    from reblur.data import demo_paths
+
+    paths = demo_paths()
+    truth = cv2.imread(str(paths["truth"]), cv2.IMREAD_GRAYSCALE) > 127
+    cfg = tmp_path / "all.toml"
+    cfg.write_text('[select]\nbands = "all"\n')
+    jc = {}
+    for bands, extra in (("mean", ()), ("all", ("--config", cfg))):
+        out = tmp_path / bands
+        res = _run("detect", paths["reference"], paths["observed"], "--out", out, "-q",
+                   *extra)
+        assert res.returncode == 0, res.stderr
+        info = json.loads((out / "report.json").read_text())["motion"]["info"]
+        assert info["bands"] == bands
+        assert len(info["photometry"]["offset"]) == 3
+        changes = cv2.imread(str(out / "changes.png"), cv2.IMREAD_UNCHANGED) > 0
+        jc[bands] = (changes & truth).sum() / (changes | truth).sum()
+    assert min(jc.values()) >= 0.75 and abs(jc["mean"] - jc["all"]) <= 0.01, jc
 
 
 @pytest.mark.parametrize("value", ["1,2,3", "0,0,4,4", "a,b,c,d", "-1,0,100,100"])
