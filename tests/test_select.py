@@ -183,3 +183,18 @@ def test_kernel_similarity_against_direct_correlation():
         assert abs(_ncc_max(a, b, sigma=0.0) - want) <= 1e-12
     a = rng.random((9, 9))
     assert abs(_ncc_max(a, a, sigma=0.0) - 1.0) <= 1e-12
+
+
+def test_kernel_similarity_on_the_band_mean_is_that_of_the_mean_image(levir_rgb):
+    """``bands="mean"`` measures the kernels of a colour pair on its band mean: the same
+    measure and kernels as the explicitly averaged gray pair (an independent route)."""
+    ref = levir_rgb.astype(np.float32)
+    grid = PoseGrid.paper(ref.shape[:2])
+    g, _ = blur_along_path(ref, _path(0.0, 6.0), dtype=np.float32)
+    obs = g.reshape(ref.shape)
+    box = (312, 312, 400, 400)
+    m, kernels = kernel_similarity(ref, obs, box, grid, bands="mean")
+    m_gray, kernels_gray = kernel_similarity(ref.mean(axis=2), obs.mean(axis=2), box, grid)
+    assert m == pytest.approx(m_gray, abs=1e-6)
+    for k, kg in zip(kernels, kernels_gray, strict=True):
+        np.testing.assert_allclose(k, kg, atol=1e-5)

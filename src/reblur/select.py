@@ -184,13 +184,14 @@ def _patch_boxes(box: Box, gamma: int, patch: int) -> list[Box]:
 
 def kernel_similarity(
     reference, observed, box, grid: PoseGrid, *, base=None, gamma: int = 4, patch: int = 41,
-    lam: float = 0.1,
+    lam: float = 0.1, bands: str = "all",
 ) -> tuple[float, list[np.ndarray]]:
     """Kernel-similarity measure ``m`` of a window (eq. 7-8).
 
     Translation-only kernels (the grid's translations, no rotation) are estimated by eq. 3
-    on ``gamma`` scattered ``patch x patch`` patches; ``m`` is the mean over pairs of the
-    maximum normalised cross-correlation of their kernels (1 = identical kernels).
+    on ``gamma`` scattered ``patch x patch`` patches (on every band or on their mean:
+    :func:`reblur.estimate.estimate_motion`'s ``bands``); ``m`` is the mean over pairs of
+    the maximum normalised cross-correlation of their kernels (1 = identical kernels).
 
     Returns
     -------
@@ -205,7 +206,7 @@ def kernel_similarity(
     for pb in _patch_boxes(box, gamma, min(patch, box.h, box.w)):
         est = estimate_motion(
             reference, observed, tgrid, boxes=[pb.as_tuple()], base=base, lam=lam,
-            occlusion=False, max_outer=20,
+            occlusion=False, max_outer=20, bands=bands,
         )
         kernels.append(est.weights[0])
     pairs = list(itertools.combinations(range(len(kernels)), 2))
@@ -408,7 +409,7 @@ def select_windows(
     def measure(b: Box) -> float:
         m, _ = kernel_similarity(
             reference, observed, b.as_tuple(), grid, base=base, gamma=p.gamma, patch=p.patch,
-            lam=p.lam,
+            lam=p.lam, bands=p.bands,
         )
         return m
 
