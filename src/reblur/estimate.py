@@ -18,7 +18,7 @@ from .robust import huber_line, mad
 from .solve import Scratch, active_set, fista
 from .warp import as_box, read_window
 
-__all__ = ["BandMean", "estimate_motion", "intensity_scale", "soft_threshold"]
+__all__ = ["estimate_motion", "intensity_scale", "soft_threshold"]
 
 
 def intensity_scale(dtype) -> float:
@@ -229,7 +229,7 @@ def estimate_motion(
     on_mean = bands == "mean" and not two_d and int(observed.shape[2]) > 1
     ref_bands, obs_bands = reference, observed
     if on_mean:
-        reference, observed = BandMean(reference), BandMean(observed)
+        reference, observed = _BandMean(reference), _BandMean(observed)
     levels = []
     scratch = Scratch()  # the solver's work memory, shared by every solve below
     if threads is None:
@@ -294,7 +294,7 @@ def estimate_motion(
     )
 
 
-class BandMean:
+class _BandMean:
     """Lazy band mean of an ``(H, W, C)`` array-like: slices of it are ``(h, w)`` float32.
 
     What :func:`estimate_motion` solves on with ``bands="mean"``.  An ``exclude`` of the
