@@ -44,11 +44,11 @@ SIDES = (400, 320, 256)
 CONFIGS = (str(Path(__file__).parent / "configs" / "bands_all.toml"),)
 
 
-def _detect(ref: Path, obs: Path, out: Path, boxes: list[str], config: str | None = None
-            ) -> dict:
+def _detect(ref: Path, obs: Path, out: Path, boxes: list[str], config: str | None = None,
+            shutter: str = "global") -> dict:
     """``reblur detect`` in a fresh process; its report, with the wall time."""
     cmd = [sys.executable, "-m", "reblur", "detect", str(ref), str(obs), "--out", str(out),
-           "-q"]
+           "-q", "--shutter", shutter]
     for b in boxes:
         cmd += ["--box", b]
     if config is not None:
@@ -68,21 +68,23 @@ def _centred(windows: list[list[int]], side: int) -> list[str]:
             for y, x, h, w in windows if min(h, w) >= side]
 
 
-def measure_pair(name: str, ref: Path, obs: Path, sides=SIDES, configs=()) -> list[dict]:
-    """Rows of one pair: the default run, then one per side and one per configuration."""
+def measure_pair(name: str, ref: Path, obs: Path, sides=SIDES, configs=(),
+                 shutter: str = "global") -> list[dict]:
+    """Rows of one pair: the default run, then one per side and one per configuration,
+    all with ``reblur detect --shutter shutter``."""
     g = _rgb(obs).astype(np.float64)
     rows, images = [], []
     keep = np.ones(g.shape[:2], bool)
     with tempfile.TemporaryDirectory() as tmp:
         runs = [("default", [], None)]
-        rep = _detect(ref, obs, Path(tmp) / "default", [])
+        rep = _detect(ref, obs, Path(tmp) / "default", [], shutter=shutter)
         windows = rep["motion"]["info"]["windows"]
         runs += [(str(s), _centred(windows, s), None) for s in sides]
         runs += [(Path(c).stem, [], c) for c in configs]
         for i, (label, boxes, config) in enumerate(runs):
             out = Path(tmp) / (label if i == 0 else f"{i}")
             if i > 0:
-                rep = _detect(ref, obs, out, boxes, config)
+                rep = _detect(ref, obs, out, boxes, config, shutter)
             reb = tifffile.imread(out / "reblurred.tif").astype(np.float64) / 255.0
             keep &= cv2.imread(str(out / "changes.png"), cv2.IMREAD_GRAYSCALE) == 0
             keep &= cv2.imread(str(out / "unknown.png"), cv2.IMREAD_GRAYSCALE) == 0
@@ -93,6 +95,8 @@ def measure_pair(name: str, ref: Path, obs: Path, sides=SIDES, configs=()) -> li
                 "side": int(max(max(w[2], w[3]) for w in mi["windows"])),
                 "estimate_s": rep["timings_s"]["estimate"], "total_s": rep["_seconds"],
                 "n_outer": mi["n_outer"], "flagged": rep["changes"]["changed_fraction"],
+                "shutter": rep["decision"].get("shutter", {}).get("model", "global"),
+                "shutter_s": rep["timings_s"].get("shutter", 0.0),
             })
     for row, reb in zip(rows, images, strict=True):
         row["psnr_db"] = psnr(reb, g, keep)
@@ -101,17 +105,20 @@ def measure_pair(name: str, ref: Path, obs: Path, sides=SIDES, configs=()) -> li
 
 
 def table(rows: list[dict]) -> str:
-    out = ["| pair | windows | side (px) | estimate (s) | total (s) | outer iterations | "
-           "flagged | reblur PSNR (dB) | pixels scored |",
-           "|---|---|---|---|---|---|---|---|---|"]
+    out = ["| pair | windows | side (px) | estimate (s) | shutter (s) | total (s) | "
+           "outer iterations | flagged | reblur PSNR (dB) | pixels scored |",
+           "|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
+        sh = "-" if r["shutter"] == "global" and not r["shutter_s"] else \
+            f"{r['shutter']} {r['shutter_s']:.2f}"
         out.append(f"| {r['pair']} | {r['windows']} | {r['side']} | {r['estimate_s']:.2f} | "
-                   f"{r['total_s']:.2f} | {r['n_outer']} | {100 * r['flagged']:.2f} % | "
-                   f"{r['psnr_db']:.2f} | {100 * r['pixels_scored']:.1f} % |")
+                   f"{sh} | {r['total_s']:.2f} | {r['n_outer']} | "
+                   f"{100 * r['flagged']:.2f} % | {r['psnr_db']:.2f} | "
+                   f"{100 * r['pixels_scored']:.1f} % |")
     return "\n".join(out)
 
 
-def main(sides=SIDES, configs=CONFIGS) -> str:
+def main(sides=SIDES, configs=CONFIGS, shutter: str = "global") -> str:
     """Run the GoPro pairs; return the markdown section."""
     from benchmarks.common import DATA
 
@@ -123,7 +130,7 @@ def main(sides=SIDES, configs=CONFIGS) -> str:
         if not (ref_p.exists() and obs_p.exists()):
             print(f"skipped {name}: {ref_p} or {obs_p} missing", file=sys.stderr)
             continue
-        for r in measure_pair(name, ref_p, obs_p, sides, configs):
+        for r in measure_pair(name, ref_p, obs_p, sides, configs, shutter):
             print(json.dumps(r), flush=True)
             rows.append(r)
     load = os.getloadavg()[0]
@@ -142,6 +149,8 @@ if __name__ == "__main__":
     ap.add_argument("--configs", default=",".join(CONFIGS),
                     help="reblur detect --config files to run besides the default, "
                          "comma-separated")
+    ap.add_argument("--shutter", default="global", choices=("global", "auto", "rolling"),
+                    help="reblur detect --shutter of every run")
     a = ap.parse_args()
     print(main(tuple(int(s) for s in a.sides.split(",") if s),
-               tuple(c for c in a.configs.split(",") if c)))
+               tuple(c for c in a.configs.split(",") if c), a.shutter))

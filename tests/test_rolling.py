@@ -446,3 +446,52 @@ def test_band_model_dropped_when_the_full_window_refit_reads_no_readout(scene, m
     assert dropped.criterion["readout_final"] == 0.5 * p.min_readout
     assert "refit" in dropped.criterion["rule"]
     assert dropped.motion is dropped.global_
+
+
+def test_refit_on_the_band_mean_keeps_the_choice_and_reports_per_band(scene):
+    """An RGB rolling pair (r = 0.5, three differently textured bands): with
+    ``bands="mean"`` the full-window band refit is solved on the band mean (its operators
+    one band), the choice and the readout are those of the refit on every band (within
+    0.05 of the truth), and its change term and fit are per band: each window's PSNR is
+    that of the colour residual of the weights found, computed here with fresh RGB band
+    operators."""
+    import reblur.rolling as R
+
+    rgb = np.stack([scene, np.rot90(scene), scene[::-1]], axis=2)
+    hs = _translation_path(scene.shape, 64, 0.5)
+    obs, _ = render_rolling_tiled(rgb, hs, readout=0.5, n_exposure=64)
+    grid = PoseGrid(scene.shape, tx=np.arange(-8, 9), ty=np.arange(-4, 5))
+    p = RollingParams(n_bands=6, side=128)  # the choice on 64 px parts, then the refit
+    boxes = rolling_windows(scene.shape, p.n_bands, p.side, p.columns)
+    w = estimate_motion(rgb, obs, grid, boxes=boxes, lam=1e-3, occlusion=False,
+                        bands="mean").weights
+    fit = R._fit
+    seen = []
+
+    def recorded(ops, gs, bands, *args):
+        seen.append((bands.n_bands, ops[0].dimsd[2]))
+        return fit(ops, gs, bands, *args)
+
+    choices = {}
+    for bands in ("all", "mean"):
+        seen.clear()
+        R._fit = recorded
+        try:
+            choices[bands] = choose_shutter(rgb, obs, grid, w_start=w, lam=1e-3,
+                                            occlusion=False, params=p, bands=bands)
+        finally:
+            R._fit = fit
+        # the choice on the parts in RGB either way; the refit on the bands or their mean
+        assert seen == [(1, 3), (6, 3), (6, 3 if bands == "all" else 1)]
+    for choice in choices.values():
+        assert choice.model == "rolling"
+        assert abs(choice.rolling.info["readout"] - 0.5) <= 0.05, choice.rolling.info
+    roll = choices["mean"].rolling
+    assert roll.info["bands"] == "mean" and choices["all"].rolling.info["bands"] == "all"
+    many = RowBands(scene.shape[0], p.n_bands)
+    for box, chi, got in zip(roll.boxes, roll.chi, roll.info["psnr"], strict=True):
+        op = RollingOperator(rgb, roll.grid, box, many)
+        y, x, h, wd = box
+        r = obs[y : y + h, x : x + wd] - op.matvec(roll.weights)
+        assert chi.shape == (h, wd, 3)
+        assert got == pytest.approx(10 * np.log10(1 / np.mean(r[op.valid] ** 2)), abs=1e-6)

@@ -826,11 +826,11 @@ READOUT_MEANING = (
 
 
 def _shutter_stage(reference, view, grid, H0, weights, shutter, params, lam, poses,
-                   calibration, local_field):
+                   calibration, local_field, bands="all"):
     """The rolling-shutter model (``shutter="rolling"``) or the choice (``"auto"``):
     the poses and calibration windows to decide with, and the record of the choice."""
     choice = choose_shutter(reference, view, grid, w_start=weights, base=H0, lam=lam,
-                            params=params)
+                            params=params, bands=bands)
     model = "rolling" if shutter == "rolling" else choice.model
     info = dict(asked=shutter, model=model, criterion=choice.criterion,
                 readout=choice.rolling.info["readout"],
@@ -1090,7 +1090,8 @@ def detect_changes(
         t_sh = time.perf_counter()
         poses, calibration, shutter_info = _shutter_stage(
             reference, ScaledView(observed, s_obs, gain, offset), grid, H0, motion.weights,
-            shutter, rolling, lam, poses, calibration, local_field)
+            shutter, rolling, lam, poses, calibration, local_field,
+            bands=(select or SelectParams()).bands)
         timings["shutter"] = time.perf_counter() - t_sh
         t = time.perf_counter()
     keep = (Ho * Wo <= KEEP_REBLURRED_PIXELS) if keep_reblurred is None else keep_reblurred

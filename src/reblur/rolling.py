@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from .estimate import RTOL, _shrink, coarse_side, intensity_scale, soft_threshold
+from .estimate import RTOL, _BandMean, _shrink, coarse_side, intensity_scale, soft_threshold
 from .grid import PoseGrid, map_points
 from .operator import BlurOperator
 from .solve import active_set
@@ -481,11 +481,17 @@ def embed_weights(w: np.ndarray, sub: PoseGrid, full: PoseGrid) -> np.ndarray:
     return out
 
 
-def _window_operators(reference, observed, grid: PoseGrid, boxes, base, scale):
-    """Window operators (global, on ``grid``) and the observation windows in [0, 1]."""
+def _window_operators(reference, observed, grid: PoseGrid, boxes, base, scale,
+                      band_mean: bool = False, spectra: bool = True):
+    """Window operators (global, on ``grid``) and the observation windows in [0, 1]; on
+    the band mean of both images with ``band_mean`` (their own scales); without the
+    spectra (``spectra=False``) when only ``matvec`` will be asked of them."""
     s_ref = intensity_scale(reference.dtype) if scale is None else scale
     s_obs = intensity_scale(observed.dtype) if scale is None else scale
-    ops = [BlurOperator(reference, grid, b, base=base, scale=s_ref) for b in boxes]
+    if band_mean:
+        reference, observed = _BandMean(reference), _BandMean(observed)
+    ops = [BlurOperator(reference, grid, b, base=base, scale=s_ref, spectra=spectra)
+           for b in boxes]
     gs = [read_window(observed, b, np.float64) / s_obs for b in boxes]
     for op, g in zip(ops, gs, strict=True):  # no data (NaN) in the observation: left out
         fin = np.isfinite(g)
@@ -859,6 +865,7 @@ def choose_shutter(
     params: RollingParams | None = None,
     boxes: Sequence | None = None,
     scale: float | None = None,
+    bands: str = "all",
 ) -> ShutterChoice:
     """Fit the global and the rolling model on the same windows and pick one.
 
@@ -889,6 +896,12 @@ def choose_shutter(
     global model is kept (``criterion["refit_rejected"]``): the band model is worth its
     unknowns only for the drift, and the parts' estimate of it can be a fluke of their
     few pixels.
+
+    ``bands="mean"`` solves that full-window refit of an image of several bands on their
+    mean (a third of its cost for RGB: it is most of a rolling pair's choice), its change
+    term and fit figures then computed per band (as
+    :func:`reblur.estimate.estimate_motion`'s ``bands``); the choice itself is made on
+    every band either way.
     """
     t0 = time.perf_counter()
     p = params or RollingParams()
@@ -903,12 +916,21 @@ def choose_shutter(
                                  occlusion, p)
     rolling = crit.pop("rolling")
     crit["refit_rejected"] = False
+    if bands not in ("all", "mean"):
+        raise ValueError(f"bands must be 'all' or 'mean', got {bands!r}")
     if rolling and coarse:
         del ops, gs
-        ops, gs = _window_operators(reference, observed, sub, boxes, base, scale)
+        on_mean = bands == "mean" and len(observed.shape) == 3 and observed.shape[2] > 1
+        ops, gs = _window_operators(reference, observed, sub, boxes, base, scale,
+                                    band_mean=on_mean)
         many = RowBands(grid.image_shape[0], p.n_bands)
         wr, rinfo, rops = _fit(ops, gs, many, roll.weights, lam, occlusion, p.max_outer)
+        if on_mean:  # the change term and the fit per band, from the weights found
+            ops, gs = _window_operators(reference, observed, sub, boxes, base, scale,
+                                        spectra=False)
+            rops = [RollingOperator.on(op, many) for op in ops]
         roll = _motion(wr, rinfo, rops, gs, sub, many, boxes, lam, occlusion)
+        roll.info["bands"] = "mean" if on_mean else "all"
         crit["fits"].append(dict(n_bands=p.n_bands, n_outer=rinfo["n_outer"], full=True))
         if not roll.info["readout"] >= p.min_readout:  # the full windows see no drift
             rolling = False
