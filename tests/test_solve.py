@@ -776,3 +776,26 @@ def test_bands_option_is_checked(levir_gray):
     with pytest.raises(ValueError, match="bands"):
         estimate_motion(levir_gray, levir_gray, PoseGrid.paper(levir_gray.shape),
                         bands="luma")
+
+
+def test_photometric_rounds_stop_at_the_refit_rtol(levir_gray, paper_grid, monkeypatch):
+    """The photometric rounds re-solve from the weights found with ``rtol`` at least
+    ``REFIT_RTOL`` (the first solve keeps its own), and still recover the offset."""
+    import reblur.estimate as E
+
+    w_true = grid_path(paper_grid, rng=11, n_poses=25)
+    clean, _ = blur_weights(levir_gray, paper_grid, w_true, BOX, dtype=np.float32)
+    obs = _embed(0.93 * clean + 0.035, levir_gray.shape)
+    seen = []
+    solve = E.active_set
+
+    def recorded(*args, **kw):
+        seen.append((kw.get("w0") is not None, kw["rtol"]))
+        return solve(*args, **kw)
+
+    monkeypatch.setattr(E, "active_set", recorded)
+    est = estimate_motion(levir_gray, obs, paper_grid, boxes=[BOX], refit_photometry=True)
+    assert seen[0] == (False, E.RTOL)  # the solve itself
+    rounds = [rtol for warm, rtol in seen[1:] if warm]
+    assert rounds and all(r == E.REFIT_RTOL > E.RTOL for r in rounds)
+    assert abs(est.info["photometry"]["offset"][0] - 0.035) <= 5e-4

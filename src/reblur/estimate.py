@@ -523,6 +523,13 @@ def _fit_gain_offset(ops, gs, w, lam, occlusion):
     return a, b, scale, n_used
 
 
+#: ``rtol`` of the photometric rounds' solves (:func:`_refit_photometry`), at least: each
+#: starts from the weights found, whose support barely moves, and its outer iterations that
+#: lower the objective by less than this add poses that take up what is left of the
+#: offset (GoPro 0374: 5 outer iterations -> 3, reblur PSNR 34.234 -> 34.233 dB).
+REFIT_RTOL = 1e-3
+
+
 def _refit_photometry(ops, gs, w, info, lam, occlusion, max_outer, time_limit,
                       max_rounds: int = 4, tol: float = 1e-4, scratch=None, rtol=0.0):
     """Find the offset ``B`` (per band) with which eq. 5 on ``g - B`` leaves no offset.
@@ -569,7 +576,8 @@ def _refit_photometry(ops, gs, w, info, lam, occlusion, max_outer, time_limit,
         gs_new = [g - B_new for g in g0]
         w_new, more = active_set(ops, gs_new, lam=lam, occlusion=occlusion,
                                  max_outer=max_outer, time_limit=time_limit, w0=w,
-                                 scratch=scratch, workers=ops[0].threads, rtol=rtol)
+                                 scratch=scratch, workers=ops[0].threads,
+                                 rtol=max(rtol, REFIT_RTOL))
         info["n_outer"] = int(info.get("n_outer", 0)) + int(more["n_outer"])
         info["time_s"] = float(info.get("time_s", 0.0)) + float(more["time_s"])
         obj = float(more["objective"][-1])
