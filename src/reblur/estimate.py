@@ -526,7 +526,8 @@ def _fit_gain_offset(ops, gs, w, lam, occlusion):
 #: ``rtol`` of the photometric rounds' solves (:func:`_refit_photometry`), at least: each
 #: starts from the weights found, whose support barely moves, and its outer iterations that
 #: lower the objective by less than this add poses that take up what is left of the
-#: offset (GoPro 0374: 5 outer iterations -> 3, reblur PSNR 34.234 -> 34.233 dB).
+#: offset (GoPro 0374: 5 outer iterations -> 3, reblur PSNR 34.22 dB either way,
+#: ``python -m benchmarks.window_side --sides ""``).
 REFIT_RTOL = 1e-3
 
 

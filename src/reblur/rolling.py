@@ -904,6 +904,8 @@ def choose_shutter(
     every band either way.
     """
     t0 = time.perf_counter()
+    if bands not in ("all", "mean"):
+        raise ValueError(f"bands must be 'all' or 'mean', got {bands!r}")
     p = params or RollingParams()
     if boxes is None:
         boxes = rolling_windows(observed.shape[:2], p.n_bands, p.side, p.columns)
@@ -916,8 +918,6 @@ def choose_shutter(
                                  occlusion, p)
     rolling = crit.pop("rolling")
     crit["refit_rejected"] = False
-    if bands not in ("all", "mean"):
-        raise ValueError(f"bands must be 'all' or 'mean', got {bands!r}")
     if rolling and coarse:
         del ops, gs
         on_mean = bands == "mean" and len(observed.shape) == 3 and observed.shape[2] > 1
