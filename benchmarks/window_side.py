@@ -10,7 +10,8 @@ asks for: each pair through ``reblur detect`` in a fresh process with its defaul
 again with the central ``S x S`` part of each window the default run chose (``--box``),
 for every side ``S`` of ``--sides``, and with each configuration file of ``--configs``
 (``reblur detect --config``; by default ``benchmarks/configs/bands_all.toml``, the
-weights solved on every band instead of their mean).
+weights solved on every band instead of their mean).  ``--shutter auto`` runs them all
+with the rolling-shutter choice (its stage's time and model in the table).
 
 Per run: the estimate's and the whole run's time (``report.json``), its outer iterations,
 the share flagged, and the fidelity of the blur model away from the windows: the PSNR of

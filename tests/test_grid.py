@@ -97,3 +97,32 @@ def test_mean_source_points_is_the_weighted_mean_of_the_inverse_maps():
     np.testing.assert_allclose(got, pts - np.array([1.0, 1.0]), atol=1e-12)
     with pytest.raises(ValueError, match="no pose"):
         mean_source_points(Hs, [0.0, 0.0], pts)
+
+
+def test_carry_weights_matches_a_pose_by_pose_copy():
+    """Weights carried between grids that share some poses (a tz x rz grid and a part of
+    it with a translation range of its own), both ways, against a pose-by-pose copy by
+    values (slow reference): shared poses keep their weight, the others get 0."""
+    from reblur.grid import carry_weights
+
+    full = PoseGrid((300, 400), tx=np.arange(-3, 4), ty=np.arange(-2, 3),
+                    rz=[-1.0, -0.5, 0.0, 0.5, 1.0], tz=[-0.01, 0.0, 0.01])
+    part = PoseGrid((300, 400), tx=np.arange(-1, 6), ty=[0, 1, 2, 3],
+                    rz=[-0.5, 1.0, 2.0], tz=[0.0, 0.01])
+    rng = np.random.default_rng(4)
+
+    def slow(w, src, dst):
+        out = np.zeros(dst.shape)
+        for b, base in enumerate(dst.bases):
+            for i, ty in enumerate(dst.ty):
+                for j, tx in enumerate(dst.tx):
+                    if base in src.bases and ty in src.ty and tx in src.tx:
+                        out[b, i, j] = w[src.bases.index(base), src.ty.index(ty),
+                                         src.tx.index(tx)]
+        return out
+
+    for src, dst in ((full, part), (part, full)):
+        w = rng.random(src.shape)
+        got = carry_weights(w, src, dst)
+        np.testing.assert_array_equal(got, slow(w, src, dst))
+        assert 0 < np.count_nonzero(got) < got.size

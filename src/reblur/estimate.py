@@ -10,7 +10,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from ._memory import available_cpus, small_pages, thread_map
-from .grid import PoseGrid
+from .grid import PoseGrid, carry_weights
 from .io import ChunkCache, tile_chunks
 from .operator import BlurOperator
 from .result import MotionEstimate
@@ -223,8 +223,7 @@ def estimate_motion(
         raise ValueError("coarse_to_fine refines the roll axis only: use a grid varying rz alone")
     if resume is not None and not coarse_to_fine:
         raise ValueError("resume continues a coarse-to-fine estimate: coarse_to_fine is off")
-    if bands not in ("all", "mean"):
-        raise ValueError(f"bands must be 'all' or 'mean', got {bands!r}")
+    check_bands(bands)
     reference = _cached_reads(reference)
     on_mean = bands == "mean" and not two_d and int(observed.shape[2]) > 1
     ref_bands, obs_bands = reference, observed
@@ -276,7 +275,7 @@ def estimate_motion(
         if stopped:  # the parts the first level solved
             boxes = [op.box for op in ops]
         if grid_used is not grid:
-            w = _embed_rz(w, grid_used, grid)
+            w = carry_weights(w, grid_used, grid)
     info = dict(info)
     info.update(
         psnr=psnrs, psnr_inliers=psnr_in, lam=lam, occlusion=occlusion, engine=ops[0].engine,
@@ -292,6 +291,13 @@ def estimate_motion(
         weights=w, grid=grid, chi=chis, boxes=[b.as_tuple() for b in boxes], info=info,
         excluded=excluded if any(e.any() for e in excluded) else [],
     )
+
+
+def check_bands(bands, name: str = "bands") -> None:
+    """ValueError unless ``bands`` is ``"mean"`` or ``"all"`` (:func:`estimate_motion`'s
+    ``bands``; ``name`` is the option's name in the message)."""
+    if bands not in ("all", "mean"):
+        raise ValueError(f"{name} must be 'mean' or 'all', got {bands!r}")
 
 
 class _BandMean:
@@ -358,11 +364,7 @@ def _support_grid(w: np.ndarray, grid: PoseGrid) -> tuple[PoseGrid, np.ndarray]:
     (y0, x0), (y1, x1) = nz[:, 1:].min(axis=0), nz[:, 1:].max(axis=0) + 1
     sub = grid.with_bases(rz, tz=tz, rx=rx, ry=ry).with_translations(
         grid.tx[x0:x1], grid.ty[y0:y1])
-    at = {b: i for i, b in enumerate(sub.bases)}
-    w_sub = np.zeros(sub.shape)
-    for b in used:
-        w_sub[at[grid.bases[b]]] = w[b, y0:y1, x0:x1]
-    return sub, w_sub
+    return sub, carry_weights(w, grid, sub)
 
 
 def _occluded_share(chi: np.ndarray, valid: np.ndarray) -> float:
@@ -595,16 +597,6 @@ def _refit_photometry(ops, gs, w, info, lam, occlusion, max_outer, time_limit,
     return w, info, gs
 
 
-def _embed_rz(w: np.ndarray, sub: PoseGrid, full: PoseGrid) -> np.ndarray:
-    """Weights on a sub-grid (subsets of ``full``'s roll angles and translations) on ``full``."""
-    out = np.zeros(full.shape)
-    b = [full.rz.index(v) for v in sub.rz]
-    iy = [full.ty.index(v) for v in sub.ty]
-    ix = [full.tx.index(v) for v in sub.tx]
-    out[np.ix_(b, iy, ix)] = w
-    return out
-
-
 def _shrink(box, side: int):
     """The central ``side x side`` part of a window (the window itself if smaller)."""
     y0, x0, h, w = box.as_tuple()
@@ -777,7 +769,7 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
         if last:
             total.update({k: v for k, v in info.items() if k not in total})
             return w, total, ops, gs, sub
-        w_full = _embed_rz(w, sub, grid)
+        w_full = carry_weights(w, sub, grid)
         w_prev = w_full
         if first and stop_occluded is not None and occlusion:
             first = False

@@ -37,6 +37,7 @@ __all__ = [
     "local_homography",
     "map_points",
     "mean_source_points",
+    "carry_weights",
     "MAX_POSES",
     "MAX_BASES_6D",
     "GridParams",
@@ -394,6 +395,40 @@ class PoseGrid:
             f"PoseGrid({self.size} poses, image {self.image_shape[0]}x{self.image_shape[1]}, "
             f"center=({self.center[0]:g}, {self.center[1]:g}), " + ", ".join(parts) + ")"
         )
+
+
+def carry_weights(weights: np.ndarray, src: PoseGrid, dst: PoseGrid) -> np.ndarray:
+    """Weights on ``src`` carried over to ``dst``: each pose of ``dst`` takes the weight of
+    the same pose of ``src`` (the same base and translation values), 0 where ``src`` has
+    no such pose; weight on poses of ``src`` that ``dst`` lacks is dropped.  Either grid
+    may be a part of the other (a coarse-to-fine level, a support grid).
+
+    Examples
+    --------
+    >>> full = PoseGrid((100, 100), tx=[-1, 0, 1], ty=[0], rz=[-0.5, 0.0, 0.5])
+    >>> part = PoseGrid((100, 100), tx=[0, 1], ty=[0], rz=[0.0])
+    >>> w = np.arange(9.0).reshape(full.shape)
+    >>> carry_weights(w, full, part)
+    array([[[4., 5.]]])
+    >>> carry_weights(carry_weights(w, full, part), part, full)[:, 0]
+    array([[0., 0., 0.],
+           [0., 4., 5.],
+           [0., 0., 0.]])
+    """
+    w = src.check_weights(weights)
+    out = np.zeros(dst.shape)
+
+    def pairs(a: Sequence, b: Sequence) -> tuple[list[int], list[int]]:
+        at = {v: i for i, v in enumerate(a)}
+        got = [(j, at[v]) for j, v in enumerate(b) if v in at]
+        return [j for j, _ in got], [i for _, i in got]
+
+    db, sb = pairs(src.bases, dst.bases)
+    dy, sy = pairs(src.ty, dst.ty)
+    dx, sx = pairs(src.tx, dst.tx)
+    if db and dy and dx:
+        out[np.ix_(db, dy, dx)] = w[np.ix_(sb, sy, sx)]
+    return out
 
 
 def _symmetric(v_max: float, step: float) -> np.ndarray:

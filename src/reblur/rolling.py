@@ -42,8 +42,16 @@ from typing import Any
 
 import numpy as np
 
-from .estimate import RTOL, _BandMean, _shrink, coarse_side, intensity_scale, soft_threshold
-from .grid import PoseGrid, map_points
+from .estimate import (
+    RTOL,
+    _BandMean,
+    _shrink,
+    check_bands,
+    coarse_side,
+    intensity_scale,
+    soft_threshold,
+)
+from .grid import PoseGrid, carry_weights, map_points
 from .operator import BlurOperator
 from .solve import active_set
 from .tiled import SparsePoses, iter_tiles, reblur_tile, run_tiles
@@ -465,20 +473,9 @@ def support_grid(grid: PoseGrid, weights: np.ndarray, t_margin: int = 3,
 
 def embed_weights(w: np.ndarray, sub: PoseGrid, full: PoseGrid) -> np.ndarray:
     """Weights of ``full`` carried over to ``sub`` (poses of ``sub`` missing from ``full``
-    get 0; weight on poses of ``full`` outside ``sub`` is dropped)."""
-    w = full.check_weights(w)
-    out = np.zeros(sub.shape)
-    fb = {base: i for i, base in enumerate(full.bases)}
-    ty = [full.ty.index(v) if v in full.ty else -1 for v in sub.ty]
-    tx = [full.tx.index(v) if v in full.tx else -1 for v in sub.tx]
-    for b, base in enumerate(sub.bases):
-        if base not in fb:
-            continue
-        for i, iy in enumerate(ty):
-            for j, ix in enumerate(tx):
-                if iy >= 0 and ix >= 0:
-                    out[b, i, j] = w[fb[base], iy, ix]
-    return out
+    get 0; weight on poses of ``full`` outside ``sub`` is dropped):
+    :func:`reblur.grid.carry_weights`."""
+    return carry_weights(w, full, sub)
 
 
 def _window_operators(reference, observed, grid: PoseGrid, boxes, base, scale,
@@ -904,8 +901,7 @@ def choose_shutter(
     every band either way.
     """
     t0 = time.perf_counter()
-    if bands not in ("all", "mean"):
-        raise ValueError(f"bands must be 'all' or 'mean', got {bands!r}")
+    check_bands(bands)
     p = params or RollingParams()
     if boxes is None:
         boxes = rolling_windows(observed.shape[:2], p.n_bands, p.side, p.columns)

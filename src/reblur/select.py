@@ -32,7 +32,7 @@ import numpy as np
 import scipy.fft as sfft
 from threadpoolctl import threadpool_limits
 
-from .estimate import estimate_motion
+from .estimate import check_bands, estimate_motion
 from .grid import PoseGrid, map_points
 from .result import CropChoice, MotionEstimate
 from .warp import Box
@@ -100,8 +100,7 @@ class SelectParams:
                                                      and 0 <= self.unfit_rtol < 1):
             raise ValueError(f"SelectParams.unfit_rtol must lie in [0, 1), got "
                              f"{self.unfit_rtol!r}")
-        if self.bands not in ("mean", "all"):
-            raise ValueError(f"SelectParams.bands must be 'mean' or 'all', got {self.bands!r}")
+        check_bands(self.bands, "SelectParams.bands")
         if self.s_start > self.s_max:
             raise ValueError(f"SelectParams.s_start ({self.s_start}) must be at most s_max "
                              f"({self.s_max})")
