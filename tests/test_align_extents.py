@@ -12,14 +12,14 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-from conftest import LEVIR, WHU
+from conftest import DATA, LEVIR, WHU, load_rgb
 from test_align import _observe, _read
 
 from reblur.align import AlignParams, coarse_align_shakes
 from reblur.align import coarse as coarse_mod
 from reblur.align import polish as polish_mod
 from reblur.align.overviews import pyramid
-from reblur.align.polish import content_misfit, kernel_polish, polish_and_verify
+from reblur.align.polish import blur_exceeds, content_misfit, kernel_polish, polish_and_verify
 from reblur.grid import map_points, pose_homography
 from reblur.pipeline import align_coarse
 
@@ -135,6 +135,37 @@ def test_large_blur_still_reaches_the_extent_it_needs(monkeypatch):
     regions = first["polishes"][0]["regions"]
     assert regions.get("spread", 0) > 4 * (regions.get("misfit", 0) + regions.get("faint", 0))
     assert count.extents[0] == 8.0 and got.shake_px in count.extents
+
+
+def test_a_blur_larger_than_the_extent_stops_its_other_estimates(monkeypatch):
+    """Real camera shake larger than 8 px (GoPro 0374, an average of 8 frames): at 8 px the
+    gradient blocks do not verify and the first feature estimate's kernels all spread, so
+    neither the next feature level nor the phase correlation is polished at 8 px (three
+    polishes before); the extent that fits gives the very homography it gives alone."""
+    pairs = DATA / "gopro" / "pairs"
+    ref = load_rgb(pairs / "GOPR0374_11_00_st_frame-614_n_avg-8_gt.png").astype(np.float32)
+    obs = load_rgb(pairs / "GOPR0374_11_00_st_frame-614_n_avg-8.png").astype(np.float32)
+    count = _Counting(monkeypatch)
+    got = align_coarse(ref, obs)
+    assert got.shake_px == 16.0 and got.method.endswith("kernel")
+    assert count.extents == [8.0, 16.0]
+    first = got.to_dict()["extents"][0]
+    assert first["shake_px"] == 8.0 and "refused" in first
+    (polish,) = first["polishes"]
+    assert blur_exceeds(polish["regions"]) and not content_misfit(polish["regions"])
+    assert "spread beyond shake_px=8" in first["refused"]
+    (_, alone), = coarse_align_shakes(ref, obs, (16.0,))
+    assert alone.H.tobytes() == got.H.tobytes() and alone.method == got.method
+
+
+def test_blur_exceeds_rule():
+    """The rule on counts: spread kernels must be three quarters of the textured regions."""
+    assert blur_exceeds({"spread": 64})
+    assert blur_exceeds({"spread": 45, "fit": 10, "misfit": 5, "flat": 30, "invalid": 9})
+    assert not blur_exceeds({"spread": 44, "fit": 11, "misfit": 5})  # 44 < 45 of 60
+    assert blur_exceeds({"spread": 51, "fit": 12, "misfit": 1})  # 24 px of shake at 8 px
+    assert not blur_exceeds({"invalid": 9, "flat": 3})  # nothing to judge
+    assert not blur_exceeds({})
 
 
 def test_content_misfit_rule():

@@ -36,7 +36,14 @@ from .ecc import ecc_refine, phase_init
 from .features import Features, match_features
 from .overviews import Level, block_factor, image_shape, overview_k, overview_source, pyramid
 from .params import AlignParams
-from .polish import REGION_PX, Polished, PolishError, content_misfit, polish_and_verify
+from .polish import (
+    REGION_PX,
+    Polished,
+    PolishError,
+    blur_exceeds,
+    content_misfit,
+    polish_and_verify,
+)
 from .result import Alignment, AlignmentError
 from .verify import (
     check_near_hint,
@@ -342,7 +349,8 @@ class _Shake:
     at most 4 pixels, but large enough for a grid of polish regions.  ``errors`` collects
     the stages that failed and why, for the refusal; ``polishes`` every kernel polish run
     (:meth:`polish`): the estimate it polished, its regions by outcome, and what became of
-    it."""
+    it; ``too_blurred`` the regions of a polish whose kernels spread beyond the extent
+    (:func:`~reblur.align.polish.blur_exceeds`), after which no other polish runs."""
 
     prep: Prepared
     params: AlignParams
@@ -350,6 +358,7 @@ class _Shake:
     work: int = 0
     errors: list[tuple[str, str]] = field(default_factory=list)
     polishes: list[dict] = field(default_factory=list)
+    too_blurred: dict[str, int] | None = None
 
     def __post_init__(self) -> None:
         levels, top = self.prep.levels, len(self.prep.levels) - 1
@@ -404,17 +413,25 @@ class _Shake:
         running: a larger kernel cannot make the blur model explain content that differs
         (the rule :func:`reblur.pipeline.align_coarse` stops on).  The stages before the
         polish are memoised per level, so the extents that share a level polish the very
-        same estimates: on a years-apart 100 MP pair, 6 polishes (0.8 s) of the 10."""
+        same estimates: on a years-apart 100 MP pair, 6 polishes (0.8 s) of the 10.
+
+        Once a polish of this extent found the blur larger than the extent
+        (:func:`~reblur.align.polish.blur_exceeds`), every later polish of it is refused
+        without running (:meth:`blur_refusal`): the kernels' spread does not depend on the
+        estimate polished."""
         rec: dict[str, Any] = {"of": of}
         self.polishes.append(rec)
         key = (self.work, H.tobytes(), self.key)
-        if key in self.prep.misfits:
+        refused = self.blur_refusal()
+        if refused is None and key in self.prep.misfits:
             shake, reasons = self.prep.misfits[key]
             msg = (f"could not be verified: at shake_px={shake:g} on the same level its "
                    "regions' blur kernels explained little of their texture (the content "
                    "differs); a larger extent cannot change that")
-            rec.update(regions=dict(reasons), outcome=f"refused: {msg}")
-            raise PolishError(msg, reasons)
+            refused = PolishError(msg, reasons)
+        if refused is not None:
+            rec.update(regions=dict(refused.reasons), outcome=f"refused: {refused}")
+            raise refused
         try:
             p = polish_and_verify(self.levels[self.work], H, self.shake_px,
                                   self.prep.ref_shape, self.params, self.plausible,
@@ -423,12 +440,25 @@ class _Shake:
             rec.update(regions=err.reasons, outcome=f"refused: {err}")
             if content_misfit(err.reasons):
                 self.prep.misfits[key] = (self.shake_px, dict(err.reasons))
+            elif blur_exceeds(err.reasons):
+                self.too_blurred = dict(err.reasons)
             raise
         except AlignmentError as err:
             rec.update(outcome=f"refused: {err}")
             raise
         rec.update(regions=p.reasons, outcome="verified")
         return p, rec
+
+    def blur_refusal(self) -> PolishError | None:
+        """The refusal of any further polish of this extent once one found the blur larger
+        than the extent (:attr:`too_blurred`), else None."""
+        if self.too_blurred is None:
+            return None
+        n = self.too_blurred.get("spread", 0)
+        return PolishError(
+            f"could not be verified: {n} of the regions' blur kernels of an earlier "
+            f"estimate spread beyond shake_px={self.shake_px:g} (the blur is larger); "
+            "another estimate cannot change that", self.too_blurred)
 
     def failed(self, stage: str, err: Exception) -> None:
         """Record why ``stage`` failed."""
@@ -614,6 +644,10 @@ def _features_fallback(ctx: _Shake) -> _Estimate | None:
     """The first feature level's estimate that the polish verifies (any, without the
     polish); None when there is none."""
     for i in ctx.feature_levels():
+        if ctx.params.polish and ctx.too_blurred is not None:
+            # no estimate of this extent can verify: its polish would be refused
+            ctx.failed("kernel polish", ctx.blur_refusal())
+            break
         try:
             est = _features_estimate(ctx, i)
         except AlignmentError as err:
@@ -647,6 +681,10 @@ def _phase_fallback(ctx: _Shake) -> _Estimate:
     fails."""
     start = "phase" if ctx.hint is None else "hint"
     stage = f"{start} + ECC"
+    if ctx.params.polish and ctx.too_blurred is not None:
+        # its polish would be refused (see ``_Shake.polish``): not worth the ECC
+        ctx.failed("kernel polish", ctx.blur_refusal())
+        raise _refused(ctx)
     try:
         # memoised: reads the shake extent only through the working level
         H = ctx.prep.cached(("phase-ecc", ctx.work, ctx.key),

@@ -63,8 +63,37 @@ def content_misfit(reasons: dict[str, int]) -> bool:
     False
     """
     bad = reasons.get("misfit", 0) + reasons.get("faint", 0)
-    textured = sum(n for k, n in reasons.items() if k not in ("invalid", "flat"))
+    textured = _textured(reasons)
     return bad > 0 and 4 * bad >= textured and bad >= reasons.get("spread", 0)
+
+
+def blur_exceeds(reasons: dict[str, int]) -> bool:
+    """True when the polish regions' failures say the BLUR is larger than the shake extent.
+
+    ``reasons`` counts the regions by outcome (:data:`REASONS`).  At least three quarters
+    of the textured regions (neither ``invalid`` nor ``flat``) fitted a kernel that
+    explains their texture but spreads beyond the extent (``spread``).  That is a property
+    of the blur, not of the estimate polished: a region's kernel is fitted around the
+    estimate's local displacement, and a misplaced estimate moves the kernel (or, beyond
+    its radius, makes it a ``misfit``) without widening it.  So another estimate polished
+    with the same extent on the same level is refused for the same reason.
+
+    Examples
+    --------
+    >>> blur_exceeds({"spread": 64})
+    True
+    >>> blur_exceeds({"fit": 30, "spread": 20, "flat": 14})
+    False
+    >>> blur_exceeds({"fit": 1, "misfit": 2, "spread": 40, "invalid": 21})
+    True
+    """
+    spread = reasons.get("spread", 0)
+    return spread > 0 and 4 * spread >= 3 * _textured(reasons)
+
+
+def _textured(reasons: dict[str, int]) -> int:
+    """The regions whose kernel was fitted (neither ``invalid`` nor ``flat``)."""
+    return sum(n for k, n in reasons.items() if k not in ("invalid", "flat"))
 
 
 @dataclass
