@@ -328,6 +328,33 @@ def test_photometry_robust_global_fit():
     assert d["field_block"] is None and len(d["gain"]) == 3
 
 
+def test_photometry_sample_is_as_precise_as_every_pixel():
+    """The default sample (``FIT_SAMPLES``, 10^5 of a 1 MP image) gives the fit of every
+    pixel to within its sampling error: gain ``~ sigma / (sqrt(n) std(x))`` (1.1e-4 here),
+    offset ``~ sigma / sqrt(n)`` (3e-5, times ~2.5 for the mean), scale ``1 / sqrt(2 n)``
+    (0.2 %); the bounds are about 5 of those.  A sample of 10^3 misses them."""
+    from reblur.decide.photometry import FIT_SAMPLES
+
+    rng = np.random.default_rng(11)
+    reb = _texture((1000, 1000), 1, rng)[:, :, 0]
+    obs = reb * 1.1 + 0.05 + 0.01 * rng.standard_normal(reb.shape).astype(np.float32)
+    obs[:, :200] += 0.3  # 20 % of the pixels changed
+    every = fit_photometry(obs, reb, max_samples=obs.size, edge_error=False)
+    assert FIT_SAMPLES < obs.size / 5
+
+    def close(ph) -> bool:
+        return (abs(ph.gain[0] - every.gain[0]) < 6e-4
+                and abs(ph.offset[0] - every.offset[0]) < 4e-4
+                and abs(ph.sigma[0] / every.sigma[0] - 1) < 0.01)
+
+    assert close(fit_photometry(obs, reb, edge_error=False))
+    assert not all(close(fit_photometry(obs, reb, max_samples=1000, edge_error=False, rng=s))
+                   for s in range(4))
+    # (Huber's bounded influence: the changed fifth pulls the offset by ~0.005)
+    assert every.gain[0] == pytest.approx(1.1, abs=2e-3)
+    assert every.offset[0] == pytest.approx(0.05, abs=0.01)
+
+
 @pytest.mark.parametrize("illumination", ["global", "field"])
 def test_photometry_bands_fitted_side_by_side_equal_each_band_alone(illumination):
     """The bands of a colour pair are fitted on threads side by side: each band's gain,

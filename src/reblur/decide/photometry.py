@@ -328,6 +328,12 @@ FIELD_GAIN = 0.85
 ILLUMINATIONS = ("auto", "global", "field")
 #: Added to both residual scales of the illumination criterion (a 16-bit quantum).
 _SCALE_FLOOR = 1.0 / 65535.0
+#: Samples :func:`fit_photometry` draws (seeded) by default.  A gain and offset from ``n``
+#: samples of residual scale ``sigma`` are off by about ``sigma / sqrt(n)``, the scale
+#: itself by ``1 / sqrt(2 n)``: 0.3 % of ``sigma`` and 0.2 % at 10^5, far below what moves a
+#: decision.  The robust fits' cost is linear in ``n`` (GoPro 0374: 0.73 s at 2 x 10^5
+#: against 0.46 s at 10^5, 0.39 s at 5 x 10^4, its gains within 6e-4).
+FIT_SAMPLES = 100_000
 
 
 def _poly_terms(ys: np.ndarray, xs: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -453,7 +459,7 @@ def fit_photometry(
     image_shape: tuple[int, int] | None = None,
     scale: float = 1.0,
     field_block: int | None = None,
-    max_samples: int = 200_000,
+    max_samples: int = FIT_SAMPLES,
     smoothness: float = 0.01,
     edge_error: bool = True,
     rng=None,
@@ -489,7 +495,8 @@ def fit_photometry(
         it; a change covering much of that support is partly absorbed, so pick blocks
         several times larger than the largest change object.
     max_samples : int
-        Samples drawn (seeded) for the fit; with a field at least ``2048`` per block.
+        Samples drawn (seeded) for the fit (default :data:`FIT_SAMPLES`); with a field at
+        least ``2048`` per block.
     smoothness : float
         Weight of the field's second-difference penalty, relative to the samples per block
         (see ``_fit_field``); linear trends are not penalised.
