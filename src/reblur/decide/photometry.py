@@ -328,11 +328,12 @@ FIELD_GAIN = 0.85
 ILLUMINATIONS = ("auto", "global", "field")
 #: Added to both residual scales of the illumination criterion (a 16-bit quantum).
 _SCALE_FLOOR = 1.0 / 65535.0
-#: Samples :func:`fit_photometry` draws (seeded) by default.  A gain and offset from ``n``
-#: samples of residual scale ``sigma`` are off by about ``sigma / sqrt(n)``, the scale
-#: itself by ``1 / sqrt(2 n)``: 0.3 % of ``sigma`` and 0.2 % at 10^5, far below what moves a
-#: decision.  The robust fits' cost is linear in ``n`` (GoPro 0374: 0.73 s at 2 x 10^5
-#: against 0.46 s at 10^5, 0.39 s at 5 x 10^4, its gains within 6e-4).
+#: Samples :func:`fit_photometry` draws (seeded) by default.  An offset from ``n`` samples
+#: of residual scale ``sigma`` is off by about ``sigma / sqrt(n)`` (the gain by that over
+#: the spread of the intensities), the scale itself by ``1 / sqrt(2 n)`` of it: 0.3 % and
+#: 0.2 % of ``sigma`` at 10^5, far below what moves a decision.  The robust fits' cost grows
+#: linearly in ``n`` above a fixed part (GoPro 0374: 0.73 s at 2 x 10^5 against 0.46 s at
+#: 10^5 and 0.39 s at 5 x 10^4, the gains within 6e-4 of each other).
 FIT_SAMPLES = 100_000
 
 
