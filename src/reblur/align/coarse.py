@@ -460,6 +460,14 @@ class _Shake:
             f"estimate spread beyond shake_px={self.shake_px:g} (the blur is larger); "
             "another estimate cannot change that", self.too_blurred)
 
+    def blurred_out(self) -> bool:
+        """Whether a polish of this extent found the blur larger than the extent, so that no
+        other estimate of it can verify; the refusal is then recorded (``kernel polish``)."""
+        if not self.params.polish or self.too_blurred is None:
+            return False
+        self.failed("kernel polish", self.blur_refusal())
+        return True
+
     def failed(self, stage: str, err: Exception) -> None:
         """Record why ``stage`` failed."""
         self.errors.append((stage, str(err)))
@@ -644,9 +652,7 @@ def _features_fallback(ctx: _Shake) -> _Estimate | None:
     """The first feature level's estimate that the polish verifies (any, without the
     polish); None when there is none."""
     for i in ctx.feature_levels():
-        if ctx.params.polish and ctx.too_blurred is not None:
-            # no estimate of this extent can verify: its polish would be refused
-            ctx.failed("kernel polish", ctx.blur_refusal())
+        if ctx.blurred_out():  # its polish would be refused
             break
         try:
             est = _features_estimate(ctx, i)
@@ -681,9 +687,7 @@ def _phase_fallback(ctx: _Shake) -> _Estimate:
     fails."""
     start = "phase" if ctx.hint is None else "hint"
     stage = f"{start} + ECC"
-    if ctx.params.polish and ctx.too_blurred is not None:
-        # its polish would be refused (see ``_Shake.polish``): not worth the ECC
-        ctx.failed("kernel polish", ctx.blur_refusal())
+    if ctx.blurred_out():  # its polish would be refused: not worth the ECC
         raise _refused(ctx)
     try:
         # memoised: reads the shake extent only through the working level
