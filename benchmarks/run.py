@@ -43,6 +43,8 @@ BENCHES = {
     "png_masks": ("benchmarks.png_masks", "main"),
     # the estimation windows' side: time against blur-model fidelity on real shake (#28)
     "window_side": ("benchmarks.window_side", "main"),
+    # the tile pass against one whole-image decision, 25 MP cost pairs (#28)
+    "tiled_whole": ("benchmarks.tiled_whole", "main"),
 }
 
 

@@ -235,3 +235,29 @@ def test_threaded_polish_equals_the_serial_one(years_apart, shake_px):
                              max_pixels=8192, workers=3)
         assert one[0].tobytes() == many[0].tobytes() and one[1:] == many[1:]
         assert sum(one[4].values()) == 64
+
+
+def test_an_estimate_a_polish_refused_is_not_polished_again(monkeypatch):
+    """WHU-CD 000121 (parallax, refused at every extent): the fallbacks of an extent
+    converge to the estimate whose polish it just refused (ECC from the phase correlation
+    to the features' one, within 0.01 px), and are refused without running: 6 polishes of
+    12.  The reference is the slow path: run, each skipped polish is refused too, and every
+    extent's refusal is the same."""
+    ref = load_rgb(WHU / "prev" / "000121.png").astype(np.float32)
+    obs = load_rgb(WHU / "curr" / "000121.png").astype(np.float32)
+    count = _Counting(monkeypatch)
+    got = [(s, a) for s, a in coarse_align_shakes(ref, obs, SHAKES)]
+    assert all(isinstance(a, Exception) for _, a in got)
+    skipped = [p for _, a in got for p in a.polishes if "as the estimate" in p["outcome"]]
+    assert len(count.extents) == 6 and len(skipped) == 6  # before: 12 run
+    count.extents.clear()
+    monkeypatch.setattr(coarse_mod, "SAME_ESTIMATE_PX", -1.0)  # every estimate polished
+    slow = [(s, a) for s, a in coarse_align_shakes(ref, obs, SHAKES)]
+    assert len(count.extents) == 12
+    for (s, a), (s2, b) in zip(got, slow, strict=True):
+        assert s == s2 and isinstance(b, Exception)
+        assert [p["of"] for p in a.polishes] == [p["of"] for p in b.polishes]
+        for p, q in zip(a.polishes, b.polishes, strict=True):
+            assert q["outcome"].startswith("refused") and p["regions"] == q["regions"]
+        # the refusal names the same stages, each for the same reason up to the skip's note
+        assert str(a).split(";")[0] == str(b).split(";")[0]
