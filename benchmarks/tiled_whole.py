@@ -94,8 +94,8 @@ def compare(case: Path) -> dict:
     fld = getattr(job.poses, "field", None)
     reach = (fld.reach_map(box, job.params.geometry_reach)
              if fld is not None and job.params.geometry_reach > 0 else None)
-    whole, info = decide_tile(o, r, u, threshold=job.threshold, photometry=job.photometry,
-                              box=box, params=job.params, image_shape=(H, W), reach=reach)
+    whole, _ = decide_tile(o, r, u, threshold=job.threshold, photometry=job.photometry,
+                           box=box, params=job.params, image_shape=(H, W), reach=reach)
     del o, r, u
     dec = res.decision
     union = np.count_nonzero(tiled | whole)
@@ -110,7 +110,6 @@ def compare(case: Path) -> dict:
         "tiled_only": float((tiled & ~whole).mean()),
         "whole_only": float((whole & ~tiled).mean()),
         "jc": float(np.count_nonzero(tiled & whole) / union) if union else 1.0,
-        "complete": bool(info["complete"]),
     }
 
 
