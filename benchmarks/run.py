@@ -45,6 +45,8 @@ BENCHES = {
     "window_side": ("benchmarks.window_side", "main"),
     # the tile pass against one whole-image decision, 25 MP cost pairs (#28)
     "tiled_whole": ("benchmarks.tiled_whole", "main"),
+    # the overlay picture's drawing: time, page faults, traced memory (#28)
+    "pictures": ("benchmarks.pictures", "main"),
 }
 
 

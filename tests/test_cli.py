@@ -255,6 +255,79 @@ def test_overlay_downscales_and_keeps_small_changes():
     assert ov[10, 10, 0] == ov[10, 10, 2]  # background stays gray
 
 
+def _overlay_whole(obs, change, unknown, s):
+    """The overlay drawn over the whole image at once, as written out (the reference for
+    the banded drawing): block means, a 1-99 % stretch (uint8: / 255), gray to RGB, the
+    unknown darkened, the changes tinted red, without the outlines."""
+    h, w = -(-obs.shape[0] // s), -(-obs.shape[1] // s)
+    a = np.zeros((h, w) + obs.shape[2:])
+    for i in range(h):
+        for j in range(w):
+            a[i, j] = obs[i * s:(i + 1) * s, j * s:(j + 1) * s].astype(np.float64).mean(
+                axis=(0, 1))
+    a = a.astype(np.float32)
+    if a.ndim == 2:
+        a = a[:, :, None]
+    a = a[:, :, :1] if a.shape[2] == 2 else a[:, :, :3]
+    if obs.dtype == np.uint8:
+        a = a / 255.0
+    else:
+        lo, hi = np.percentile(a, [1.0, 99.0])
+        a = (a - lo) / (hi - lo)
+    a = np.repeat(np.clip(a, 0.0, 1.0), 3 // a.shape[2], axis=2)
+    unk = np.array([[unknown[i * s:(i + 1) * s, j * s:(j + 1) * s].mean() > 0.5
+                     for j in range(w)] for i in range(h)])
+    chg = np.array([[change[i * s:(i + 1) * s, j * s:(j + 1) * s].any()
+                     for j in range(w)] for i in range(h)])
+    a[unk] = 0.3 * a[unk] + 0.7 * np.array([0.15, 0.15, 0.25], np.float32)
+    a[chg] = 0.55 * a[chg] + 0.45 * np.array([1.0, 0.0, 0.0], np.float32)
+    return np.clip(np.rint(a * 255.0), 0, 255).astype(np.uint8), chg
+
+
+@pytest.mark.parametrize("dtype,bands", [(np.uint16, 1), (np.uint8, 3), (np.float32, 4)])
+def test_overlay_in_bands_is_the_whole_image_overlay(dtype, bands, monkeypatch):
+    """The overlay is drawn a few rows at a time (``OVERLAY_BAND_ROWS``) with one stretch
+    for the whole image: every pixel off the outlines equals the whole-image drawing, and
+    the bands' seams do not show.  Its float temporaries stay those of a band: the traced
+    peak of a 2048 px 16-bit overlay is under one whole float64 RGB copy (57 MB here; 411
+    MB drawn whole, the stretch promoting the image to float64)."""
+    import tracemalloc
+
+    from reblur import report
+
+    monkeypatch.setattr(report, "OVERLAY_BAND_ROWS", 16)
+    rng = np.random.default_rng(11)
+    H, W = 203, 157
+    shape = (H, W) if bands == 1 else (H, W, bands)
+    top = 255 if dtype == np.uint8 else 60000
+    obs = (rng.random(shape) * top).astype(dtype)
+    obs[:, :40] = obs[:, :40] // 3  # a dark side: the stretch is the whole image's
+    change = rng.random((H, W)) < 0.002
+    change[60:90, 70:120] = True
+    unknown = np.zeros((H, W), bool)
+    unknown[150:, :] = True
+    got = overlay_image(obs, change, unknown, max_side=120)
+    want, chg = _overlay_whole(obs, change, unknown, 2)
+    assert got.shape == want.shape
+    # the outlines are drawn (yellow) around the changes only
+    near = cv2.dilate(chg.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    np.testing.assert_array_equal(got[~near], want[~near])
+    assert (got[near] != want[near]).any()
+
+    monkeypatch.setattr(report, "OVERLAY_BAND_ROWS", 128)
+    big = np.full((2048, 2048), 1000, np.uint16)
+    big[:, ::5] = 50000
+    m = np.zeros((2048, 2048), bool)
+    m[500:700, 500:900] = True
+    tracemalloc.start()
+    try:
+        overlay_image(big, m, m)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 2048 * 2048 * 3 * 8
+
+
 @pytest.mark.parametrize("shape", [(23, 31), (20, 30), (23, 31, 3), (3, 7), (9, 2, 4)])
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32, np.int32])
 def test_block_reduce_against_a_loop_over_blocks(shape, dtype, monkeypatch):

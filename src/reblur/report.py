@@ -286,8 +286,25 @@ def downscale(array, max_side: int = OVERLAY_MAX_SIDE, how: str = "mean") -> np.
     return np.concatenate(parts, axis=0)
 
 
-def _display_rgb(small: np.ndarray, dtype: np.dtype) -> np.ndarray:
-    """Float RGB in [0, 1] for display: uint8 as is, others stretched to the 1-99 % range."""
+def _display_stretch(small: np.ndarray, dtype: np.dtype) -> tuple[float, float] | None:
+    """``(lo, hi)``, the 1-99 % range of a downscaled image that is not uint8 (None for
+    uint8, shown as is): one pass over the whole image, so every band of
+    :func:`_display_rgb` is stretched alike."""
+    if np.dtype(dtype) == np.uint8:
+        return None
+    a = np.asarray(small, dtype=np.float32)
+    if a.ndim == 3 and a.shape[2] == 2:
+        a = a[:, :, :1]
+    elif a.ndim == 3 and a.shape[2] > 3:
+        a = a[:, :, :3]
+    lo, hi = np.percentile(a, [1.0, 99.0])
+    return lo, hi
+
+
+def _display_rgb(small: np.ndarray, dtype: np.dtype,
+                 stretch: tuple[float, float] | None = None) -> np.ndarray:
+    """Float RGB in [0, 1] for display: uint8 as is, others stretched to the 1-99 % range
+    (``stretch``, from :func:`_display_stretch`; computed from ``small`` when not given)."""
     a = np.asarray(small, dtype=np.float32)
     if a.ndim == 2:
         a = a[:, :, None]
@@ -298,12 +315,19 @@ def _display_rgb(small: np.ndarray, dtype: np.dtype) -> np.ndarray:
     if np.dtype(dtype) == np.uint8:
         a = a / 255.0
     else:
-        lo, hi = np.percentile(a, [1.0, 99.0])
+        lo, hi = _display_stretch(a, dtype) if stretch is None else stretch
         a = (a - lo) / (hi - lo) if hi > lo else np.zeros_like(a)
     a = np.clip(a, 0.0, 1.0)
     if a.shape[2] == 1:
         a = np.repeat(a, 3, axis=2)
     return a
+
+
+#: Rows of the overlay drawn at a time: its float temporaries stay a few MB.  Drawn whole,
+#: a 2048 px overlay of a 16-bit image held ~100 MB float64 arrays, each freshly mapped
+#: by the C library (above its 32 MB mmap threshold): 3.5 s on the first call here, almost
+#: all of it first-touch page faults (``python -m benchmarks.pictures``).
+OVERLAY_BAND_ROWS = 128
 
 
 def overlay_image(
@@ -326,19 +350,28 @@ def overlay_image(
     """
     import cv2
 
-    base = _display_rgb(downscale(observed, max_side, "mean"), np.dtype(observed.dtype))
+    dtype = np.dtype(observed.dtype)
+    small = downscale(observed, max_side, "mean")
+    stretch = _display_stretch(small, dtype)
     chg = downscale(_BoolView(change), max_side, "max").astype(bool)
-    out = base.copy()
-    if unknown is not None:
-        unk = downscale(_BoolView(unknown), max_side, "mean") > 0.5
-        out[unk] = 0.3 * out[unk] + 0.7 * np.array([0.15, 0.15, 0.25], np.float32)
-    red = np.array([1.0, 0.0, 0.0], np.float32)
-    out[chg] = 0.55 * out[chg] + 0.45 * red
-    u8 = np.clip(np.rint(out * 255.0), 0, 255).astype(np.uint8)
+    unk = (None if unknown is None
+           else downscale(_BoolView(unknown), max_side, "mean") > 0.5)
+    dark = 0.7 * np.array([0.15, 0.15, 0.25], np.float32)
+    red = 0.45 * np.array([1.0, 0.0, 0.0], np.float32)
+    u8 = np.empty(small.shape[:2] + (3,), np.uint8)
+    # band by band, the same arithmetic on every pixel as on the whole image
+    for y0 in range(0, u8.shape[0], OVERLAY_BAND_ROWS):
+        rows = slice(y0, y0 + OVERLAY_BAND_ROWS)
+        out = _display_rgb(small[rows], dtype, stretch)
+        if unk is not None:
+            u = unk[rows]
+            out[u] = 0.3 * out[u] + dark
+        c = chg[rows]
+        out[c] = 0.55 * out[c] + red
+        u8[rows] = np.clip(np.rint(out * 255.0), 0, 255)
     contours, _ = cv2.findContours(chg.astype(np.uint8), cv2.RETR_EXTERNAL,
                                    cv2.CHAIN_APPROX_NONE)
     thickness = 2 if max(u8.shape[:2]) > 1000 else 1
-    u8 = np.ascontiguousarray(u8)
     cv2.drawContours(u8, contours, -1, (255, 230, 0), thickness)
     return u8
 
