@@ -12,7 +12,9 @@ development images (``../shared/data``).  Contents, same camera path per size:
 * ``45%``: one central block of unrelated content, 45 % of the area (an occluder);
 * ``years-whu`` / ``years-levir``: the datasets' own years-apart pairs (WHU 000213
   prev -> curr, LEVIR test_7 A -> B), shaken;
-* ``unrelated``: LEVIR test_7 against WHU 000213 (to be refused quickly).
+* ``unrelated``: LEVIR test_7 against WHU 000213 (to be refused quickly);
+* ``5% rgb16``: the ``5%`` pair written as three 16-bit bands (the 8-bit values x 257,
+  a darker copy, their negative): what bands and bit depth cost, the content the same.
 
 Each case runs ``python -m reblur detect REF OBS --out DIR -q`` in a fresh process, as a
 user does (the package's bytecode written first, as an install leaves it); stage times
@@ -55,7 +57,9 @@ import tifffile
 from benchmarks.common import REPO
 
 SIZES = {1: 1, 25: 5, 100: 10}  # MP -> upsampling factor of the 1024 px scenes
-CONTENTS = ["unchanged", "5%", "45%", "years-whu", "years-levir", "unrelated"]
+CONTENTS = ["unchanged", "5%", "45%", "years-whu", "years-levir", "unrelated", "5% rgb16"]
+#: Suffix of a content written as three 16-bit bands (:func:`_rgb16`).
+RGB16 = " rgb16"
 RUNS = REPO / "docs" / "cost_runs.json"
 BEFORE = REPO / "docs" / "cost_before.json"
 #: Default folder of the generated pairs (shared with :mod:`benchmarks.align_cost`).
@@ -127,10 +131,23 @@ def _tiles(shape, tile: int = 512):
             yield (y, min(y + tile, shape[0]), x, min(x + tile, shape[1]))
 
 
-def _write(path: Path, shape, tile_fn) -> None:
+def _rgb16(tile: np.ndarray) -> np.ndarray:
+    """Three 16-bit bands of an 8-bit gray tile: the values x 257, a darker copy
+    (0.9 x + 12.8, x 257) and their negative (65535 - 257 x)."""
+    v = tile.astype(np.uint32) * 257
+    dark = (v * 9 + 32896) // 10
+    return np.stack([v, dark, 65535 - v], axis=-1).astype(np.uint16)
+
+
+def _write(path: Path, shape, tile_fn, rgb16: bool = False) -> None:
     tmp = path.with_suffix(".part.tif")
-    tifffile.imwrite(tmp, (tile_fn(b) for b in _tiles(shape)), shape=shape, dtype=np.uint8,
-                     tile=(512, 512), bigtiff=True, compression="zlib")
+    tiles = (tile_fn(b) for b in _tiles(shape))
+    if rgb16:
+        tiles, shape, dtype = (_rgb16(t) for t in tiles), (*shape, 3), np.uint16
+    else:
+        dtype = np.uint8
+    tifffile.imwrite(tmp, tiles, shape=shape, dtype=dtype, tile=(512, 512), bigtiff=True,
+                     compression="zlib")
     os.replace(tmp, path)
 
 
@@ -138,16 +155,17 @@ def make_case(mp: int, content: str, cache: Path) -> Path:
     """Write (or reuse) ``ref.tif`` and ``obs.tif`` of a case."""
     from reblur.testbed import ChangedScene, plan_pair, shake_for
 
-    d = cache / f"{mp}mp_{content.replace('%', 'pc')}"
+    d = cache / f"{mp}mp_{content.replace('%', 'pc').replace(' ', '_')}"
     if (d / "obs.tif").exists():
         return d
     d.mkdir(parents=True, exist_ok=True)
-    ref_scene, obs_scene = _scenes(mp, content)
+    rgb16 = content.endswith(RGB16)
+    ref_scene, obs_scene = _scenes(mp, content.removesuffix(RGB16))
     plan = plan_pair(ref_scene, bits=8, noise_dn=0.5, n_changes=0, seed=0,
                      motion=shake_for(ref_scene.shape), viewpoint={"shift_px": 20.0})
     plan = dataclasses.replace(plan, changed=ChangedScene(obs_scene, ()))
-    _write(d / "ref.tif", plan.shape, plan.reference_tile)
-    _write(d / "obs.tif", plan.shape, plan.observed_tile)
+    _write(d / "ref.tif", plan.shape, plan.reference_tile, rgb16)
+    _write(d / "obs.tif", plan.shape, plan.observed_tile, rgb16)
     return d
 
 

@@ -739,3 +739,23 @@ def test_grid_interp_matches_reference():
             h, w = int(rng.integers(1, H - y0 + 1)), int(rng.integers(1, W - x0 + 1))
             np.testing.assert_array_equal(_grid_interp(grid, y0, x0, h, w, block),
                                           _ref_grid_interp(grid, y0, x0, h, w, block))
+
+
+@pytest.mark.parametrize("shape", [(37, 29), (37, 29, 1), (37, 29, 3), (37, 29, 4)])
+def test_band_tests_match_numpy(shape):
+    """The per-pixel band tests (a tile's known pixels, the photometric inliers, the COG
+    writer's no-data) are ``np.all`` / ``np.any`` over the bands, with NaN in some
+    bands of some pixels only."""
+    from reblur._bands import all_bands, any_bands
+
+    rng = np.random.default_rng(5)
+    a = rng.random(shape).astype(np.float32)
+    a[rng.random(shape) < 0.2] = np.nan
+    for got_fn, fn, b in ((all_bands, np.all, np.isfinite(a)), (any_bands, np.any, np.isnan(a))):
+        want = b if b.ndim == 2 else fn(b, axis=2)
+        got = got_fn(b)
+        assert got.shape == shape[:2] and got.dtype == bool
+        np.testing.assert_array_equal(got, want)
+        if b.ndim == 3:
+            assert 0 < got.sum() < got.size
+            assert not np.shares_memory(got, b)

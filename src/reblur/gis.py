@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from ._bands import any_bands
 from .io import atomic_path, iter_windows
 
 __all__ = [
@@ -177,7 +178,7 @@ def _no_data(nodata_mask, b: np.ndarray, ys: slice, xs: slice) -> np.ndarray:
     bad = np.array(nodata_mask[ys, xs], dtype=bool)
     if b.dtype.kind == "f":
         nan = np.isnan(b)
-        bad |= nan.any(axis=2) if nan.ndim == 3 else nan
+        bad |= any_bands(nan)
     return bad
 
 

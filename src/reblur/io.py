@@ -64,6 +64,7 @@ from typing import Any
 
 import numpy as np
 
+from ._bands import all_bands, any_bands
 from .levels import FileLevels, combine, tiff_has_levels, tiff_levels, zarr_levels, zarr_multiscales
 
 __all__ = [
@@ -311,9 +312,9 @@ class NodataMask:
         a = np.asarray(self.array[_spatial_key(key, len(self.array.shape))])
         if np.isnan(self.value):
             bad = ~np.isfinite(a)
-            return ~(bad.any(axis=2) if a.ndim == 3 else bad)
+            return ~any_bands(bad)
         bad = a == self.value
-        return ~(bad.all(axis=2) if a.ndim == 3 else bad)
+        return ~all_bands(bad)
 
 
 class AlphaMask:
@@ -1854,7 +1855,7 @@ def read_mask(
     out = np.zeros(img.shape[:2], dtype=bool)
     for rows in _row_bands(img.array):
         block = np.asarray(img.array[rows]) != 0
-        out[rows] = block.any(axis=-1) if block.ndim == 3 else block
+        out[rows] = any_bands(block)
     img.close()
     return out
 

@@ -20,6 +20,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ._bands import all_bands
 from ._memory import M_MMAP_THRESHOLD, M_TRIM_THRESHOLD, MMAP_THRESHOLD_MAX, glibc_mallopt
 from .decide import DecisionParams, Photometry, decide_tile
 from .tiled import SparsePoses, reblur_tile
@@ -200,7 +201,7 @@ def load_tile(poses: SparsePoses, reference, observed, box, *, s_ref: float, s_o
     for a in (reb, obs):
         fin = np.isfinite(a)
         if not fin.all():
-            unknown |= ~(fin.all(axis=2) if fin.ndim == 3 else fin)
+            unknown |= ~all_bands(fin)
     return obs, reb, unknown
 
 

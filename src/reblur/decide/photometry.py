@@ -25,6 +25,7 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from threadpoolctl import threadpool_limits
 
+from .._bands import all_bands
 from ..robust import huber_line, inlier_scale, mad, robust_line
 from ._common import FIT_BLAS_THREADS, _box, _channels, _float, _robust_scale, band_map
 from .params import DecisionParams
@@ -162,7 +163,7 @@ class Photometry:
         m = _channels(self.apply(reblurred, box))
         if o.shape != m.shape:
             raise ValueError(f"observed has shape {o.shape}, reblurred {m.shape}")
-        ok = np.all(np.isfinite(o), axis=2) & np.all(np.isfinite(m), axis=2)
+        ok = all_bands(np.isfinite(o)) & all_bands(np.isfinite(m))
         if valid is not None:
             ok &= np.asarray(valid, dtype=bool)
         return np.array([_robust_scale((o[:, :, c] - m[:, :, c])[ok]) for c in range(o.shape[2])])
@@ -175,7 +176,7 @@ class Photometry:
         m = _channels(self.apply(reblurred, box))
         with np.errstate(invalid="ignore"):
             z = np.abs(o - m) / self.sigma.reshape(1, 1, -1)
-        return np.all(z < k, axis=2)
+        return all_bands(z < k)
 
     def with_sigma(self, sigma) -> Photometry:
         """Copy with another residual scale (e.g. measured on full-resolution tiles)."""
@@ -230,7 +231,7 @@ def _collect_samples(observed, reblurred, valid, boxes, scale, rng, max_samples)
             n_bands = o.shape[2]
         elif o.shape[2] != n_bands:
             raise ValueError("all tiles must have the same number of bands")
-        ok = np.all(np.isfinite(o), axis=2) & np.all(np.isfinite(r), axis=2)
+        ok = all_bands(np.isfinite(o)) & all_bands(np.isfinite(r))
         if v is not None:
             v = np.asarray(v, dtype=bool)
             if v.shape != o.shape[:2]:
@@ -638,7 +639,7 @@ def with_model_error(ph: Photometry, observed, reblurred, valid=None, *, boxes=N
     os_, ms_, ks_ = [], [], []
     for o, r, v, b in tiles:
         o = _channels(_float(o))
-        k = np.all(np.isfinite(o), axis=2)
+        k = all_bands(np.isfinite(o))
         if v is not None:
             k &= np.asarray(v, bool)
         os_.append(o)

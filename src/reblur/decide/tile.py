@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from .._bands import all_bands
 from ._common import _box, _channels, _float
 from .params import DecisionParams, _params
 from .photometry import Photometry, fit_photometry
@@ -44,7 +45,7 @@ def _prepare(observed, reblurred, unknown):
         raise ValueError(f"observed must be (h, w) or (h, w, C), got shape {o.shape}")
     if o.shape != r.shape:
         raise ValueError(f"observed has shape {o.shape} but reblurred has shape {r.shape}")
-    known = np.all(np.isfinite(_channels(o)), axis=2) & np.all(np.isfinite(_channels(r)), axis=2)
+    known = all_bands(np.isfinite(_channels(o))) & all_bands(np.isfinite(_channels(r)))
     if unknown is not None:
         u = np.asarray(unknown, dtype=bool)
         if u.shape != o.shape[:2]:

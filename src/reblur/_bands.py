@@ -1,0 +1,54 @@
+"""Per-pixel tests over the bands of an image: ``np.all`` / ``np.any`` over its last axis.
+
+numpy reduces a short last axis pixel by pixel: on a 1300 px 3-band tile ``np.all(b,
+axis=2)`` took 24 ms, the and of the three planes 3 ms.  These combine the bands' planes
+one by one instead (the same booleans).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["all_bands", "any_bands"]
+
+
+def all_bands(b: np.ndarray) -> np.ndarray:
+    """``np.all(b, axis=2)`` of an (h, w, C) bool array; a 2-D one is returned as it is.
+
+    Parameters
+    ----------
+    b : (h, w) or (h, w, C) bool ndarray
+
+    Returns
+    -------
+    (h, w) bool ndarray
+        A new array for a 3-D ``b``.
+    """
+    b = np.asarray(b)
+    if b.ndim == 2:
+        return b
+    out = b[:, :, 0].copy()
+    for c in range(1, b.shape[2]):
+        out &= b[:, :, c]
+    return out
+
+
+def any_bands(b: np.ndarray) -> np.ndarray:
+    """``np.any(b, axis=2)`` of an (h, w, C) bool array; a 2-D one is returned as it is.
+
+    Parameters
+    ----------
+    b : (h, w) or (h, w, C) bool ndarray
+
+    Returns
+    -------
+    (h, w) bool ndarray
+        A new array for a 3-D ``b``.
+    """
+    b = np.asarray(b)
+    if b.ndim == 2:
+        return b
+    out = b[:, :, 0].copy()
+    for c in range(1, b.shape[2]):
+        out |= b[:, :, c]
+    return out
