@@ -184,6 +184,31 @@ def test_cogs_written_from_two_threads_are_whole(tmp_path):
         np.testing.assert_array_equal(f.read(1)[~mask], img[~mask])
 
 
+def test_cog_compressed_on_several_threads_is_the_same_file(tmp_path, monkeypatch):
+    """GDAL compresses the tiles on the CPUs available (``NUM_THREADS``): each tile alone,
+    so a masked 3-band 16-bit COG with overviews is byte for byte the one-thread file, and
+    reads back as its source."""
+    from reblur import gis
+
+    rng = np.random.default_rng(9)
+    h, w = 1500, 1300
+    img = (rng.random((h, w, 3)) * 60000).astype(np.uint16)
+    img[200:900, 300:1000] = 7  # a flat, highly compressible part beside the noise
+    nodata = np.zeros((h, w), bool)
+    nodata[:, :123] = True
+    files = []
+    for threads in (1, 2):
+        monkeypatch.setattr(gis, "_gdal_threads", lambda t=threads: t)
+        files.append(write_cog(tmp_path / f"t{threads}.tif", img, None, block=256,
+                               overviews="average", nodata_mask=nodata))
+    assert files[0].read_bytes() == files[1].read_bytes()
+    with rasterio.open(files[1]) as f:
+        assert f.overviews(1) == [2, 4, 8]
+        a = np.moveaxis(f.read(), 0, -1)
+        np.testing.assert_array_equal(a[~nodata], img[~nodata])
+        np.testing.assert_array_equal(f.read_masks(1) == 0, nodata)
+
+
 def test_cog_max_overviews_keep_every_change_pixel(tmp_path):
     m = np.zeros((500, 333), np.uint8)
     rng = np.random.default_rng(1)
