@@ -509,12 +509,15 @@ def geo_pair(levir_gray, tmp_path_factory):
 
 def test_cli_streams_reblurred_to_disk_above_the_memory_limit(geo_pair, tmp_path,
                                                               monkeypatch):
-    """With the in-memory limits lowered below the image (as for a > 64 MP input), the
-    reblurred reference is written tile by tile into a store on disk and reblurred.tif is
-    still written: the same file as a run that kept it in memory."""
+    """The CLI keeps the reblurred reference in the observation's dtype: in memory (a
+    numpy array of that dtype, not float32), or, with the in-memory limits lowered below
+    the image (as for a > 64 MP input), written tile by tile into a store on disk.
+    reblurred.tif is the same file either way, and the same as a run that kept the float32
+    image (the library's default)."""
     from click.testing import CliRunner
 
     import reblur.cli as cli
+    import reblur.gis as gis
     import reblur.pipeline as pl
 
     seen = {}
@@ -534,20 +537,36 @@ def test_cli_streams_reblurred_to_disk_above_the_memory_limit(geo_pair, tmp_path
 
     monkeypatch.setattr(reblur, "detect_changes", spy)
     plain = run(tmp_path / "plain")
-    assert isinstance(seen["result"].reblurred, np.ndarray)
+    kept = seen["result"].reblurred
+    assert isinstance(kept, ReblurredStore) and isinstance(kept.stored, np.ndarray)
+    with rasterio.open(geo_pair / "obs.tif") as f:
+        assert kept.stored.dtype == np.dtype(f.dtypes[0])
+    # without the in-memory store: the float32 image detect_changes keeps by default
+    store = gis.ReblurredStore
+    with monkeypatch.context() as m:
+        m.setattr(gis, "ReblurredStore",
+                  lambda d, *a, **k: None if d is None else store(d, *a, **k))
+        seen.clear()
+        run(tmp_path / "float")
+        assert isinstance(seen["result"].reblurred, np.ndarray)
+        assert seen["result"].reblurred.dtype == np.float32
     monkeypatch.setattr(cli, "LARGE_MASK_PIXELS", 1000)
     monkeypatch.setattr(pl, "KEEP_REBLURRED_PIXELS", 1000)
     seen.clear()
     out = tmp_path / "streamed"
     streamed = run(out)
     assert isinstance(seen["reblurred_out"], ReblurredStore)
+    assert not isinstance(seen["reblurred_out"].stored, np.ndarray)  # on disk
     assert seen["result"].reblurred is seen["reblurred_out"]  # never a numpy copy
     assert "reblurred.tif" in streamed["files"]
     assert not any("not written" in n and "reblurred" in n for n in streamed["notes"])
     assert not list(out.glob(".reblur-*"))  # the work store is gone
     with rasterio.open(tmp_path / "plain" / "reblurred.tif") as a, \
-            rasterio.open(out / "reblurred.tif") as b:
+            rasterio.open(out / "reblurred.tif") as b, \
+            rasterio.open(tmp_path / "float" / "reblurred.tif") as c:
         assert b.crs == GEO["crs"] and b.transform == GEO["transform"]
         assert b.tags(ns="IMAGE_STRUCTURE")["LAYOUT"] == "COG"
         np.testing.assert_array_equal(a.read(), b.read())
+        np.testing.assert_array_equal(c.read(), b.read())
+        np.testing.assert_array_equal(c.read_masks(), b.read_masks())
     assert plain["changes"]["changed_px"] == streamed["changes"]["changed_px"] > 0

@@ -894,14 +894,19 @@ def _detect_one(stage: Path, out_dir: Path, ref: Image, obs: Image, observed: Pa
     work = (stage / f".reblur-work-{os.getpid()}"
             if options["scheduler"] is not None or large else None)
     try:
+        from .gis import ReblurredStore
+
         masks = {}
         if large:
             masks = dict(zip(("change_out", "unknown_out"),
                              zarr_masks(work, obs.shape[:2], options["tile_size"]), strict=True))
             # the reblurred reference, too large to keep in memory, streamed to disk
-            from .gis import ReblurredStore
-
             masks["reblurred_out"] = ReblurredStore(work / "reblurred", obs.shape, obs.dtype,
+                                                    options["tile_size"])
+        elif options["scheduler"] is None:
+            # kept in memory in the observation's dtype, as reblurred.tif holds it (not as
+            # float32: a quarter of the memory for 8-bit data)
+            masks["reblurred_out"] = ReblurredStore(None, obs.shape, obs.dtype,
                                                     options["tile_size"])
         try:
             result = reblur.detect_changes(

@@ -130,13 +130,19 @@ def reblurred_source(result: Any, observed: Any, reblurred_path: Path | None
     """Where the reblurred reference's pixels come from.
 
     Returns ``(image, scale, note)``: the result's own reblurred image (fractions of full
-    scale: ``scale`` = the observation's full-scale value), else ``reblurred.tif`` opened
+    scale: ``scale`` = the observation's full-scale value; a
+    :class:`~reblur.gis.ReblurredStore` of the observation's dtype: its stored pixels, in
+    the observation's units, ``scale`` 1), else ``reblurred.tif`` opened
     lazily (an :class:`reblur.io.Image` read window by window, in the observation's units:
     ``scale`` 1; the caller closes it), else ``None`` with a note saying why the layer is
     missing.
     """
     if result.reblurred is not None:
         dt = np.dtype(observed.dtype) if observed is not None else np.dtype(np.float32)
+        if getattr(result.reblurred, "stored_dtype", None) == dt:
+            # a reblur.gis.ReblurredStore holding the observation's dtype: its pixels as
+            # stored (those of reblurred.tif), no float copy of each window
+            return result.reblurred.stored, 1.0, None
         return result.reblurred, float(np.iinfo(dt).max) if dt.kind in "ui" else 1.0, None
     if reblurred_path is not None and Path(reblurred_path).exists():
         from ..io import open_image
