@@ -12,6 +12,18 @@ import numpy as np
 __all__ = ["all_bands", "any_bands"]
 
 
+def _planes(b: np.ndarray, op: np.ufunc) -> np.ndarray:
+    """``op`` of the bands' planes of an (h, w, C) bool array, one by one; a 2-D one as
+    it is."""
+    b = np.asarray(b)
+    if b.ndim == 2:
+        return b
+    out = b[:, :, 0].copy()
+    for c in range(1, b.shape[2]):
+        op(out, b[:, :, c], out=out)
+    return out
+
+
 def all_bands(b: np.ndarray) -> np.ndarray:
     """``np.all(b, axis=2)`` of an (h, w, C) bool array; a 2-D one is returned as it is.
 
@@ -24,31 +36,10 @@ def all_bands(b: np.ndarray) -> np.ndarray:
     (h, w) bool ndarray
         A new array for a 3-D ``b``.
     """
-    b = np.asarray(b)
-    if b.ndim == 2:
-        return b
-    out = b[:, :, 0].copy()
-    for c in range(1, b.shape[2]):
-        out &= b[:, :, c]
-    return out
+    return _planes(b, np.logical_and)
 
 
 def any_bands(b: np.ndarray) -> np.ndarray:
-    """``np.any(b, axis=2)`` of an (h, w, C) bool array; a 2-D one is returned as it is.
-
-    Parameters
-    ----------
-    b : (h, w) or (h, w, C) bool ndarray
-
-    Returns
-    -------
-    (h, w) bool ndarray
-        A new array for a 3-D ``b``.
-    """
-    b = np.asarray(b)
-    if b.ndim == 2:
-        return b
-    out = b[:, :, 0].copy()
-    for c in range(1, b.shape[2]):
-        out |= b[:, :, c]
-    return out
+    """``np.any(b, axis=2)`` of an (h, w, C) bool array (parameters and result as
+    :func:`all_bands`)."""
+    return _planes(b, np.logical_or)
