@@ -1,8 +1,10 @@
 """Per-pixel tests over the bands of an image: ``np.all`` / ``np.any`` over its last axis.
 
 numpy reduces a short last axis pixel by pixel: on a 1300 px 3-band tile ``np.all(b,
-axis=2)`` took 24 ms, the and of the three planes 3 ms.  These combine the bands' planes
-one by one instead (the same booleans).
+axis=2)`` took 22 ms, the and of the three planes 3.3 ms (``python -m timeit -s "import
+numpy as np; from reblur._bands import all_bands; b = np.ones((1300, 1300, 3), bool)"
+"all_bands(b)"``, and ``"np.all(b, axis=2)"``).  These combine the bands' planes one by
+one instead (the same booleans).
 """
 
 from __future__ import annotations

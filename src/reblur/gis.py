@@ -133,8 +133,7 @@ def _gdal_threads() -> int:
     """Threads GDAL compresses a file's tiles with (its ``NUM_THREADS``): the CPUs this
     process may use.  Each tile is compressed alone, so the file's bytes are those of one
     thread.  ``python -m benchmarks.gis_outputs --megapixels 25``: ``reblurred.tif`` (RGB,
-    uint8) 2.3 -> 1.7 s on two threads; a 100 MP 3-band 16-bit one 20.3-20.7 -> 17.1-17.5
-    s, the same bytes."""
+    uint8) 2.3 -> 1.7 s on two threads, the same bytes."""
     return available_cpus()
 
 

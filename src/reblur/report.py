@@ -88,6 +88,7 @@ from .io import (
 )
 from .result import ChangeResult, MotionEstimate
 from .viewer import ViewerOptions
+from .viewer.layers import _display_bands
 
 __all__ = [
     "OUTPUT_NAMES",
@@ -292,12 +293,7 @@ def _display_stretch(small: np.ndarray, dtype: np.dtype) -> tuple[float, float] 
     :func:`_display_rgb` is stretched alike."""
     if np.dtype(dtype) == np.uint8:
         return None
-    a = np.asarray(small, dtype=np.float32)
-    if a.ndim == 3 and a.shape[2] == 2:
-        a = a[:, :, :1]
-    elif a.ndim == 3 and a.shape[2] > 3:
-        a = a[:, :, :3]
-    lo, hi = np.percentile(a, [1.0, 99.0])
+    lo, hi = np.percentile(_display_bands(np.asarray(small, dtype=np.float32)), [1.0, 99.0])
     return lo, hi
 
 
@@ -305,13 +301,7 @@ def _display_rgb(small: np.ndarray, dtype: np.dtype,
                  stretch: tuple[float, float] | None = None) -> np.ndarray:
     """Float RGB in [0, 1] for display: uint8 as is, others stretched to the 1-99 % range
     (``stretch``, from :func:`_display_stretch`; computed from ``small`` when not given)."""
-    a = np.asarray(small, dtype=np.float32)
-    if a.ndim == 2:
-        a = a[:, :, None]
-    if a.shape[2] == 2:
-        a = a[:, :, :1]
-    elif a.shape[2] > 3:
-        a = a[:, :, :3]
+    a = _display_bands(np.asarray(small, dtype=np.float32))
     if np.dtype(dtype) == np.uint8:
         a = a / 255.0
     else:
@@ -325,8 +315,8 @@ def _display_rgb(small: np.ndarray, dtype: np.dtype,
 
 #: Rows of the overlay drawn at a time: its float temporaries stay a few MB.  Drawn whole,
 #: a 2048 px overlay of a 16-bit image held ~100 MB float64 arrays, each freshly mapped
-#: by the C library (above its 32 MB mmap threshold): 3.5 s on the first call here, almost
-#: all of it first-touch page faults (``python -m benchmarks.pictures``).
+#: by the C library (above its 32 MB mmap threshold): 1.0-4.0 s on the first call here,
+#: almost all of it first-touch page faults (``python -m benchmarks.pictures``).
 OVERLAY_BAND_ROWS = 128
 
 
