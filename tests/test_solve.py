@@ -745,29 +745,6 @@ def test_band_mean_refit_gives_an_offset_per_band(levir_rgb, paper_grid):
         assert mass_near_truth(est.weights, w_true) >= 0.9
 
 
-def test_support_grid_holds_every_weighted_pose():
-    """The sub-grid of the poses with weight: the same poses (values, not indices) with
-    the same weights, and nothing else with weight; fewer poses than the grid."""
-    from reblur.estimate import _support_grid
-
-    grid = PoseGrid((300, 400), tx=np.arange(-4, 5), ty=np.arange(-3, 4),
-                    rz=[-1.0, -0.5, 0.0, 0.5, 1.0], tz=[-0.01, 0.0, 0.01])
-    rng = np.random.default_rng(5)
-    w = np.zeros(grid.shape)
-    for _ in range(12):
-        b = rng.choice([1, 2, 6, 7])  # tz -0.01 / 0.0, rz -0.5 / 0.0 / 1.0 among them
-        w[b, rng.integers(2, 6), rng.integers(1, 5)] = rng.random() + 0.1
-    sub, w_sub = _support_grid(w, grid)
-
-    def poses(g, ws):
-        return {(g.bases[b], g.ty[i], g.tx[j], v) for b, i, j, v in g.nonzero(ws)}
-
-    assert poses(sub, w_sub) == poses(grid, w)
-    assert sub.size < grid.size and w_sub.sum() == pytest.approx(w.sum())
-    empty, w_empty = _support_grid(np.zeros(grid.shape), grid)
-    assert empty is grid and not w_empty.any()
-
-
 def test_bands_option_is_checked(levir_gray):
     from reblur.select import SelectParams
 
