@@ -1,17 +1,19 @@
-"""Per-pixel tests over the bands of an image: ``np.all`` / ``np.any`` over its last axis.
+"""Per-pixel reductions over the bands of an image: ``np.all`` / ``np.any`` / ``np.mean``
+over its last axis.
 
 numpy reduces a short last axis pixel by pixel: on a 1300 px 3-band tile ``np.all(b,
 axis=2)`` took 22 ms, the and of the three planes 3.3 ms (``python -m timeit -s "import
 numpy as np; from reblur._bands import all_bands; b = np.ones((1300, 1300, 3), bool)"
-"all_bands(b)"``, and ``"np.all(b, axis=2)"``).  These combine the bands' planes one by
-one instead (the same booleans).
+"all_bands(b)"``, and ``"np.all(b, axis=2)"``); a 1024 px 3-band float32 band mean 15.7
+against 1.9 ms.  These combine the bands' planes one by one instead (the same booleans;
+the same float32 sums, band after band).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["all_bands", "any_bands"]
+__all__ = ["all_bands", "any_bands", "mean_bands"]
 
 
 def _planes(b: np.ndarray, op: np.ufunc) -> np.ndarray:
@@ -45,3 +47,30 @@ def any_bands(b: np.ndarray) -> np.ndarray:
     """``np.any(b, axis=2)`` of an (h, w, C) bool array (parameters and result as
     :func:`all_bands`)."""
     return _planes(b, np.logical_or)
+
+
+def mean_bands(a: np.ndarray, dtype=np.float32) -> np.ndarray:
+    """``np.mean(a, axis=2, dtype=dtype)`` of an (h, w, C) array: its planes cast to
+    ``dtype`` and added band after band, then divided by ``C`` (numpy's order for a short
+    last axis: the same values, ``tests/test_decide_fast.py``).
+
+    Parameters
+    ----------
+    a : (h, w, C) ndarray
+        Any real dtype.
+    dtype : numpy dtype
+        Floating type of the sums and the result.
+
+    Returns
+    -------
+    (h, w) ndarray of ``dtype``
+        A new array.
+    """
+    a = np.asarray(a)
+    if a.ndim != 3:
+        raise ValueError(f"mean_bands needs an (h, w, C) array, got shape {a.shape}")
+    out = a[:, :, 0].astype(dtype)
+    for c in range(1, a.shape[2]):
+        np.add(out, a[:, :, c], out=out, dtype=dtype)
+    out /= a.shape[2]
+    return out

@@ -9,6 +9,7 @@ from collections.abc import Sequence
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from ._bands import mean_bands
 from ._memory import available_cpus, small_pages, thread_map
 from .grid import PoseGrid, carry_weights
 from .io import ChunkCache, tile_chunks
@@ -318,7 +319,8 @@ class _BandMean:
     def __getitem__(self, key):
         if isinstance(key, tuple) and len(key) > 2:
             raise IndexError("a band mean has two axes")
-        return np.asarray(self.array[key]).mean(axis=-1, dtype=np.float32)
+        a = np.asarray(self.array[key])
+        return mean_bands(a) if a.ndim == 3 else a.mean(axis=-1, dtype=np.float32)
 
 
 def _band_residuals(reference, observed, ops, w, grid, base, s_ref, s_obs, info, threads):

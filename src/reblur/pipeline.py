@@ -21,6 +21,7 @@ import numpy as np
 from scipy import ndimage
 from threadpoolctl import threadpool_limits
 
+from ._bands import mean_bands
 from .align import AlignParams, OverviewCache, block_means, overview_matrix, refine_alignment
 from .align.field import estimate_field
 from .decide import (
@@ -80,7 +81,7 @@ class ScaledView:
         # block_means divides integers by the dtype's maximum, which is ``scale`` here
         raw = intensity_scale(np.dtype(self.array.dtype)) / self.scale
         v = (bands * np.float32(raw) - self.offset) / self.gain
-        grey = v[:, :, 0] if v.shape[2] == 1 else v.mean(axis=2, dtype=np.float32)
+        grey = v[:, :, 0] if v.shape[2] == 1 else mean_bands(v)
         return grey, v
 
 

@@ -30,11 +30,16 @@ import cv2
 import numpy as np
 import scipy.sparse as sp
 
+from .._bands import mean_bands
+
 log = logging.getLogger(__name__)
 
 #: Read about this many bytes (as float32) per band when building overviews (more when
-#: one row of the image's chunks is larger).
-_STRIP_BYTES = 32 * 2**20
+#: one row of the image's chunks is larger).  Small enough for a band's temporaries (its
+#: sums in integers, then float64) to stay few and reused: with 32 MB, the block means of a
+#: 1 MP RGB image at full resolution (one band) took 84-201 ms on first call against 25-38
+#: ms (fresh memory faulting in; ``python -m benchmarks.first_touch``).
+_STRIP_BYTES = 4 * 2**20
 
 #: Bands of an image read and averaged at once when building overviews.
 _THREADS = max(1, min(4, os.cpu_count() or 1))
@@ -132,7 +137,7 @@ def read_block_means(image, k: int) -> tuple[np.ndarray, np.ndarray]:
         if means is not None:
             bands[r0 : r0 + means.shape[0]] = means
         pending = tail if tail.shape[0] else None
-    grey = bands[:, :, 0] if C == 1 else bands.mean(axis=2, dtype=np.float32)
+    grey = bands[:, :, 0] if C == 1 else mean_bands(bands)
     return grey, bands
 
 
@@ -357,7 +362,7 @@ def _coarser(bands0: np.ndarray, f: int, shape: tuple[int, ...], k: int
     for c in range(C):
         bands[:, :, c] = cv2.resize(np.ascontiguousarray(bands0[: h * f, : w * f, c]), (w, h),
                                     interpolation=cv2.INTER_AREA)
-    grey = bands[:, :, 0] if C == 1 else bands.mean(axis=2, dtype=np.float32)
+    grey = bands[:, :, 0] if C == 1 else mean_bands(bands)
     return grey, bands
 
 
@@ -451,7 +456,7 @@ def level_block_means(level, k: int, shape: tuple[int, int]
     norm = _dtype_norm(arr.dtype)
     for c in range(C):  # then the columns' weights
         bands[:, :, c] = (Wx @ np.ascontiguousarray(down[:, :, c].T)).T * norm
-    grey = bands[:, :, 0] if C == 1 else bands.mean(axis=2, dtype=np.float32)
+    grey = bands[:, :, 0] if C == 1 else mean_bands(bands)
     return grey, bands
 
 
