@@ -4,9 +4,11 @@ over its last axis.
 numpy reduces a short last axis pixel by pixel: on a 1300 px 3-band tile ``np.all(b,
 axis=2)`` took 22 ms, the and of the three planes 3.3 ms (``python -m timeit -s "import
 numpy as np; from reblur._bands import all_bands; b = np.ones((1300, 1300, 3), bool)"
-"all_bands(b)"``, and ``"np.all(b, axis=2)"``); a 1024 px 3-band float32 band mean 15.7
-against 1.9 ms.  These combine the bands' planes one by one instead (the same booleans;
-the same float32 sums, band after band).
+"all_bands(b)"``, and ``"np.all(b, axis=2)"``); a 1024 px 3-band float32 band mean 15.2
+against 2.4 ms (the same command with ``b = np.ones((1024, 1024, 3), np.float32)``,
+``"b.mean(axis=2, dtype=np.float32)"`` and ``"mean_bands(b)"``).  These combine the
+bands' planes one by one instead (the same booleans; the same float32 sums, band after
+band).
 """
 
 from __future__ import annotations

@@ -37,8 +37,11 @@ log = logging.getLogger(__name__)
 #: Read about this many bytes (as float32) per band when building overviews (more when
 #: one row of the image's chunks is larger).  Small enough for a band's temporaries (its
 #: sums in integers, then float64) to stay few and reused: with 32 MB, the block means of a
-#: 1 MP RGB image at full resolution (one band) took 84-201 ms on first call against 25-38
-#: ms (fresh memory faulting in; ``python -m benchmarks.first_touch``).
+#: 1 MP RGB image at full resolution (one band) took 84-356 ms on first call against 25-38
+#: ms (fresh memory faulting in, ``python -m benchmarks.first_touch``; measured with
+#: ``python -c "import time, cv2, reblur.align.overviews as o; a = cv2.imread(PNG);
+#: o._STRIP_BYTES = MB << 20; t = time.perf_counter(); o.read_block_means(a, 1);
+#: print(time.perf_counter() - t)"`` on LEVIR test_12, a fresh process per figure).
 _STRIP_BYTES = 4 * 2**20
 
 #: Bands of an image read and averaged at once when building overviews.
