@@ -511,13 +511,36 @@ def test_chunk_cached_wraps_only_tiled_on_disk_arrays():
     tiled = _Counting(a, (512, 512))
     c = chunk_cached(tiled, 1024, 80)
     assert isinstance(c, ChunkCache) and c.chunks == (512, 512)
-    # two tile rows, four halos and two chunk rows across the image, within 64..256 MB
-    assert c.max_bytes == 64 * 2**20  # (2048 + 320 + 1024) * 3000 bytes is below the floor
+    # a padded tile row and two chunk rows across the image, within 64..256 MB
+    assert c.max_bytes == 64 * 2**20  # (1024 + 160 + 1024) * 3000 bytes is below the floor
     big = _Counting(np.zeros((10, 200_000), np.uint16), (256, 256))
     assert chunk_cached(big, 1024, 80).max_bytes == 256 * 2**20
+    wide = _Counting(np.zeros((10, 20_000, 3), np.uint16), (512, 512))
+    assert chunk_cached(wide, 1024, 80).max_bytes == (1024 + 160 + 1024) * 20_000 * 6
     assert chunk_cached(c, 1024, 80) is c  # already cached
     rows = _Counting(a, (16, 3000))  # a striped file: chunks are row strips
     assert chunk_cached(rows, 1024, 80) is rows
+
+
+@pytest.mark.parametrize(("tile", "halo", "chunk"), [(128, 16, 64), (128, 40, 48), (96, 8, 64)])
+def test_sweep_rows_read_every_chunk_once_in_a_raster_tile_pass(tile, halo, chunk):
+    """Padded tiles read in raster order through a cache of ``sweep_rows`` image rows
+    decode every chunk exactly once (counted pixels handed out by the store); a cache one
+    chunk row smaller on each side decodes some twice, so the bound is not loose."""
+    from reblur.decide import tile_boxes
+    from reblur.io import ChunkCache, sweep_rows
+
+    a = np.random.default_rng(3).integers(0, 255, (700, 960), dtype=np.uint8)
+    reads = []
+    for rows in (sweep_rows(tile, halo, chunk), tile + 2 * halo):
+        src = _Counting(a, (chunk, chunk))
+        cache = ChunkCache(src, max_bytes=rows * a.shape[1])
+        for (y0, x0, h, w), _ in tile_boxes(a.shape, tile, halo):
+            np.testing.assert_array_equal(cache[y0 : y0 + h, x0 : x0 + w],
+                                          a[y0 : y0 + h, x0 : x0 + w])
+        reads.append(src.read_px)
+    assert reads[0] == a.size
+    assert reads[1] > a.size
 
 
 def test_mask_bands_and_their_png_of_zarr_and_numpy_masks(tmp_path, rng):

@@ -223,6 +223,51 @@ def test_pass1_threshold_from_the_tile_pass_statistic(levir_gray):
     assert dec.threshold == pytest.approx(want, rel=2e-4)
 
 
+class _Tracked(np.ndarray):
+    """An ndarray that can be weakly referenced (a plain ndarray cannot)."""
+
+
+def test_pass1_windows_are_freed_before_the_tile_pass(levir_gray, monkeypatch):
+    """The sample windows of pass 1 (and every view of them) are gone when the first tile
+    of pass 2 starts: at 100 MP in three 16-bit bands they held 140 MB through the whole
+    tile pass.  Each window pass 1 loads is tracked by a weak reference."""
+    import gc
+    import weakref
+
+    import reblur.pipeline as pipeline
+    from reblur.grid import PoseGrid
+    from reblur.tiled import SparsePoses
+
+    ref = levir_gray[:640, :768].astype(np.float32)
+    H, W = ref.shape
+    grid = PoseGrid((H, W), tx=[-1, 0, 1], ty=[0, 1], rz=[0.0])
+    w = np.zeros(grid.shape)
+    w[0, 0, 1], w[0, 1, 2] = 0.6, 0.4
+    poses = SparsePoses(w, grid)
+    obs = ref + np.random.default_rng(2).normal(0.0, 2.0, ref.shape).astype(np.float32)
+    refs: list = []
+    alive_at_pass2: list[int] = []
+    load, run = pipeline.load_tile, pipeline.run_tile
+
+    def tracked_load(*args, **kwargs):
+        out = tuple(a.view(_Tracked) for a in load(*args, **kwargs))
+        refs.extend(weakref.ref(a) for a in out)
+        return out
+
+    def first_tile(*args, **kwargs):
+        if not alive_at_pass2:
+            gc.collect()
+            alive_at_pass2.append(sum(r() is not None for r in refs))
+        return run(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline, "load_tile", tracked_load)
+    monkeypatch.setattr(pipeline, "run_tile", first_tile)
+    pipeline.reblur_and_decide(ref, obs, poses, s_ref=255.0, s_obs=255.0, gain=np.ones(1),
+                               offset=np.zeros(1), tile_size=256, n_sample_tiles=6)
+    assert len(refs) == 3 * 6  # obs, reblurred and unknown of each sample window
+    assert alive_at_pass2 == [0]
+
+
 def test_gopro_frame_average_beyond_the_reference_runs():
     """Issue #29's failing real pair: frame 12 against the mean of frames 17-24 (real
     hand-held shake, moving people, not centred on the reference) runs to the end, and what

@@ -73,6 +73,7 @@ __all__ = [
     "LazyBands",
     "ChunkCache",
     "chunk_cached",
+    "sweep_rows",
     "tile_chunks",
     "DEFAULT_MAX_PIXELS",
     "BYTES_PER_PIXEL",
@@ -562,21 +563,33 @@ def tile_chunks(image) -> tuple[int, int] | None:
     return ch, cw
 
 
+def sweep_rows(tile_size: int, halo: int, chunk_rows: int) -> int:
+    """Image rows a :class:`ChunkCache` keeps for a raster sweep of ``tile_size`` tiles
+    padded by ``halo``: one padded tile row and a chunk row of slack on each side.
+
+    In raster order, least-recently-used eviction then reads every chunk once: the chunks
+    a tile row shares with the next one are still kept when the next row starts (without
+    the slack, some are read twice).  Two tile rows, the budget before, kept 35 % more
+    chunks for 14 % fewer reads and no faster tile pass (the 100 MP ``5% rgb16`` pair of
+    ``python -m benchmarks.cost``: 199 -> 129 MB per cache, 582 -> 700 chunk reads, the
+    re-runs' larger halos reading rows above the kept ones again).
+    """
+    return int(tile_size) + 2 * int(halo) + 2 * int(chunk_rows)
+
+
 def chunk_cached(image, tile_size: int, halo: int):
     """``image`` read through a :class:`ChunkCache` sized for a tiled pass, when it is a
     chunked on-disk array whose chunks are tiles (not single rows); anything else (numpy
     arrays, a reader already cached) is returned as it is.
 
-    The cache keeps what a row of ``tile_size`` tiles with a ``halo`` shares with the next
-    row -- two tile rows, twice the halo and a chunk row on each side -- within 64 MB to
-    256 MB.
+    The cache keeps :func:`sweep_rows` rows across the image, within 64 MB to 256 MB.
     """
     tiles = None if isinstance(image, ChunkCache) else tile_chunks(image)
     if tiles is None:
         return image
     ch, cw = tiles
     px = int(np.prod(image.shape[2:], dtype=np.int64)) * np.dtype(image.dtype).itemsize
-    rows = 2 * int(tile_size) + 4 * int(halo) + 2 * ch
+    rows = sweep_rows(tile_size, halo, ch)
     budget = min(max(rows * int(image.shape[1]) * px, 64 * 2**20), 256 * 2**20)
     return ChunkCache(image, max_bytes=budget, chunks=(ch, cw))
 

@@ -378,7 +378,87 @@ def reblur_and_decide(
                          gain=gain, offset=offset)
 
     # pass 1: photometry and threshold from a sample of windows spread over the image
+    # in a function of its own: its windows (and the views of them its fits took) are
+    # freed before the tile pass, which they used to outlive
     t_pass1 = time.perf_counter()
+    p, photometry, threshold, tinfo, cinfo = _fit_decision(
+        load, p, (H, W), n_sample_tiles=n_sample_tiles, tile_size=tile_size, workers=workers,
+        calibration=calibration, edge_error=edge_error, threshold=threshold)
+    t_pass1 = time.perf_counter() - t_pass1
+    t_pass2 = time.perf_counter()
+
+    # pass 2: every tile with its halo
+    halo = p.halo(max_region)
+    if scheduler is not None:
+        from .dask_backend import decide_tiles
+
+        out = decide_tiles(
+            reference, observed, poses, scheduler=scheduler, s_ref=s_ref, s_obs=s_obs,
+            gain=gain, offset=offset, threshold=threshold, photometry=photometry, params=p,
+            halo=halo, tile_size=tile_size, workers=workers,
+            keep_reblurred=keep_reblurred or reblurred_out is not None,
+            change_out=change_out, unknown_out=unknown_out, reblurred_out=reblurred_out,
+            store=work_dir,
+            progress=progress,
+        )
+        change, unknown, reblurred = out.change, out.unknown, out.reblurred
+        regions, incomplete = out.regions, out.incomplete
+        backend = out.info
+    else:
+        change = np.zeros((H, W), bool) if change_out is None else change_out
+        unknown = np.zeros((H, W), bool) if unknown_out is None else unknown_out
+        reblurred = reblurred_out
+        if keep_reblurred and reblurred is None:
+            reblurred = np.zeros((H, W) if two_d else (H, W, C), np.float32)
+        job = TileJob(
+            poses=poses, s_ref=float(s_ref), s_obs=float(s_obs), gain=gain, offset=offset,
+            threshold=threshold, photometry=photometry, params=p, halo=halo,
+            image_shape=(H, W), two_d=two_d, change_out=change, unknown_out=unknown,
+            reblurred_out=reblurred, lock_writes=True, client_pid=os.getpid(),
+        )
+        tiles = list(tile_boxes((H, W), tile_size, halo))
+        results: list[dict[str, Any]] = []
+        lock = threading.Lock()
+
+        def run(pair) -> None:
+            res = run_tile(job, ref_r, obs_r, *pair)
+            with lock:
+                results.append(res)
+                n_done = len(results)
+            if progress is not None:
+                progress(n_done / len(tiles))
+
+        run_tiles(run, tiles, workers)
+        regions = [r for res in results for r in res["regions"]]
+        incomplete = sum(0 if res["complete"] else 1 for res in results)
+        backend = {"scheduler": None, "kind": "local threads", "workers": int(workers),
+                   "work": tile_work(results)}
+    regions.sort(key=lambda r: (r["bbox"][0], r["bbox"][1]) if "bbox" in r else (0, 0))
+    info = dict(
+        threshold_info=tinfo,
+        photometry=photometry.to_dict(),
+        params=p.to_dict(),
+        statistic="local RMS of robust per-band z-scores of observed - matched reblurred, "
+        "outside the model's tolerance interval",
+        tolerance=p.tolerance.to_dict(),
+        calibration=cinfo,
+        n_tiles=-(-H // tile_size) * -(-W // tile_size),
+        incomplete_tiles=incomplete,
+        halo=halo,
+        backend=backend,
+        seconds={"fit": round(t_pass1, 3), "tiles": round(time.perf_counter() - t_pass2, 3)},
+    )
+    return Decided(change, unknown, reblurred, threshold, info, regions)
+
+
+def _fit_decision(load, p: DecisionParams, shape: tuple[int, int], *, n_sample_tiles: int,
+                  tile_size: int, workers: int, calibration, edge_error: bool,
+                  threshold: float | None):
+    """Pass 1 of :func:`reblur_and_decide`: the photometric model, the calibrated
+    parameters and the threshold, from a sample of windows spread over the image (loaded by
+    ``load(box)``).  Returns ``(params, photometry, threshold, threshold_info,
+    calibration_info)``; the windows are dropped on return."""
+    H, W = shape
     picked = sample_windows((H, W), n_sample_tiles, min(tile_size, _SAMPLE_SIDE))
     # each window is loaded with the statistic's reach around it, so that its statistic
     # is the one the tile pass computes there (not truncated at the window's edges)
@@ -450,73 +530,7 @@ def reblur_and_decide(
     else:
         tinfo = {"method": "given"}
     threshold = float(threshold)
-    loaded.clear()  # the samples are not needed in pass 2
-    known.clear()
-    t_pass1 = time.perf_counter() - t_pass1
-    t_pass2 = time.perf_counter()
-
-    # pass 2: every tile with its halo
-    halo = p.halo(max_region)
-    if scheduler is not None:
-        from .dask_backend import decide_tiles
-
-        out = decide_tiles(
-            reference, observed, poses, scheduler=scheduler, s_ref=s_ref, s_obs=s_obs,
-            gain=gain, offset=offset, threshold=threshold, photometry=photometry, params=p,
-            halo=halo, tile_size=tile_size, workers=workers,
-            keep_reblurred=keep_reblurred or reblurred_out is not None,
-            change_out=change_out, unknown_out=unknown_out, reblurred_out=reblurred_out,
-            store=work_dir,
-            progress=progress,
-        )
-        change, unknown, reblurred = out.change, out.unknown, out.reblurred
-        regions, incomplete = out.regions, out.incomplete
-        backend = out.info
-    else:
-        change = np.zeros((H, W), bool) if change_out is None else change_out
-        unknown = np.zeros((H, W), bool) if unknown_out is None else unknown_out
-        reblurred = reblurred_out
-        if keep_reblurred and reblurred is None:
-            reblurred = np.zeros((H, W) if two_d else (H, W, C), np.float32)
-        job = TileJob(
-            poses=poses, s_ref=float(s_ref), s_obs=float(s_obs), gain=gain, offset=offset,
-            threshold=threshold, photometry=photometry, params=p, halo=halo,
-            image_shape=(H, W), two_d=two_d, change_out=change, unknown_out=unknown,
-            reblurred_out=reblurred, lock_writes=True, client_pid=os.getpid(),
-        )
-        tiles = list(tile_boxes((H, W), tile_size, halo))
-        results: list[dict[str, Any]] = []
-        lock = threading.Lock()
-
-        def run(pair) -> None:
-            res = run_tile(job, ref_r, obs_r, *pair)
-            with lock:
-                results.append(res)
-                n_done = len(results)
-            if progress is not None:
-                progress(n_done / len(tiles))
-
-        run_tiles(run, tiles, workers)
-        regions = [r for res in results for r in res["regions"]]
-        incomplete = sum(0 if res["complete"] else 1 for res in results)
-        backend = {"scheduler": None, "kind": "local threads", "workers": int(workers),
-                   "work": tile_work(results)}
-    regions.sort(key=lambda r: (r["bbox"][0], r["bbox"][1]) if "bbox" in r else (0, 0))
-    info = dict(
-        threshold_info=tinfo,
-        photometry=photometry.to_dict(),
-        params=p.to_dict(),
-        statistic="local RMS of robust per-band z-scores of observed - matched reblurred, "
-        "outside the model's tolerance interval",
-        tolerance=p.tolerance.to_dict(),
-        calibration=cinfo,
-        n_tiles=-(-H // tile_size) * -(-W // tile_size),
-        incomplete_tiles=incomplete,
-        halo=halo,
-        backend=backend,
-        seconds={"fit": round(t_pass1, 3), "tiles": round(time.perf_counter() - t_pass2, 3)},
-    )
-    return Decided(change, unknown, reblurred, threshold, info, regions)
+    return p, photometry, threshold, tinfo, cinfo
 
 
 #: Largest fraction of the windows' known pixels the estimate may mark as change for the
