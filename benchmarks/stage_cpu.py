@@ -9,7 +9,9 @@ Prints one line per stage, slowest first, then the import of ``reblur.cli`` and 
 run, with the minor page faults of the process meanwhile (fresh pages touched, 4 KB each:
 on a VM that backs memory lazily they are kernel time); ``--profile module:function``
 adds a cProfile of that function (threads other than the caller's are not profiled: their
-work shows as waits).  Cases of
+work shows as waits).  The tile pass's chunk caches (:func:`reblur.io.chunk_cached`, inputs
+chunked in tiles on disk) are listed last: their bound, and the chunks they served from
+memory (hits) and read from the store (reads).  Cases of
 ``python -m benchmarks.cost`` are in its cache folder
 (``$TMPDIR/reblur-cost/1mp_unchanged/ref.tif`` ...).
 """
@@ -94,6 +96,7 @@ def main(argv: list[str] | None = None) -> dict[str, list[float]]:
     for spec in a.stages.split(","):
         _timed(spec, acc)
     prof = _profiled(a.profile) if a.profile else None
+    caches = _caches_kept()
     with tempfile.TemporaryDirectory() as tmp:
         out = a.out or Path(tmp) / "out"
         args = ["detect", str(a.reference), str(a.observed), "--out", str(out), "-q",
@@ -108,6 +111,9 @@ def main(argv: list[str] | None = None) -> dict[str, list[float]]:
     print(f"{'stage':45s} {'calls':>5s} {'wall s':>7s} {'CPU s':>7s} {'faults':>8s}")
     for spec, (n, wall, cpu, flt) in sorted(acc.items(), key=lambda kv: -kv[1][2]):
         print(f"{spec:45s} {n:5d} {wall:7.2f} {cpu:7.2f} {flt:8d}")
+    for c in caches:
+        print(f"chunk cache: {c.max_bytes / 2**20:.0f} MB bound, {c.hits} hits, "
+              f"{c.misses} reads")
     if prof is not None:
         print(f"\nprofile of {a.profile} (internal time, then cumulative):")
         try:
@@ -119,6 +125,26 @@ def main(argv: list[str] | None = None) -> dict[str, list[float]]:
             for key in ("tottime", "cumulative"):
                 stats.sort_stats(key).print_stats(a.top)
     return acc
+
+
+def _caches_kept() -> list:
+    """The :class:`reblur.io.ChunkCache` readers :func:`reblur.pipeline.reblur_and_decide`
+    creates from now on (through ``chunk_cached``), for their counts after the run."""
+    import reblur.pipeline as pipeline
+    from reblur.io import ChunkCache
+
+    made: list = []
+    make = pipeline.chunk_cached
+
+    @functools.wraps(make)
+    def wrapper(*args, **kwargs):
+        c = make(*args, **kwargs)
+        if isinstance(c, ChunkCache):
+            made.append(c)
+        return c
+
+    pipeline.chunk_cached = wrapper
+    return made
 
 
 def _minflt() -> int:

@@ -570,11 +570,12 @@ def sweep_rows(tile_size: int, halo: int, chunk_rows: int) -> int:
     In raster order, least-recently-used eviction then reads every chunk once: the chunks
     a tile row shares with the next one are still kept when the next row starts (without
     the slack, some are read twice).  Two tile rows, the budget before, kept 1.5x the
-    chunks for 13-20 % fewer reads and no faster tile pass (the 100 MP ``5% rgb16`` pair of
-    ``python -m benchmarks.cost``, alternating ``reblur detect`` runs: 199 -> 129 MB per
-    cache, 580-605 -> 695-721 chunk reads, tile pass 34.8-35.4 -> 33.2-34.5 s); the extra
-    reads come from the windows that are no plain raster sweep (re-runs with larger halos,
-    pass 1's samples, two threads at a row's end).
+    chunks for 17 % fewer reads and no faster tile pass (the 100 MP ``5% rgb16`` pair of
+    ``python -m benchmarks.cost``: 199 -> 130 MB per cache and 581-601 -> 697-719 chunk
+    reads, ``python -m benchmarks.stage_cpu REF OBS``; tile pass 34.8-35.4 -> 33.2-34.5 s,
+    alternating ``reblur detect`` runs).  The extra reads come from the windows that are
+    no plain raster sweep (re-runs with larger halos, pass 1's samples, two threads at a
+    row's end).
     """
     return int(tile_size) + 2 * int(halo) + 2 * int(chunk_rows)
 
