@@ -47,6 +47,8 @@ BENCHES = {
     "tiled_whole": ("benchmarks.tiled_whole", "main"),
     # the overlay picture's drawing: time, page faults, traced memory (#28)
     "pictures": ("benchmarks.pictures", "main"),
+    # camera shake beyond the pose grid: time and accuracy against its extent (#28)
+    "shake_extent": ("benchmarks.shake_extent", "main"),
 }
 
 

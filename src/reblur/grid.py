@@ -27,6 +27,7 @@ import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from numbers import Integral
 
 import numpy as np
 
@@ -38,6 +39,8 @@ __all__ = [
     "map_points",
     "mean_source_points",
     "carry_weights",
+    "edge_share",
+    "widen_translations",
     "MAX_POSES",
     "MAX_BASES_6D",
     "GridParams",
@@ -429,6 +432,70 @@ def carry_weights(weights: np.ndarray, src: PoseGrid, dst: PoseGrid) -> np.ndarr
     if db and dy and dx:
         out[np.ix_(db, dy, dx)] = w[np.ix_(sb, sy, sx)]
     return out
+
+
+def _edge(values: Sequence[float]) -> np.ndarray:
+    """The outermost values of one translation axis (none for a single value)."""
+    v = np.asarray(values, float)
+    if v.size < 2:
+        return np.zeros(v.size, bool)
+    return (v == v.min()) | (v == v.max())
+
+
+def edge_share(weights: np.ndarray, grid: PoseGrid) -> float:
+    """Share of the weight on the grid's outermost translations.
+
+    The poses whose ``tx`` is the grid's least or largest, or whose ``ty`` is (axes of one
+    value have no edge).  A blur that reaches beyond the translations piles its outer part
+    there: the l1 fit puts each pose it lacks on the nearest one it has.  0 when the
+    weights are all zero.
+
+    Examples
+    --------
+    >>> g = PoseGrid((100, 100), tx=[-1, 0, 1], ty=[-1, 0, 1])
+    >>> w = np.zeros(g.shape); w[0, 1, 1] = 0.75; w[0, 1, 2] = 0.25
+    >>> edge_share(w, g)
+    0.25
+    """
+    w = grid.check_weights(weights)
+    total = float(w.sum())
+    if not total > 0:
+        return 0.0
+    ring = _edge(grid.ty)[:, None] | _edge(grid.tx)[None, :]
+    return float(w[:, ring].sum()) / total
+
+
+def widen_translations(grid: PoseGrid, factor: int = 2) -> PoseGrid | None:
+    """``grid`` with its translation ranges ``factor`` times as wide, the same step.
+
+    Each translation axis that is a symmetric run of equal steps about 0 (``tx = step *
+    [-n..n]``, as :meth:`PoseGrid.from_ranges` builds it) becomes ``step * [-factor n ..
+    factor n]``; other axes stay as they are.  None when no axis can widen.
+
+    Examples
+    --------
+    >>> g = PoseGrid((100, 100), tx=[-2, -1, 0, 1, 2], ty=[0])
+    >>> widen_translations(g).tx
+    (-4.0, -3.0, -2.0, -1.0, 0.0, 1.0, 2.0, 3.0, 4.0)
+    """
+    if isinstance(factor, bool) or not isinstance(factor, Integral) or factor < 2:
+        raise ValueError(f"factor must be an integer >= 2, got {factor!r}")
+
+    def wider(values: Sequence[float]) -> tuple[float, ...] | None:
+        v = np.asarray(values, float)
+        n = v.size // 2
+        if v.size < 3 or v.size % 2 == 0:
+            return None
+        step = float(v[n + 1] - v[n])
+        ideal = step * np.arange(-n, n + 1)
+        if not (step > 0 and v[n] == 0 and np.allclose(v, ideal, rtol=0, atol=1e-9 * step)):
+            return None
+        return tuple(float(x) for x in step * np.arange(-factor * n, factor * n + 1))
+
+    tx, ty = wider(grid.tx), wider(grid.ty)
+    if tx is None and ty is None:
+        return None
+    return grid._replace(tx=grid.tx if tx is None else tx, ty=grid.ty if ty is None else ty)
 
 
 def _symmetric(v_max: float, step: float) -> np.ndarray:

@@ -731,12 +731,14 @@ def _estimate_stage(
     timings["align"] = time.perf_counter() - t
     report("align", 1.0)
 
-    # 2. photometric pre-match for the estimation
+    # 2. photometric pre-match for the estimation, the images low-passed beyond the blur's
+    # reach: the grid's, or the shake extent the alignment verified when that is larger
     t = time.perf_counter()
-    prefit = photometric_prefit(reference, observed, H0, s_ref, s_obs, sigma_px=t_max / 2.0)
+    reach = max(float(t_max), float(align_info.get("shake_px") or 0.0))
+    prefit = photometric_prefit(reference, observed, H0, s_ref, s_obs, sigma_px=reach / 2.0)
     gain, offset = prefit.gain, prefit.offset
     obs_view = ScaledView(observed, s_obs, gain / 1.0, offset,
-                          exclude=prefit.exclusion(margin=t_max / 2.0))
+                          exclude=prefit.exclusion(margin=reach / 2.0))
     # the reference is read in its own units, scaled by s_ref inside the operator
     timings["photometry"] = time.perf_counter() - t
 
@@ -744,6 +746,9 @@ def _estimate_stage(
     t = time.perf_counter()
     if windows is None:
         windows = default_windows((Ho, Wo), large_side)
+    # a grid the caller gave is kept as it is; the default one may widen its translations
+    # where the blur reaches beyond them (SelectParams.t_grow)
+    given = grid is not None
     if isinstance(grid, GridParams):
         grid = grid.build((Ho, Wo))
     if grid is None:
@@ -756,10 +761,12 @@ def _estimate_stage(
         raise ValueError(f"grid geometry {grid.image_shape} does not match the observation")
     report("estimate", 0.0)
     sp = select or SelectParams(lam=lam, windows=windows)
+    if given:
+        sp = dataclasses.replace(sp, t_grow=1)
     if boxes is not None:
         motion = estimate_motion(reference, obs_view, grid, boxes=boxes, base=H0, lam=lam,
                                  scale=None, refit_photometry=sp.refit_photometry,
-                                 bands=sp.bands)
+                                 bands=sp.bands, t_grow=sp.t_grow)
         crop = CropChoice(boxes=[tuple(b) for b in motion.boxes], size=int(boxes[0][2]))
     else:
         crop, motion = select_windows(
@@ -769,6 +776,7 @@ def _estimate_stage(
         )
     if not np.any(motion.weights > 0):
         raise ValueError("motion cannot be estimated: every pose weight came out zero")
+    grid = motion.grid  # its translations widened where the blur reached beyond them
     photo = motion.info.get("photometry")
     if photo is not None:
         # the estimate found view ~ F w + b on its windows, with view = (obs - offset) / gain
@@ -914,13 +922,17 @@ def detect_changes(
         (:class:`reblur.grid.GridParams`, e.g. ``GridParams(kind="6d", focal=...)`` for
         the scale change, tilt and pan as well).  Default: integer ``|tx|, |ty| <= t_max``
         and ``|rz| <= rz_max`` in steps of ``rz_step`` degrees (the paper's grid with
-        ``rz_step=0.5``).
+        ``rz_step=0.5``), whose translations the estimate widens where the blur reaches
+        beyond them (``SelectParams.t_grow``, :func:`reblur.estimate_motion`'s ``t_grow``;
+        the result's ``motion.grid`` is the grid used).  A grid given here is kept.
     t_max, rz_max, rz_step : int, float, float
         Ranges of the default grid.  ``rz_step=None`` (default): the step that moves the
         farthest pixel of the full image by one pixel (solved coarse to fine), because the
         paper's 0.5 degree step moves a corner pixel by ``radius x 0.0087`` px (41 px on a
         6680 px image, 11 px on a 2500 px one) and cannot represent the motion far from
-        the centre; ``rz_step=0.5`` gives the paper's grid.
+        the centre; ``rz_step=0.5`` gives the paper's grid.  The photometric pre-match
+        low-passes the images over ``t_max`` or the shake extent the alignment verified,
+        the larger.
     lam : float
         Eq. 5's ``lambda`` (intensities in [0, 1]).
     align : bool

@@ -66,6 +66,7 @@ from typing import Any
 
 import numpy as np
 
+from .estimate import T_EDGE_SHARE
 from .gis import (
     FEATURE_KEYS,
     ReblurredStore,
@@ -765,8 +766,9 @@ FIT_SPREAD_DB = 6.0
 
 def model_notes(result) -> list[str]:
     """What an analyst should know about how well the model fits: estimation windows whose
-    fits disagree, no window that fits (the estimate decided from the best one), and a
-    model error the decision's tolerance could not absorb."""
+    fits disagree, no window that fits (the estimate decided from the best one), a blur
+    beyond the pose grid's translations, and a model error the decision's tolerance could
+    not absorb."""
     notes = []
     info = result.motion.info
     fits = [f for f in (info.get("psnr_inliers") or info.get("psnr") or [])
@@ -785,6 +787,19 @@ def model_notes(result) -> list[str]:
             f"{sel.get('max_occluded', 2 / 3):.0%} is rejected) in each of the "
             f"{sel.get('estimates', 1)} estimates tried; the motion comes from the best one, "
             "so the reblurred reference and the changes are less reliable than usual")
+    tr = info.get("translations") or {}
+    checks = tr.get("checks") or [{}]
+    # on the edge with no wider grid tried (a grid given) or allowed; a wider one that fitted
+    # no better says the poses on the edge belong there
+    if tr.get("edge_share", 0.0) >= T_EDGE_SHARE and checks[-1].get("outcome") in (None,
+                                                                                  "limit"):
+        grown = (f", widened from {tr['t_max_start']:g} px" if tr["t_max"] > tr["t_max_start"]
+                 else "")
+        notes.append(
+            f"the blur reaches beyond the pose grid's translations (+-{tr['t_max']:g} px"
+            f"{grown}): {tr['edge_share']:.0%} of the weight lies on their edge, so the "
+            "reblurred reference misses part of the blur (--t-max sets the range the "
+            "estimate starts from)")
     cal = result.decision.get("calibration", {})
     if cal.get("calibrated") and not cal.get("met", True):
         notes.append(

@@ -79,13 +79,16 @@ class SelectParams:
     #: band mean (a third of the solver's cost for RGB; the change term and the fit's
     #: figures stay per band), or ``"all"`` (``estimate_motion(bands=)``)
     bands: str = "mean"
+    #: how far the estimate may widen the pose grid's translations when its weights pile
+    #: on their edge (a factor of the grid's; ``estimate_motion(t_grow=)``; 1: never)
+    t_grow: int = 4
     overview_side: int = 1024  #: resolution of the region-score map
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         for name in ("beta", "gamma", "patch", "unit", "s_start", "s_max", "alpha",
                      "max_tries", "unfit_outer", "windows", "spread_size", "spread_pixels",
-                     "overview_side"):
+                     "overview_side", "t_grow"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, Integral) or v < 1:
                 raise ValueError(f"SelectParams.{name} must be an integer >= 1, got {v!r}")
@@ -623,7 +626,7 @@ class _Runs:
         est = estimate_motion(*self.args, boxes=[c.as_tuple() for c in chosen],
                               base=self.base, lam=p.lam, refit_photometry=p.refit_photometry,
                               stop_occluded=p.max_occluded if stop else None, bands=p.bands,
-                              **kw)
+                              t_grow=p.t_grow, **kw)
         self.n_outer += int(est.info["n_outer"])
         self.runs.append((list(chosen), est))
         return est
@@ -644,12 +647,18 @@ class _Runs:
         p = self.p
         if est.info.get("stopped_early"):
             boxes = [Box(*b) for b in est.info["windows"]]
-            est = estimate_motion(*self.args, boxes=[b.as_tuple() for b in boxes],
+            # on the grid it stopped on (its first level may have widened the translations)
+            reference, observed, _ = self.args
+            first = est.info
+            est = estimate_motion(reference, observed, est.grid,
+                                  boxes=[b.as_tuple() for b in boxes],
                                   base=self.base, lam=p.lam,
                                   refit_photometry=p.refit_photometry,
                                   resume=est.info["resume"], max_outer=p.unfit_outer,
                                   rtol=p.unfit_rtol, bands=p.bands)
             self.n_outer += int(est.info["n_outer"])
+            est.info["translations"] = dict(first["translations"],
+                                            edge_share=est.info["translations"]["edge_share"])
         est.info.pop("resume", None)
         est.info["selection"] = dict(estimates=len(self.runs), n_outer=self.n_outer,
                                      fits=bool(fits), occluded=list(est.info["occluded"]),

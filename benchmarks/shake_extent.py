@@ -1,0 +1,173 @@
+"""Camera shake larger than the pose grid (issue #28): time and accuracy against the shake's
+extent (``python -m benchmarks.shake_extent``).
+
+The paper's grid holds translations of at most 12 px.  Real hand-held shake goes further:
+GoPro 0374 (the sharp middle frame against the mean of eight 240 fps frames) puts 62 % of
+its weight on that grid's edge.  A blur the grid cannot hold is a misfit: the l1 fit
+spreads the weights over hundreds of poses, each solve runs long, and the reblurred
+reference misses the blur.  The estimate widens the translations when that pays
+(:func:`reblur.estimate_motion`'s ``t_grow``); this benchmark measures what it buys and
+costs.
+
+Cases, each through ``python -m reblur detect REF OBS -q`` in a fresh process (the
+defaults; ``--truth`` where there is one):
+
+* the test bed's 1 MP gray pairs of LEVIR test_7 (:func:`reblur.testbed.make_pair`, 8
+  pasted changes, a 20 px viewpoint shift, 8-bit sensor) shaken along paths of peak
+  translation 6 px (the test bed's default), 12, 20 and 35 px;
+* the three GoPro pairs of :data:`benchmarks.cost.REAL_PAIRS` (no truth: the moving
+  people are real changes).
+
+Per run: wall time, the estimate's time, peak RSS, the estimation windows' fit (PSNR of
+the reblurred reference against the observation over each window's unchanged pixels), the
+largest translation of the grid used, the share flagged and, with a truth, JC, false-alarm
+rate and recall.  ``--src OLD/src --label COMMIT`` runs another checkout; rows of every
+label are kept in ``docs/shake_runs.json`` and written into ``docs/benchmarks.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import tifffile
+
+from benchmarks.common import REPO, load_runs, save_runs
+
+RUNS = REPO / "docs" / "shake_runs.json"
+CACHE = Path(tempfile.gettempdir()) / "reblur-shake"
+#: name -> (seed, camera-path keywords of the test bed)
+SHAKES = {
+    "6 px": (2, {}),
+    "12 px": (2, {"max_shift_px": 12.0, "max_roll_deg": 1.5}),
+    "20 px": (2, {"max_shift_px": 20.0, "max_roll_deg": 1.5}),
+    "35 px": (3, {"max_shift_px": 35.0, "max_roll_deg": 0.5}),
+}
+
+
+def make_case(name: str, cache: Path = CACHE) -> Path:
+    """The test-bed pair of ``name`` (:data:`SHAKES`) as ``ref.tif``, ``obs.tif`` and
+    ``truth.tif`` in a folder of ``cache`` (made once)."""
+    from reblur.testbed import levir_image, make_pair
+
+    folder = cache / name.replace(" ", "")
+    if (folder / "truth.tif").exists():
+        return folder
+    seed, motion = SHAKES[name]
+    pair = make_pair(levir_image("test_7"), seed=seed, motion=motion or None)
+    folder.mkdir(parents=True, exist_ok=True)
+    tifffile.imwrite(folder / "ref.tif", pair.reference)
+    tifffile.imwrite(folder / "obs.tif", pair.observed)
+    tifffile.imwrite(folder / "truth.tif", pair.truth.astype(np.uint8) * 255)
+    return folder
+
+
+def run(ref: Path, obs: Path, truth: Path | None, src: Path | None) -> dict:
+    """``reblur detect`` on one pair in a fresh process; the row's figures."""
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "out"
+        cmd = [sys.executable, "-m", "reblur", "detect", str(ref), str(obs), "--out",
+               str(out), "-q"] + ([] if truth is None else ["--truth", str(truth)])
+        env = dict(os.environ)
+        if src is not None:
+            env["PYTHONPATH"] = str(src)
+        t = time.perf_counter()
+        r = subprocess.run(cmd, capture_output=True, text=True, env=env, check=False,
+                           cwd=REPO)
+        seconds = time.perf_counter() - t
+        if r.returncode:
+            return {"seconds": seconds,
+                    "refused": (r.stderr.strip().splitlines() or ["?"])[-1][:300]}
+        rep = json.loads((out / "report.json").read_text())
+    info = rep["motion"]["info"]
+    row = {"seconds": seconds, "estimate_s": rep["timings_s"]["estimate"],
+           "peak_rss_mb": rep["memory"]["peak_rss_mb"],
+           "fit_db": [float(v) for v in info.get("psnr_inliers") or info["psnr"]],
+           "t_max": max(abs(v) for v in rep["motion"]["grid"]["tx"]),
+           "flagged": rep["changes"]["changed_fraction"]}
+    m = rep.get("metrics") or {}
+    if m:
+        row.update(jc=m["jaccard"], fpr=m["fpr"], recall=m["recall"])
+    return row
+
+
+def measure(src: Path | None = None, cache: Path = CACHE) -> list[dict]:
+    """Every case of the benchmark (GoPro pairs whose files are missing are skipped)."""
+    from benchmarks.common import DATA
+    from benchmarks.cost import REAL_PAIRS
+
+    rows = []
+    for name in SHAKES:
+        case = make_case(name, cache)
+        rows.append({"case": f"test bed, shake {name}",
+                     **run(case / "ref.tif", case / "obs.tif", case / "truth.tif", src)})
+        print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
+    for name, (ref, obs) in REAL_PAIRS.items():
+        if not name.startswith("GoPro"):
+            continue
+        ref_p, obs_p = Path(DATA) / ref, Path(DATA) / obs
+        if not (ref_p.exists() and obs_p.exists()):
+            print(f"skipped {name}: files missing", file=sys.stderr)
+            continue
+        rows.append({"case": name, **run(ref_p, obs_p, None, src)})
+        print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
+    return rows
+
+
+def table(runs: list[dict]) -> str:
+    """Markdown: one row per case and label, the labels in the order they were run."""
+    out = ["| case | code | time (s) | estimate (s) | peak RSS (MB) | window fit (dB) | "
+           "grid t_max (px) | flagged % | JC | false alarms % | recall |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
+    cases = list(dict.fromkeys(r["case"] for run in runs for r in run["rows"]))
+    for case in cases:
+        for run_ in runs:
+            for r in (r for r in run_["rows"] if r["case"] == case):
+                if "refused" in r:
+                    out.append(f"| {case} | {run_['label']} | {r['seconds']:.1f} | "
+                               f"refused: {r['refused']} | | | | | | | |")
+                    continue
+                fit = " / ".join(f"{v:.1f}" for v in r["fit_db"])
+                tail = (f"{r['jc']:.3f} | {100 * r['fpr']:.3f} | {r['recall']:.3f}"
+                        if "jc" in r else "- | - | -")
+                out.append(f"| {case} | {run_['label']} | {r['seconds']:.1f} | "
+                           f"{r['estimate_s']:.1f} | {r['peak_rss_mb']:.0f} | {fit} | "
+                           f"{r['t_max']:g} | {100 * r['flagged']:.2f} | {tail} |")
+    return "\n".join(out)
+
+
+def main(src: Path | None = None, label: str | None = None, cache: Path = CACHE) -> str:
+    """Run the cases with this checkout (or ``src``), keep the rows under ``label``
+    (default: the commit) in ``docs/shake_runs.json`` and return the section's markdown."""
+    from benchmarks.common import commit
+
+    label = label or commit()
+    rows = measure(src, cache)
+    runs = [r for r in load_runs(RUNS) if r["label"] != label]
+    runs.append({"label": label, "rows": rows})
+    save_runs(RUNS, runs)
+    return ("Test-bed pairs of LEVIR test_7 at 1 MP shaken further and further, and the "
+            "GoPro pairs (`python -m benchmarks.shake_extent`; `--src OLD/src --label "
+            "COMMIT` for another checkout).  Each case is `reblur detect` in a fresh "
+            "process with the defaults; the window fit is each estimation window's PSNR "
+            "over its unchanged pixels.\n\n" + table(runs))
+
+
+if __name__ == "__main__":
+    from benchmarks.run import write_section
+
+    ap = argparse.ArgumentParser(prog="python -m benchmarks.shake_extent")
+    ap.add_argument("--src", type=Path, default=None, help="another checkout's src folder")
+    ap.add_argument("--label", default=None, help="name of the rows (default: the commit)")
+    ap.add_argument("--cache", type=Path, default=CACHE, help="folder of the pairs")
+    a = ap.parse_args()
+    body = main(a.src, a.label, a.cache)
+    write_section("shake_extent", body)
+    print(body)
