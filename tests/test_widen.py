@@ -215,3 +215,33 @@ def test_the_report_notes_a_blur_beyond_the_grid_only_when_it_could_not_widen(ou
     assert bool(notes) == noted
     if noted and checks:
         assert "(+-24 px, widened from 12 px): 30% of the weight" in notes[0]
+
+
+@pytest.mark.parametrize("method, sigma", [("features+ecc+kernel", 16.0),
+                                           ("features+ecc+gradient", 3.0)])
+def test_the_pre_match_low_passes_over_a_shake_the_kernel_polish_verified(pair, monkeypatch,
+                                                                         method, sigma):
+    """The photometric pre-match smooths over the larger of ``t_max`` and the alignment's
+    shake extent, but only an extent its kernel polish verified: one reached without it
+    (content that fits no blur, e.g. years apart) says nothing of the blur."""
+    import reblur.pipeline as pl
+    from reblur import detect_changes
+
+    class Aligned:  # what align_coarse returns, reduced to what the stage reads
+        H = np.eye(3)
+
+        def to_dict(self):
+            return {"method": method, "shake_px": 32.0}
+
+    seen = []
+    prefit = pl.photometric_prefit
+
+    def spy(*args, sigma_px, **kw):
+        seen.append(sigma_px)
+        return prefit(*args, sigma_px=sigma_px, **kw)
+
+    monkeypatch.setattr(pl, "align_coarse", lambda *a, **k: Aligned())
+    monkeypatch.setattr(pl, "photometric_prefit", spy)
+    ref, obs = pair
+    detect_changes(ref, obs, refine=False, local_field=False, rz_max=0.5, t_max=6)
+    assert seen == [sigma]

@@ -732,9 +732,12 @@ def _estimate_stage(
     report("align", 1.0)
 
     # 2. photometric pre-match for the estimation, the images low-passed beyond the blur's
-    # reach: the grid's, or the shake extent the alignment verified when that is larger
+    # reach: the grid's, or the shake extent at which the alignment's kernel polish
+    # verified the blur when that is larger (an extent reached without it, by content
+    # that fits no blur, says nothing of the blur: a years-apart 25 MP pair's 32 px)
     t = time.perf_counter()
-    reach = max(float(t_max), float(align_info.get("shake_px") or 0.0))
+    verified = "kernel" in str(align_info.get("method", "")).split("+")
+    reach = max(float(t_max), float(align_info.get("shake_px") or 0.0) if verified else 0.0)
     prefit = photometric_prefit(reference, observed, H0, s_ref, s_obs, sigma_px=reach / 2.0)
     gain, offset = prefit.gain, prefit.offset
     obs_view = ScaledView(observed, s_obs, gain / 1.0, offset,
@@ -931,8 +934,8 @@ def detect_changes(
         paper's 0.5 degree step moves a corner pixel by ``radius x 0.0087`` px (41 px on a
         6680 px image, 11 px on a 2500 px one) and cannot represent the motion far from
         the centre; ``rz_step=0.5`` gives the paper's grid.  The photometric pre-match
-        low-passes the images over ``t_max`` or the shake extent the alignment verified,
-        the larger.
+        low-passes the images over ``t_max``, or over the shake extent at which the
+        alignment's kernel polish verified the blur when that is larger.
     lam : float
         Eq. 5's ``lambda`` (intensities in [0, 1]).
     align : bool
