@@ -245,3 +245,17 @@ def test_the_pre_match_low_passes_over_a_shake_the_kernel_polish_verified(pair, 
     ref, obs = pair
     detect_changes(ref, obs, refine=False, local_field=False, rz_max=0.5, t_max=6)
     assert seen == [sigma]
+
+
+def test_the_fista_cross_check_still_runs_through_estimate_motion():
+    """``solver="fista"`` (no outer iterations to count, never widened) still estimates:
+    half the weight at ``tx = 0`` and half at ``tx = 1``, as the blur was made."""
+    rng = np.random.default_rng(0)
+    f = rng.random((96, 96))
+    g = (f + np.roll(f, 1, axis=1)) / 2
+    grid = PoseGrid((96, 96), tx=range(-2, 3), ty=range(-2, 3))
+    est = estimate_motion(f, g, grid, boxes=[(8, 8, 80, 80)], solver="fista", occlusion=False,
+                          lam=1e-4, fista_iter=2000, t_grow=4)
+    assert est.grid is grid and est.info["translations"]["checks"] == []
+    np.testing.assert_allclose(est.weights[0, 2, 2:4], [0.5, 0.5], atol=0.02)
+    assert est.weights.sum() - est.weights[0, 2, 2:4].sum() < 0.02

@@ -265,17 +265,17 @@ def estimate_motion(
                 log=log,
             )
         else:
-            spent = dict(objective=[], n_outer=0, time_s=0.0)  # over every solve
-
             def solve(sub, w0):
                 out = _solve(reference, observed, sub, boxes, base, engine, s_ref, s_obs,
                              lam, occlusion, solver, max_outer, time_limit, fista_iter, w0,
                              scratch=scratch, threads=int(threads), rtol=rtol)
-                spent["objective"] += list(out[1]["objective"])
-                spent["n_outer"] += int(out[1]["n_outer"])
-                spent["time_s"] += float(out[1]["time_s"])
+                if solver == "active-set":  # the history over every solve (FISTA: one)
+                    spent["objective"] += list(out[1]["objective"])
+                    spent["n_outer"] += int(out[1]["n_outer"])
+                    spent["time_s"] += float(out[1]["time_s"])
                 return out
 
+            spent = dict(objective=[], n_outer=0, time_s=0.0)
             w, info, ops, gs = solve(grid, None)
             if t_grow > 1 and solver == "active-set":
                 grid, (_, w, info, ops, gs) = _widen_first(
