@@ -199,7 +199,7 @@ def test_the_pipeline_widens_its_default_grid_but_not_a_given_one(pair):
     assert any("beyond the pose grid's translations (+-2 px)" in n for n in model_notes(kept))
 
 
-@pytest.mark.parametrize("outcome, noted", [("limit", True), (None, True),
+@pytest.mark.parametrize("outcome, noted", [("limit", True), (None, True), ("reach", True),
                                             ("no gain", False), ("clear", False)])
 def test_the_report_notes_a_blur_beyond_the_grid_only_when_it_could_not_widen(outcome,
                                                                               noted):
@@ -259,3 +259,109 @@ def test_the_fista_cross_check_still_runs_through_estimate_motion():
     assert est.grid is grid and est.info["translations"]["checks"] == []
     np.testing.assert_allclose(est.weights[0, 2, 2:4], [0.5, 0.5], atol=0.02)
     assert est.weights.sum() - est.weights[0, 2, 2:4].sum() < 0.02
+
+
+def _checks(est) -> list[tuple]:
+    return [(c["t_max"], c["outcome"]) for c in est.info["translations"]["checks"]]
+
+
+@pytest.mark.parametrize("rolls", [1, 21], ids=["translations", "coarse-to-fine"])
+def test_a_known_reach_starts_the_translations_wider(pair, rolls):
+    """A blur known to reach beyond 3 px (the alignment's kernel polish failed there): the
+    +-2 px grid, which would only be a misfit, is not solved; the estimate starts on +-4
+    px, where the check finds the 5 px pose on the edge and widens to 8 px as before, with
+    the same weights."""
+    ref, obs = pair
+    grid = PoseGrid(ref.shape, tx=range(-2, 3), ty=range(-2, 3),
+                    rz=np.linspace(-0.5, 0.5, rolls) if rolls > 1 else [0.0])
+    kw = dict(boxes=[(30, 30, 200, 200)], occlusion=False, lam=1e-4, t_grow=4)
+    est = estimate_motion(ref, obs, grid, blur_reach=3.0, **kw)
+    assert _checks(est) == [(2.0, "reach"), (4.0, "widened"), (8.0, "clear")]
+    tr = est.info["translations"]
+    assert (tr["t_max_start"], tr["t_max"], tr["blur_reach"]) == (2.0, 8.0, 3.0)
+    assert est.grid.tx == tuple(float(v) for v in range(-8, 9))
+    got = _by_translation(est)
+    assert got.keys() == TRUE.keys()
+    for t, v in TRUE.items():
+        assert got[t] == pytest.approx(v, abs=1e-3)
+    if rolls > 1:  # every level's solve on +-4 px or wider
+        assert min(lv["t_max"] for lv in est.info["levels"]) == 4.0
+        plain = estimate_motion(ref, obs, grid, **kw)
+        assert min(lv["t_max"] for lv in plain.info["levels"]) == 2.0
+        assert len(est.info["levels"]) == len(plain.info["levels"]) - 1
+
+
+def test_a_known_reach_keeps_the_limits_of_the_widening(pair):
+    """The start counts against ``t_grow``: a reach of 100 px on a +-2 px grid with
+    ``t_grow=4`` starts at 8 px and no check widens further; ``t_grow=1`` keeps the grid;
+    a resumed estimate stays on the grid it resumes."""
+    ref, obs = pair
+    grid = PoseGrid(ref.shape, tx=range(-2, 3), ty=range(-2, 3))
+    kw = dict(boxes=[(30, 30, 200, 200)], occlusion=False, lam=1e-4)
+    far = estimate_motion(ref, obs, grid, t_grow=4, blur_reach=100.0, **kw)
+    assert _checks(far) == [(2.0, "reach"), (4.0, "reach")]
+    assert far.info["translations"]["t_max"] == 8.0
+    # t_grow=2: one doubling, then the checks have nothing left
+    two = estimate_motion(ref, obs, grid, t_grow=2, blur_reach=100.0, **kw)
+    assert _checks(two) == [(2.0, "reach")] and two.info["translations"]["t_max"] == 4.0
+    kept = estimate_motion(ref, obs, grid, t_grow=1, blur_reach=100.0, **kw)
+    assert kept.grid is grid and _checks(kept) == []
+    # a reach the grid holds changes nothing
+    inside = estimate_motion(ref, obs, grid, t_grow=4, blur_reach=2.0, **kw)
+    assert _checks(inside)[0] == (2.0, "widened")
+    rolled = PoseGrid(ref.shape, tx=range(-2, 3), ty=range(-2, 3), rz=np.linspace(-0.5, 0.5, 21))
+    first = estimate_motion(ref, obs, rolled, t_grow=4, blur_reach=3.0, stop_occluded=-1.0,
+                            boxes=[(30, 30, 200, 200)], lam=1e-4)
+    assert first.info["stopped_early"]
+    done = estimate_motion(ref, obs, first.grid, resume=first.info["resume"], t_grow=4,
+                           blur_reach=100.0, boxes=[(30, 30, 200, 200)], lam=1e-4)
+    assert done.grid is first.grid
+    for bad in (-1.0, np.nan, np.inf, "3"):
+        with pytest.raises(ValueError, match="blur_reach"):
+            estimate_motion(ref, obs, grid, t_grow=4, blur_reach=bad, **kw)
+
+
+@pytest.mark.parametrize("info, reach", [
+    ({"method": "phase+ecc+kernel", "shake_px": 32.0,
+      "extents": [{"shake_px": 8.0, "refused": "..."}, {"shake_px": 16.0, "refused": "..."},
+                  {"shake_px": 32.0, "method": "phase+ecc+kernel"}]}, 16.0),
+    ({"method": "features+ecc+kernel", "shake_px": 16.0,
+      "extents": [{"shake_px": 8.0, "method": "features+ecc+gradient"},
+                  {"shake_px": 16.0, "method": "features+ecc+kernel"}]}, 8.0),
+    ({"method": "features+ecc+kernel", "shake_px": 8.0,
+      "extents": [{"shake_px": 8.0, "method": "features+ecc+kernel"}]}, 0.0),
+    # reached by content that fits no blur (a reserve without a kernel stage)
+    ({"method": "features+ecc+gradient", "shake_px": 32.0,
+      "extents": [{"shake_px": 8.0}, {"shake_px": 16.0}, {"shake_px": 32.0}]}, 0.0),
+    ({"method": "features+ecc+kernel", "shake_px": 16.0}, 0.0),  # no ladder recorded
+    ({"method": "none"}, 0.0),
+])
+def test_the_blur_reach_is_the_extent_below_the_one_the_kernel_polish_verified(info, reach):
+    from reblur.pipeline import blur_reach
+
+    assert blur_reach(info) == reach
+
+
+def test_the_pipeline_starts_from_the_reach_the_alignment_found(pair, monkeypatch):
+    """``detect_changes`` hands the alignment's :func:`~reblur.pipeline.blur_reach` to the
+    estimate: kernels of 3 px did not verify, 6 px ones did, so the +-2 px grid starts at
+    4 px."""
+    import reblur.pipeline as pl
+    from reblur import detect_changes
+
+    class Aligned:  # what align_coarse returns, reduced to what the stage reads
+        H = np.eye(3)
+
+        def to_dict(self):
+            return {"method": "features+ecc+kernel", "shake_px": 6.0,
+                    "extents": [{"shake_px": 3.0, "refused": "..."},
+                                {"shake_px": 6.0, "method": "features+ecc+kernel"}]}
+
+    monkeypatch.setattr(pl, "align_coarse", lambda *a, **k: Aligned())
+    ref, obs = pair
+    res = detect_changes(ref, obs, refine=False, local_field=False, rz_max=0.5, t_max=2)
+    checks = res.motion.info["translations"]["checks"]
+    assert checks[0] == dict(t_max=2.0, outcome="reach")
+    assert res.motion.info["translations"]["t_max"] == 8.0
+    got = _by_translation(res.motion)
+    assert got.keys() == TRUE.keys()

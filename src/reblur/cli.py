@@ -587,7 +587,8 @@ def _read_frames(ctx: click.Context, param: click.Parameter, value: str | None):
 @click.option("--t-max", type=click.IntRange(min=0), default=12, show_default=True,
               help="Pose grid: largest in-plane translation |tx|, |ty| (pixels) to start "
                    "from; the estimate widens it (up to 4x, [select] t_grow) when the blur "
-                   "piles on its edge and the wider grid fits better.")
+                   "piles on its edge and the wider grid fits better, or starts wider when "
+                   "the alignment found the blur reaching beyond it.")
 @click.option("--rz-max", type=_Finite(min=0, max=45), default=3.0, show_default=True,
               help="Pose grid: largest in-plane rotation |rz| (degrees, at most 45).")
 @click.option("--rz-step", type=_Finite(min=0, min_open=True, max=45), default=None,

@@ -81,6 +81,7 @@ def estimate_motion(
     resume: dict | None = None,
     bands: str = "all",
     t_grow: int = 1,
+    blur_reach: float = 0.0,
 ) -> MotionEstimate:
     """Estimate pose weights ``w >= 0`` and the change term ``chi`` (eq. 5, or eq. 3).
 
@@ -193,7 +194,20 @@ def estimate_motion(
         :data:`MAX_WIDENED_POSES` (:func:`_widen_first`).  The result then lives on the
         wider grid (``MotionEstimate.grid``).  ``info["translations"]`` holds the range
         started from and ended on, each check (``t_max``, ``edge_share``, ``gain``,
-        ``outcome``) and the edge share of the final weights.
+        ``outcome``) and the edge share of the final weights (and ``blur_reach``, when
+        given).
+    blur_reach : float
+        A radius (px) the blur is known to reach beyond: the kernel polish of the coarse
+        alignment failed at the shake extent below the one it verified
+        (:func:`reblur.pipeline.blur_reach`).  With ``t_grow > 1``, the translations start
+        doubled while narrower than it, within the limits of the checks above (which go on
+        from there, within the growth left): a first solve on a grid the blur is known to
+        exceed is a misfit whose hundreds of poses cost more than the wider solve, and
+        the optimum the later levels reach is the same (test-bed shakes of 20 and 35 px,
+        32 px for their alignment: estimate 9.4 -> 8.0 and 8.3 -> 6.3 s, the same
+        masks; ``python -m benchmarks.shake_extent``).  Each doubling is a check of
+        outcome ``"reach"``.  0 (default): start from the grid given.  Not with
+        ``resume``.
 
     Returns
     -------
@@ -255,7 +269,11 @@ def estimate_motion(
         raise ValueError(f"threads must be >= 1, got {threads}")
     if isinstance(t_grow, bool) or not isinstance(t_grow, (int, np.integer)) or t_grow < 1:
         raise ValueError(f"t_grow must be an integer >= 1, got {t_grow!r}")
+    if not (isinstance(blur_reach, (int, float, np.number)) and 0 <= blur_reach < np.inf):
+        raise ValueError(f"blur_reach must be a finite number >= 0, got {blur_reach!r}")
     start, log = grid, []
+    if t_grow > 1 and blur_reach > 0 and solver == "active-set" and resume is None:
+        grid, t_grow = _widen_to_reach(grid, boxes, int(t_grow), float(blur_reach), log)
     with threadpool_limits(int(threads), user_api="blas"), small_pages():
         if coarse_to_fine:
             w, info, ops, gs, grid_used, grid = _rz_coarse_to_fine(
@@ -312,6 +330,8 @@ def estimate_motion(
             w = carry_weights(w, grid_used, grid)
     info = dict(info)
     info["translations"] = _widening_info(start, grid, log, w)
+    if blur_reach > 0:
+        info["translations"]["blur_reach"] = float(blur_reach)
     info.update(
         psnr=psnrs, psnr_inliers=psnr_in, lam=lam, occlusion=occlusion, engine=ops[0].engine,
         time_total_s=time.perf_counter() - t0,
@@ -481,6 +501,31 @@ def _mean_loss(info: dict, ops) -> float:
     return float(info["objective"][-1]) / max(n, 1)
 
 
+def _widened(grid: PoseGrid, t_limit: float) -> PoseGrid | None:
+    """``grid`` with translations twice as wide, or None beyond ``t_limit`` px or
+    :data:`MAX_WIDENED_POSES` poses (or when no axis can widen)."""
+    wider = widen_translations(grid)
+    if wider is None or wider.size > MAX_WIDENED_POSES or _t_max(wider) > t_limit:
+        return None
+    return wider
+
+
+def _widen_to_reach(grid: PoseGrid, boxes, t_grow: int, reach: float,
+                    log: list) -> tuple[PoseGrid, int]:
+    """``grid``'s translations doubled while narrower than ``reach`` px (within the
+    limits of :func:`_widen_first` for ``t_grow``), one ``"reach"`` record in ``log`` per
+    doubling.  Returns the grid and the growth factor left to the checks: the widest
+    translation they may reach stays ``t_grow`` times ``grid``'s."""
+    t_limit = _t_limit(grid, boxes, t_grow)
+    while t_grow >= 2 and _t_max(grid) < reach:
+        wider = _widened(grid, t_limit)
+        if wider is None:
+            break
+        log.append(dict(t_max=_t_max(grid), outcome="reach"))
+        grid, t_grow = wider, t_grow // 2
+    return grid, t_grow
+
+
 def _widen_first(grid: PoseGrid, ts: int, first: tuple, solve, t_limit: float,
                  log: list) -> tuple:
     """The first solve of an estimate on translations twice as wide, as long as it pays.
@@ -504,8 +549,8 @@ def _widen_first(grid: PoseGrid, ts: int, first: tuple, solve, t_limit: float,
         if share < T_EDGE_SHARE:
             rec["outcome"] = "clear"
             return grid, first
-        wider = widen_translations(grid)
-        if wider is None or wider.size > MAX_WIDENED_POSES or _t_max(wider) > t_limit:
+        wider = _widened(grid, t_limit)
+        if wider is None:
             rec["outcome"] = "limit"
             return grid, first
         x0 = wider.tx.index(min(wider.tx, key=abs))

@@ -599,6 +599,33 @@ def _calibrate_tolerance(p: DecisionParams, windows, load, photometry, shape):
                                min_threshold=floor), info
 
 
+def blur_reach(align_info: dict) -> float:
+    """A radius (px) the blur reaches beyond, from the coarse alignment's record
+    (:meth:`reblur.align.Alignment.to_dict` of :func:`align_coarse`): the largest shake
+    extent tried below the one at which its kernel polish verified the blur.
+
+    Kernels of that radius were fitted region by region and did not verify (a blur larger
+    than the extent fails verification) where those of the next extent did.  0 when the
+    smallest extent verified, when no kernel verified the result (an extent reached by
+    content that fits no blur says nothing of the blur) or without the record.
+
+    Examples
+    --------
+    >>> blur_reach({"method": "features+ecc+kernel", "shake_px": 32.0,
+    ...             "extents": [{"shake_px": 8.0}, {"shake_px": 16.0}, {"shake_px": 32.0}]})
+    16.0
+    >>> blur_reach({"method": "features+ecc+gradient", "shake_px": 32.0,
+    ...             "extents": [{"shake_px": 8.0}, {"shake_px": 16.0}, {"shake_px": 32.0}]})
+    0.0
+    """
+    if "kernel" not in str(align_info.get("method", "")).split("+"):
+        return 0.0
+    verified = float(align_info.get("shake_px") or 0.0)
+    below = [float(e["shake_px"]) for e in align_info.get("extents") or ()
+             if e.get("shake_px") is not None and float(e["shake_px"]) < verified]
+    return max(below, default=0.0)
+
+
 def align_coarse(reference, observed, shakes=(8.0, 16.0, 32.0, 64.0), hint=None,
                  params: AlignParams | None = None):
     """Coarse alignment, trying camera-shake extents from small to large.
@@ -769,12 +796,13 @@ def _estimate_stage(
     if boxes is not None:
         motion = estimate_motion(reference, obs_view, grid, boxes=boxes, base=H0, lam=lam,
                                  scale=None, refit_photometry=sp.refit_photometry,
-                                 bands=sp.bands, t_grow=sp.t_grow)
+                                 bands=sp.bands, t_grow=sp.t_grow,
+                                 blur_reach=blur_reach(align_info))
         crop = CropChoice(boxes=[tuple(b) for b in motion.boxes], size=int(boxes[0][2]))
     else:
         crop, motion = select_windows(
             reference, obs_view, grid, base=H0, params=sp,
-            agreement=(prefit.agreement, prefit.factor),
+            agreement=(prefit.agreement, prefit.factor), blur_reach=blur_reach(align_info),
             progress=(lambda msg: report("estimate", 0.5)) if progress else None,
         )
     if not np.any(motion.weights > 0):
@@ -927,7 +955,9 @@ def detect_changes(
         and ``|rz| <= rz_max`` in steps of ``rz_step`` degrees (the paper's grid with
         ``rz_step=0.5``), whose translations the estimate widens where the blur reaches
         beyond them (``SelectParams.t_grow``, :func:`reblur.estimate_motion`'s ``t_grow``;
-        the result's ``motion.grid`` is the grid used).  A grid given here is kept.
+        the result's ``motion.grid`` is the grid used), starting wider where the
+        alignment's kernel polish found the blur reaching beyond them (:func:`blur_reach`).
+        A grid given here is kept.
     t_max, rz_max, rz_step : int, float, float
         Ranges of the default grid.  ``rz_step=None`` (default): the step that moves the
         farthest pixel of the full image by one pixel (solved coarse to fine), because the

@@ -789,10 +789,10 @@ def model_notes(result) -> list[str]:
             "so the reblurred reference and the changes are less reliable than usual")
     tr = info.get("translations") or {}
     checks = tr.get("checks") or [{}]
-    # on the edge with no wider grid tried (a grid given) or allowed; a wider one that fitted
-    # no better says the poses on the edge belong there
-    if tr.get("edge_share", 0.0) >= T_EDGE_SHARE and checks[-1].get("outcome") in (None,
-                                                                                  "limit"):
+    # on the edge with no wider grid tried (a grid given, a growth the start used up) or
+    # allowed; a wider one that fitted no better says the poses on the edge belong there
+    if tr.get("edge_share", 0.0) >= T_EDGE_SHARE and checks[-1].get("outcome") in (
+            None, "limit", "reach"):
         grown = (f", widened from {tr['t_max_start']:g} px" if tr["t_max"] > tr["t_max_start"]
                  else "")
         notes.append(

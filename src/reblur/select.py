@@ -343,6 +343,7 @@ def select_windows(
     params: SelectParams | None = None,
     progress=None,
     agreement: tuple[np.ndarray | None, int] | None = None,
+    blur_reach: float = 0.0,
 ) -> tuple[CropChoice, MotionEstimate]:
     """Algorithm 1: choose the estimation window(s) and estimate the motion on them.
 
@@ -363,6 +364,10 @@ def select_windows(
         where they do not (a large change), and the observation pixels per map pixel
         (:func:`reblur.pipeline.photometric_prefit`): windows keep to the cells where the
         images agree (:func:`agreeing_cells`), when there are any.
+    blur_reach : float
+        A radius (px) the blur is known to reach beyond (:func:`reblur.pipeline.blur_reach`):
+        the estimates start on translations at least that wide (``estimate_motion``'s
+        ``blur_reach``, within ``params.t_grow``).  0 (default): from ``grid``'s.
 
     Returns
     -------
@@ -404,9 +409,10 @@ def select_windows(
         )
     tried: list[dict] = []
     if p.windows >= 2:
-        return _select_spread(reference, observed, grid, base, p, cells, cover, (H, W), progress)
+        return _select_spread(reference, observed, grid, base, p, cells, cover, (H, W), progress,
+                              blur_reach)
 
-    runs = _Runs(reference, observed, grid, base, p)
+    runs = _Runs(reference, observed, grid, base, p, blur_reach)
 
     def measure(b: Box) -> float:
         m, _ = kernel_similarity(
@@ -502,7 +508,7 @@ def spread_side(p: SelectParams) -> int:
 
 
 def _select_spread(reference, observed, grid, base, p: SelectParams, cells, cover, shape,
-                   progress) -> tuple[CropChoice, MotionEstimate]:
+                   progress, blur_reach: float = 0.0) -> tuple[CropChoice, MotionEstimate]:
     """``p.windows`` windows of :func:`spread_side` units, good regions spread far apart.
 
     Seen from one window, a small roll about a distant principal point is nearly a pure
@@ -556,7 +562,7 @@ def _select_spread(reference, observed, grid, base, p: SelectParams, cells, cove
     S, chosen = best
     if not chosen:
         raise ValueError("motion cannot be estimated: no textured, covered window found")
-    runs = _Runs(reference, observed, grid, base, p)
+    runs = _Runs(reference, observed, grid, base, p, blur_reach)
     excluded = np.zeros(_window_scores(cells, S).shape, bool)
     run_recs: list[list[dict]] = []
     while True:
@@ -612,9 +618,10 @@ class _Runs:
     bound a pathological pair cannot exceed), ``fits`` and ``occluded`` (per window).
     """
 
-    def __init__(self, reference, observed, grid, base, p: SelectParams):
+    def __init__(self, reference, observed, grid, base, p: SelectParams,
+                 blur_reach: float = 0.0):
         self.args = (reference, observed, grid)
-        self.base, self.p = base, p
+        self.base, self.p, self.blur_reach = base, p, blur_reach
         self.runs: list[tuple[list[Box], MotionEstimate]] = []
         self.n_outer = 0
 
@@ -626,7 +633,7 @@ class _Runs:
         est = estimate_motion(*self.args, boxes=[c.as_tuple() for c in chosen],
                               base=self.base, lam=p.lam, refit_photometry=p.refit_photometry,
                               stop_occluded=p.max_occluded if stop else None, bands=p.bands,
-                              t_grow=p.t_grow, **kw)
+                              t_grow=p.t_grow, blur_reach=self.blur_reach, **kw)
         self.n_outer += int(est.info["n_outer"])
         self.runs.append((list(chosen), est))
         return est
