@@ -449,3 +449,27 @@ def test_make_pair_refuses_huge_in_memory_pairs():
     big = tb.upsampled(tb.levir_image("test_7", "B"), 4.1)
     with pytest.raises(ValueError, match="write_pair"):
         tb.make_pair(big, n_changes=1)
+
+
+def test_truth_window_share_gives_the_half_maximum_footprint_and_the_whole_reach():
+    """Four sub-poses shifting a 10 x 6 px rectangle by 0, 2, 4 and 6 px: the default
+    truth is the pixels at least two of them cover, ``share=1e-9`` every pixel one covers,
+    ``share=1`` those all four do (an explicit loop over the poses)."""
+    from reblur.testbed.scenes import ChangedScene, ChangeObject, truth_window
+
+    obj = ChangeObject(kind="rect", cx=30.0, cy=20.0, angle=0.0, a=5.0, b=3.0, a2=0.0,
+                       harmonics=(), delta=0.3, local_range=1.0)
+    scene = ChangedScene(np.zeros((40, 60)), (obj,))
+    shifts = (0.0, 2.0, 4.0, 6.0)
+    hs = np.array([[[1.0, 0.0, t], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]] for t in shifts])
+    ys, xs = np.mgrid[0:40, 0:60].astype(float)
+    count = sum(obj.contains(xs - t, ys).astype(int) for t in shifts)
+    box = (0, 40, 0, 60)
+    np.testing.assert_array_equal(truth_window(scene, hs, box), count >= 2)
+    reach = truth_window(scene, hs, box, share=1e-9)
+    np.testing.assert_array_equal(reach, count >= 1)
+    np.testing.assert_array_equal(truth_window(scene, hs, box, share=1.0), count == 4)
+    assert reach.sum() > truth_window(scene, hs, box).sum() > 0
+    for bad in (0.0, 1.5):
+        with pytest.raises(ValueError, match="share"):
+            truth_window(scene, hs, box, share=bad)

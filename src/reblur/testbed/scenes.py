@@ -492,12 +492,17 @@ def change_boxes(scene: ChangedScene, homographies: np.ndarray) -> list[Box]:
 
 
 def truth_window(
-    scene: ChangedScene, homographies: np.ndarray, box: Box, boxes: list[Box] | None = None
+    scene: ChangedScene, homographies: np.ndarray, box: Box, boxes: list[Box] | None = None,
+    share: float = 0.5,
 ) -> np.ndarray:
     """Ground truth of a window of the observation: half-maximum footprint of the changes.
 
-    A pixel ``x`` is changed when ``mean_k 1[H_k^{-1} x in an object] >= 0.5``, the
-    objects' indicators evaluated exactly at the sampled (continuous) reference location.
+    A pixel ``x`` is changed when ``mean_k 1[H_k^{-1} x in an object] >= share`` (0.5: the
+    half-maximum footprint), the objects' indicators evaluated exactly at the sampled
+    (continuous) reference location.  A small ``share`` (``1 / n`` or less for ``n``
+    sub-poses) gives the changes' whole reach: every pixel that some sub-pose maps into an
+    object, where a change alters the observation however faintly (a small object under a
+    long blur may have no half-maximum footprint at all).
 
     Parameters
     ----------
@@ -510,6 +515,8 @@ def truth_window(
     boxes : list of Box, optional
         :func:`change_boxes` of the same scene and homographies (computed when omitted;
         pass it when rendering many windows).
+    share : float
+        Least share of the sub-poses, in (0, 1].
 
     Returns
     -------
@@ -517,6 +524,8 @@ def truth_window(
         Boolean ``(y1 - y0, x1 - x0)``.
     """
     hs = _check_homographies(homographies)
+    if not 0.0 < share <= 1.0:
+        raise ValueError(f"share must be in (0, 1], got {share!r}")
     y0, y1, x0, x1 = box
     boxes = change_boxes(scene, hs) if boxes is None else boxes
     if len(boxes) != len(scene.objects):
@@ -537,5 +546,5 @@ def truth_window(
         for h in inv:
             u, v = _apply(h, xs, ys)
             count += np.logical_or.reduce([o.contains(u, v) for o in objs])
-        out[r0 - y0:r1 - y0, c0 - x0:c1 - x0] |= 2 * count >= len(hs)
+        out[r0 - y0:r1 - y0, c0 - x0:c1 - x0] |= count >= share * len(hs)
     return out
