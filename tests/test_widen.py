@@ -316,7 +316,7 @@ def test_a_known_reach_keeps_the_limits_of_the_widening(pair):
     done = estimate_motion(ref, obs, first.grid, resume=first.info["resume"], t_grow=4,
                            blur_reach=100.0, boxes=[(30, 30, 200, 200)], lam=1e-4)
     assert done.grid is first.grid
-    for bad in (-1.0, np.nan, np.inf, "3"):
+    for bad in (-1.0, np.nan, np.inf, "3", True):
         with pytest.raises(ValueError, match="blur_reach"):
             estimate_motion(ref, obs, grid, t_grow=4, blur_reach=bad, **kw)
 

@@ -269,7 +269,8 @@ def estimate_motion(
         raise ValueError(f"threads must be >= 1, got {threads}")
     if isinstance(t_grow, bool) or not isinstance(t_grow, (int, np.integer)) or t_grow < 1:
         raise ValueError(f"t_grow must be an integer >= 1, got {t_grow!r}")
-    if not (isinstance(blur_reach, (int, float, np.number)) and 0 <= blur_reach < np.inf):
+    if isinstance(blur_reach, bool) or not (
+            isinstance(blur_reach, (int, float, np.number)) and 0 <= blur_reach < np.inf):
         raise ValueError(f"blur_reach must be a finite number >= 0, got {blur_reach!r}")
     start, log = grid, []
     if t_grow > 1 and blur_reach > 0 and solver == "active-set" and resume is None:
