@@ -209,18 +209,28 @@ REAL_PAIRS = {
 }
 
 
-def measure_real(src: Path | None = None, out_root: Path | None = None) -> list[dict]:
-    """:data:`REAL_PAIRS` through ``reblur detect`` (rows of size 1 MP, content ``real:
-    NAME``); a pair whose files are missing is skipped with a line on stderr."""
+def real_pairs(prefix: str = ""):
+    """``(name, reference path, observation path)`` of the :data:`REAL_PAIRS` whose name
+    starts with ``prefix``; a pair whose files are missing is skipped with a line on
+    stderr."""
     from benchmarks.common import DATA
 
-    _compile_package(src)
-    rows = []
     for name, (ref, obs) in REAL_PAIRS.items():
+        if not name.startswith(prefix):
+            continue
         ref_p, obs_p = Path(DATA) / ref, Path(DATA) / obs
         if not (ref_p.exists() and obs_p.exists()):
             print(f"skipped {name}: {ref_p} or {obs_p} missing", file=sys.stderr)
             continue
+        yield name, ref_p, obs_p
+
+
+def measure_real(src: Path | None = None, out_root: Path | None = None) -> list[dict]:
+    """:data:`REAL_PAIRS` through ``reblur detect`` (rows of size 1 MP, content ``real:
+    NAME``); a pair whose files are missing is skipped with a line on stderr."""
+    _compile_package(src)
+    rows = []
+    for name, ref_p, obs_p in real_pairs():
         row = {"mp": 1, "content": f"real: {name}", "file_create_ms": file_create_ms(out_root),
                **run_pair(ref_p, obs_p, src, out_root)}
         print(json.dumps(row, default=float), flush=True)

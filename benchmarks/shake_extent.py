@@ -156,8 +156,7 @@ def _lone_false_alarms(changes: Path, truth: Path, reach: Path) -> float:
 
 def measure(src: Path | None = None, cache: Path = CACHE) -> list[dict]:
     """Every case of the benchmark (GoPro pairs whose files are missing are skipped)."""
-    from benchmarks.common import DATA
-    from benchmarks.cost import REAL_PAIRS
+    from benchmarks.cost import real_pairs
 
     rows = []
     for name in SHAKES:
@@ -165,13 +164,7 @@ def measure(src: Path | None = None, cache: Path = CACHE) -> list[dict]:
         rows.append({"case": f"test bed, shake {name}",
                      **run(case / "ref.tif", case / "obs.tif", case / "truth.tif", src)})
         print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
-    for name, (ref, obs) in REAL_PAIRS.items():
-        if not name.startswith("GoPro"):
-            continue
-        ref_p, obs_p = Path(DATA) / ref, Path(DATA) / obs
-        if not (ref_p.exists() and obs_p.exists()):
-            print(f"skipped {name}: files missing", file=sys.stderr)
-            continue
+    for name, ref_p, obs_p in real_pairs("GoPro"):
         rows.append({"case": name, **run(ref_p, obs_p, None, src)})
         print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
     return rows

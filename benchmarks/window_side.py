@@ -36,7 +36,7 @@ import numpy as np
 import tifffile
 
 from benchmarks.common import psnr
-from benchmarks.cost import REAL_PAIRS
+from benchmarks.cost import real_pairs
 from benchmarks.quality import _rgb
 
 #: Window sides (px) tried besides the default.
@@ -121,16 +121,8 @@ def table(rows: list[dict]) -> str:
 
 def main(sides=SIDES, configs=CONFIGS, shutter: str = "global") -> str:
     """Run the GoPro pairs; return the markdown section."""
-    from benchmarks.common import DATA
-
     rows = []
-    for name, (ref, obs) in REAL_PAIRS.items():
-        if not name.startswith("GoPro"):
-            continue
-        ref_p, obs_p = Path(DATA) / ref, Path(DATA) / obs
-        if not (ref_p.exists() and obs_p.exists()):
-            print(f"skipped {name}: {ref_p} or {obs_p} missing", file=sys.stderr)
-            continue
+    for name, ref_p, obs_p in real_pairs("GoPro"):
         for r in measure_pair(name, ref_p, obs_p, sides, configs, shutter):
             print(json.dumps(r), flush=True)
             rows.append(r)

@@ -599,6 +599,12 @@ def _calibrate_tolerance(p: DecisionParams, windows, load, photometry, shape):
                                min_threshold=floor), info
 
 
+def _kernel_verified(align_info: dict) -> bool:
+    """Whether the coarse alignment's kernel polish verified the blur (its method has a
+    ``kernel`` stage): only then does its shake extent say anything of the blur."""
+    return "kernel" in str(align_info.get("method", "")).split("+")
+
+
 def blur_reach(align_info: dict) -> float:
     """A radius (px) the blur reaches beyond, from the coarse alignment's record
     (:meth:`reblur.align.Alignment.to_dict` of :func:`align_coarse`): the largest shake
@@ -618,7 +624,7 @@ def blur_reach(align_info: dict) -> float:
     ...             "extents": [{"shake_px": 8.0}, {"shake_px": 16.0}, {"shake_px": 32.0}]})
     0.0
     """
-    if "kernel" not in str(align_info.get("method", "")).split("+"):
+    if not _kernel_verified(align_info):
         return 0.0
     verified = float(align_info.get("shake_px") or 0.0)
     below = [float(e["shake_px"]) for e in align_info.get("extents") or ()
@@ -763,7 +769,7 @@ def _estimate_stage(
     # verified the blur when that is larger (an extent reached without it, by content
     # that fits no blur, says nothing of the blur: a years-apart 25 MP pair's 32 px)
     t = time.perf_counter()
-    verified = "kernel" in str(align_info.get("method", "")).split("+")
+    verified = _kernel_verified(align_info)
     reach = max(float(t_max), float(align_info.get("shake_px") or 0.0) if verified else 0.0)
     prefit = photometric_prefit(reference, observed, H0, s_ref, s_obs, sigma_px=reach / 2.0)
     gain, offset = prefit.gain, prefit.offset
