@@ -335,26 +335,8 @@ def test_a_known_reach_keeps_the_limits_of_the_widening(pair):
       "extents": [{"shake_px": 8.0}, {"shake_px": 16.0}, {"shake_px": 32.0}]}, 0.0),
     ({"method": "features+ecc+kernel", "shake_px": 16.0}, 0.0),  # no ladder recorded
     ({"method": "none"}, 0.0),
-    # the kept polish's kernels measure further than the extent below (GoPro 0374)
-    ({"method": "features+ecc+kernel", "shake_px": 16.0,
-      "extents": [{"shake_px": 8.0, "refused": "..."}, {"shake_px": 16.0}],
-      "polishes": [{"outcome": "kept", "reach_px": 17.35}]}, 17.35),
-    # ... or less far: the extent below stands
-    ({"method": "features+ecc+kernel", "shake_px": 32.0,
-      "extents": [{"shake_px": 8.0}, {"shake_px": 16.0}, {"shake_px": 32.0}],
-      "polishes": [{"outcome": "kept", "reach_px": 13.9}]}, 16.0),
-    # a polish that was not kept, or refused, measured nothing of the blur
-    ({"method": "features+ecc+kernel", "shake_px": 16.0,
-      "extents": [{"shake_px": 8.0}, {"shake_px": 16.0}],
-      "polishes": [{"outcome": "verified, not kept: ...", "reach_px": 30.0},
-                   {"outcome": "refused: ...", "regions": {"spread": 64}},
-                   {"outcome": "kept", "reach_px": 5.0}]}, 8.0),
-    # the smallest extent verified: its coarse kernels are not read
-    ({"method": "features+ecc+kernel", "shake_px": 8.0,
-      "extents": [{"shake_px": 8.0}], "polishes": [{"outcome": "kept", "reach_px": 40.0}]},
-     0.0),
 ])
-def test_the_blur_reach_from_the_extents_and_the_kernels_the_polish_verified(info, reach):
+def test_the_blur_reach_is_the_extent_below_the_one_the_kernel_polish_verified(info, reach):
     from reblur.pipeline import blur_reach
 
     assert blur_reach(info) == reach

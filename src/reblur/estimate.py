@@ -198,14 +198,14 @@ def estimate_motion(
         given).
     blur_reach : float
         A radius (px) the blur is known to reach beyond: the kernel polish of the coarse
-        alignment failed at the shake extent below the one it verified, or its kernels
-        reach further (:func:`reblur.pipeline.blur_reach`).  With ``t_grow > 1``, the
-        translations start doubled while narrower than it, within the limits of the checks
-        above (which go on from there, within the growth left): a first solve on a grid
-        the blur is known to exceed is a misfit whose hundreds of poses cost more than the
-        wider solve, and the optimum the later levels reach is the same (test-bed shakes
-        of 20 and 35 px, 32 px for their alignment: estimate 9.4 -> 8.0 and 8.3 -> 6.3 s,
-        the same masks; ``python -m benchmarks.shake_extent``).  Each doubling is a check of
+        alignment failed at the shake extent below the one it verified
+        (:func:`reblur.pipeline.blur_reach`).  With ``t_grow > 1``, the translations start
+        doubled while narrower than it, within the limits of the checks above (which go on
+        from there, within the growth left): a first solve on a grid the blur is known to
+        exceed is a misfit whose hundreds of poses cost more than the wider solve, and
+        the optimum the later levels reach is the same (test-bed shakes of 20 and 35 px,
+        32 px for their alignment: estimate 9.4 -> 8.0 and 8.3 -> 6.3 s, the same
+        masks; ``python -m benchmarks.shake_extent``).  Each doubling is a check of
         outcome ``"reach"``.  0 (default): start from the grid given.  Not with
         ``resume``.
 

@@ -607,31 +607,19 @@ def _kernel_verified(align_info: dict) -> bool:
 
 def blur_reach(align_info: dict) -> float:
     """A radius (px) the blur reaches beyond, from the coarse alignment's record
-    (:meth:`reblur.align.Alignment.to_dict` of :func:`align_coarse`), when its kernel
-    polish verified the blur at an extent larger than the smallest tried: the larger of
-    - the largest shake extent tried below the one that verified: kernels of that radius
-      were fitted region by region and did not verify (a blur larger than the extent fails
-      verification) where those of the next extent did;
-    - the kept polish's own measure (``reach_px``, :func:`reblur.align.polish.kernel_reach`):
-      the radius about their centroid holding 90 % of the kernels' mass, in the median
-      region, less a pixel of the level they were fitted on.  An extent verifies a blur
-      that reaches somewhat beyond it (GoPro 0374: +-22 px verified at 16 px, whose
-      kernels measure 17 px).
+    (:meth:`reblur.align.Alignment.to_dict` of :func:`align_coarse`): the largest shake
+    extent tried below the one at which its kernel polish verified the blur.
 
-    0 when the smallest extent verified (its kernels, a few pixels of a coarse level wide
-    on a large image, do not resolve a blur the pose grid holds), when no kernel verified
-    the result (an extent reached by content that fits no blur says nothing of the blur)
-    or without the record.
+    Kernels of that radius were fitted region by region and did not verify (a blur larger
+    than the extent fails verification) where those of the next extent did.  0 when the
+    smallest extent verified, when no kernel verified the result (an extent reached by
+    content that fits no blur says nothing of the blur) or without the record.
 
     Examples
     --------
     >>> blur_reach({"method": "features+ecc+kernel", "shake_px": 32.0,
     ...             "extents": [{"shake_px": 8.0}, {"shake_px": 16.0}, {"shake_px": 32.0}]})
     16.0
-    >>> blur_reach({"method": "features+ecc+kernel", "shake_px": 16.0,
-    ...             "extents": [{"shake_px": 8.0}, {"shake_px": 16.0}],
-    ...             "polishes": [{"outcome": "kept", "reach_px": 17.3}]})
-    17.3
     >>> blur_reach({"method": "features+ecc+gradient", "shake_px": 32.0,
     ...             "extents": [{"shake_px": 8.0}, {"shake_px": 16.0}, {"shake_px": 32.0}]})
     0.0
@@ -641,11 +629,7 @@ def blur_reach(align_info: dict) -> float:
     verified = float(align_info.get("shake_px") or 0.0)
     below = [float(e["shake_px"]) for e in align_info.get("extents") or ()
              if e.get("shake_px") is not None and float(e["shake_px"]) < verified]
-    if not below:
-        return 0.0
-    measured = [float(p["reach_px"]) for p in align_info.get("polishes") or ()
-                if p.get("outcome") == "kept" and p.get("reach_px") is not None]
-    return max(below + measured)
+    return max(below, default=0.0)
 
 
 def align_coarse(reference, observed, shakes=(8.0, 16.0, 32.0, 64.0), hint=None,

@@ -458,7 +458,7 @@ class _Shake:
         except AlignmentError as err:
             rec.update(outcome=f"refused: {err}")
             raise
-        rec.update(regions=p.reasons, outcome="verified", reach_px=round(p.reach_px, 2))
+        rec.update(regions=p.reasons, outcome="verified")
         return p, rec
 
     def blur_refusal(self) -> PolishError | None:

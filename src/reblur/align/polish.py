@@ -107,9 +107,6 @@ class Polished:
     n_total: int
     #: the regions of the first pass (the largest kernel) by outcome (:data:`REASONS`)
     reasons: dict[str, int] = field(default_factory=dict)
-    #: a radius (full-resolution px) the blur reaches beyond, from the kernels of the first
-    #: pass (:func:`kernel_polish`); 0 when none fitted
-    reach_px: float = 0.0
 
 
 class PolishError(AlignmentError):
@@ -158,15 +155,13 @@ def polish_and_verify(
     n_regions = region_grid(level, shake_px)
     n_agree, n_fit, spread, accepted = 0, 0, 0.0, None
     reasons: dict[str, int] | None = None
-    reach = 0.0
     for R in (shake + 2, shake + 1):
         R = max(R, 2)
-        Hp, n_agree, n_fit, spread, reach_R, why = kernel_polish(
+        Hp, n_agree, n_fit, spread, why = kernel_polish(
             level, H, R, n_regions=n_regions, min_r2=params.min_r2, max_pixels=8192,
             max_sd=max(1.0, shake_px * level.scale), workers=workers,
         )
-        if reasons is None:
-            reasons, reach = why, reach_R
+        reasons = why if reasons is None else reasons
         if n_agree < 8:
             break
         jump = max_corner_shift(Hp, H, ref_shape) * level.scale
@@ -190,7 +185,7 @@ def polish_and_verify(
         check_regions(n_agree, n_fit, spread, n_total, params, shake_px)
     except AlignmentError as err:
         raise PolishError(str(err), reasons) from None
-    return Polished(H, n_agree, n_fit, n_total, reasons, reach)
+    return Polished(H, n_agree, n_fit, n_total, reasons)
 
 
 def kernel_polish(
@@ -203,7 +198,7 @@ def kernel_polish(
     max_sd: float,
     max_pixels: int,
     workers: int = 1,
-) -> tuple[np.ndarray, int, int, float, float, dict[str, int]]:
+) -> tuple[np.ndarray, int, int, float, dict[str, int]]:
     """Blur-aware correction of ``H`` (full resolution) from local blur-kernel centroids.
 
     The reference is warped by ``H`` into the observation frame and, in each of
@@ -212,13 +207,11 @@ def kernel_polish(
     The centroid of ``k`` is the mean camera displacement there -- unlike the optimum of a
     correlation, it is not pulled by an asymmetric blur.  A homography fitted robustly to the
     region centres moved by their centroids corrects ``H``.  Returns
-    ``(H, n_agree, n_fit, spread, reach, reasons)``: the regions that agree with the
-    corrected homography, the regions whose kernel fits, the area of the convex hull of the
+    ``(H, n_agree, n_fit, spread, reasons)``: the regions that agree with the corrected
+    homography, the regions whose kernel fits, the area of the convex hull of the
     agreeing region centres relative to the region grid (``n_agree = 0`` and ``H``
-    unchanged when no homography could be fitted), a radius the blur reaches beyond
-    (full-resolution px; :func:`kernel_reach`, 0 when no kernel fits), and the regions
-    counted by outcome (:data:`REASONS`; all ``invalid`` when the level is too small for
-    the grid).
+    unchanged when no homography could be fitted), and the regions counted by outcome
+    (:data:`REASONS`; all ``invalid`` when the level is too small for the grid).
 
     The regions are independent: ``workers > 1`` fits them on that many threads (the
     Gram products and the NNLS release the GIL), in the serial order, so the result is
@@ -228,87 +221,35 @@ def kernel_polish(
     h, w = level.obs.shape
     ny, nx = n_regions
     if h < 2 * R + 8 * ny or w < 2 * R + 8 * nx:
-        return H, 0, 0, 0.0, 0.0, {"invalid": ny * nx}
+        return H, 0, 0, 0.0, {"invalid": ny * nx}
     ref, valid = _warped(level, Hs, R)
     ys = np.linspace(R, h - R, ny + 1).astype(int)
     xs = np.linspace(R, w - R, nx + 1).astype(int)
     boxes = [(ys[i], ys[i + 1], xs[j], xs[j + 1]) for i in range(ny) for j in range(nx)]
 
-    def fit(box: tuple[int, int, int, int]) -> tuple[tuple[float, float] | None, str, float]:
+    def fit(box: tuple[int, int, int, int]) -> tuple[tuple[float, float] | None, str]:
         return _kernel_centroid(level.obs, ref, valid, box, R, min_r2=min_r2, max_sd=max_sd,
                                 max_pixels=max_pixels)
 
     fits = thread_map(fit, boxes, workers if len(boxes) >= _MIN_THREADED else 1)
-    reasons = dict(Counter(why for _, why, _ in fits))
-    reach = kernel_reach([r for d, _, r in fits if d is not None], level.scale)
+    reasons = dict(Counter(why for _, why in fits))
     src, dst = [], []
-    for (y0, y1, x0, x1), (d, _, _) in zip(boxes, fits, strict=True):
+    for (y0, y1, x0, x1), (d, _) in zip(boxes, fits, strict=True):
         if d is None:
             continue
         p = np.array([(x0 + x1 - 1) / 2.0, (y0 + y1 - 1) / 2.0])
         src.append(p)
         dst.append(p + d)
     if len(src) < 8:
-        return H, 0, len(src), 0.0, reach, reasons
+        return H, 0, len(src), 0.0, reasons
     # correction C maps the warped-reference frame to the observation: H' = C @ H
     C, mask = cv2.findHomography(np.float64(src), np.float64(dst), cv2.RANSAC, 1.0)
     if C is None or mask is None or int(mask.sum()) < 8:
-        return H, 0, len(src), 0.0, reach, reasons
+        return H, 0, len(src), 0.0, reasons
     Hn = to_full(C @ Hs, level.scale)
     inl = np.float32(src)[mask.ravel().astype(bool)]
     spread = cv2.contourArea(cv2.convexHull(inl)) / float((xs[-1] - xs[0]) * (ys[-1] - ys[0]))
-    return Hn, int(mask.sum()), len(src), float(spread), reach, reasons
-
-
-#: Share of a kernel's mass within the radius :func:`kernel_radius` gives.
-REACH_SHARE = 0.9
-
-
-def kernel_radius(K: np.ndarray, dx: float, dy: float, share: float = REACH_SHARE) -> float:
-    """The smallest Chebyshev radius (taps) about the centroid ``(dx, dy)`` that holds
-    ``share`` of the kernel ``K``'s mass (``K`` normalised, tap ``(a, c)`` the displacement
-    ``(R - c, R - a)``, as :func:`_kernel_centroid` fits it).
-
-    The Chebyshev distance is the pose grid's: its translations span a square, so the
-    mass beyond this radius is what a grid of that half-width leaves on or beyond its edge.
-
-    Examples
-    --------
-    >>> K = np.zeros((5, 5)); K[2, :] = 0.2  # a horizontal line of five taps
-    >>> float(kernel_radius(K, 0.0, 0.0))  # 0.6 of the mass within 1 tap, all within 2
-    2.0
-    """
-    R = (K.shape[0] - 1) // 2
-    taps = np.arange(-R, R + 1, dtype=float)
-    dist = np.maximum(np.abs(-taps[:, None] - dy), np.abs(-taps[None, :] - dx)).ravel()
-    order = np.argsort(dist, kind="stable")
-    within = np.cumsum(K.ravel()[order])
-    k = int(np.searchsorted(within, share - 1e-9))
-    return float(dist[order][min(k, dist.size - 1)])
-
-
-def kernel_reach(radii: list[float], scale: float) -> float:
-    """A radius (full-resolution px) the blur reaches beyond, from the fitted kernels'
-    :func:`kernel_radius` (taps of a level at ``scale``): their median less one level
-    pixel, or 0.
-
-    Half of the regions or more need the median radius to hold ``REACH_SHARE`` of their
-    kernel's mass.  A tap is a level pixel, whose block mean spreads a point over one
-    more; the radius less that pixel is one the blur reaches beyond even at the level's
-    resolution.  GoPro 0374 (a horizontal blur of +-22 px, verified at 16 px): 17.3 px
-    from a median radius of 5.3 taps at scale 0.25; GoPro 0384 / 0410 and the test bed's
-    12 px shake, whose blur the 12 px grid holds: 6.3 / 7.0 / 8.7 px.
-
-    Examples
-    --------
-    >>> kernel_reach([5.0, 6.0, 7.0], 0.25)
-    20.0
-    >>> kernel_reach([], 0.5)
-    0.0
-    """
-    if not radii:
-        return 0.0
-    return max(0.0, (float(np.median(radii)) - 1.0) / float(scale))
+    return Hn, int(mask.sum()), len(src), float(spread), reasons
 
 
 def _warped(level: Level, Hs: np.ndarray, R: int) -> tuple[np.ndarray, np.ndarray]:
@@ -347,18 +288,17 @@ def _kernel_centroid(
     min_r2: float,
     max_sd: float,
     max_pixels: int,
-) -> tuple[tuple[float, float] | None, str, float]:
+) -> tuple[tuple[float, float] | None, str]:
     """Centroid ``(dx, dy)`` of the non-negative ``(2R+1)^2`` kernel that blurs the warped
     reference ``ref`` into ``obs`` on ``region = (y0, y1, x0, x1)`` (at most ``max_pixels``
-    of its ``valid`` pixels), the outcome (:data:`REASONS`) and the kernel's
-    :func:`kernel_radius` (taps): None, why and 0 when too little is valid, the
-    observation is flat, no kernel correlates, the kernel explains less than ``min_r2`` of
-    the variance, or it spreads beyond ``max_sd``."""
+    of its ``valid`` pixels) and the outcome (:data:`REASONS`): None and why when too
+    little is valid, the observation is flat, no kernel correlates, the kernel explains
+    less than ``min_r2`` of the variance, or it spreads beyond ``max_sd``."""
     y0, y1, x0, x1 = region
     core = valid[y0:y1, x0:x1].astype(bool)
     n = int(core.sum())
     if n < 0.5 * core.size or n < 4 * (2 * R + 1) ** 2:
-        return None, "invalid", 0.0
+        return None, "invalid"
     step = max(1, int(math.ceil(math.sqrt(n / max_pixels))))
     sel = np.zeros_like(core)
     sel[::step, ::step] = core[::step, ::step]
@@ -371,13 +311,13 @@ def _kernel_centroid(
     b -= b.mean()
     bb = float(b @ b)
     if bb <= 1e-12 * b.size:
-        return None, "flat", 0.0
+        return None, "flat"
     k, rss = _nnls_gram(A, b, bb)
     mass = float(k.sum())
     if mass <= 0:
-        return None, "faint", 0.0
+        return None, "faint"
     if 1.0 - rss / bb < min_r2:
-        return None, "misfit", 0.0
+        return None, "misfit"
     K = k.reshape(2 * R + 1, 2 * R + 1) / mass
     taps = np.arange(-R, R + 1, dtype=float)
     dy = -float(K.sum(axis=1) @ taps)  # g(x) = sum_d k_d ref(x - d), d = (R - c, R - a)
@@ -387,5 +327,5 @@ def _kernel_centroid(
         float(K.sum(axis=1) @ (taps + dy) ** 2) + float(K.sum(axis=0) @ (taps + dx) ** 2)
     )
     if sd > max_sd:
-        return None, "spread", 0.0
-    return (dx, dy), "fit", kernel_radius(K, dx, dy)
+        return None, "spread"
+    return (dx, dy), "fit"

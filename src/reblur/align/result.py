@@ -55,9 +55,8 @@ class Alignment:
         Every kernel polish run for this result, in order: ``of`` (the estimate it
         polished, e.g. ``"features+gradient"``), ``regions`` (its regions counted by
         outcome: ``fit``, ``invalid``, ``flat``, ``faint``, ``misfit``, ``spread``; see
-        :data:`reblur.align.polish.REASONS`), ``outcome`` (``kept``, ``verified, not
-        kept: ...`` or ``refused: ...``) and, once verified, ``reach_px`` (a radius the
-        blur reaches beyond, :func:`reblur.align.polish.kernel_reach`).
+        :data:`reblur.align.polish.REASONS`) and ``outcome`` (``kept``, ``verified, not
+        kept: ...`` or ``refused: ...``).
     content_misfit : bool
         True when ``H`` has no ``kernel`` stage because the polish's blur model did not fit
         the CONTENT (:func:`reblur.align.polish.content_misfit`: most failing regions
