@@ -30,9 +30,9 @@ per-pixel stage's log-log slope 0.9-1.1: the decision's tile pass
 on a sample of windows, work that does not grow with the image).
 
 ``--real`` adds the real pairs of at most 1 MP of the shared data, in colour at their own
-size (:data:`REAL_PAIRS`: LEVIR and WHU years apart, GoPro's real camera shake): the
-test bed's gray pairs are not all a user's 1 MP pairs cost (``--sizes "" --real``: those
-alone).
+size (:data:`REAL_PAIRS`: LEVIR and WHU years apart, GoPro's real camera shake; and
+:data:`GOPRO_AVERAGES`, longer hand-held shakes made of GoPro frames): the test bed's gray
+pairs are not all a user's 1 MP pairs cost (``--sizes "" --real``: those alone).
 
 ``--src OLD/src --label COMMIT`` runs another checkout (the "before" figures, saved in
 ``docs/cost_before.json``); ``--sizes 1,25`` when time is short.
@@ -225,12 +225,49 @@ def real_pairs(prefix: str = ""):
         yield name, ref_p, obs_p
 
 
-def measure_real(src: Path | None = None, out_root: Path | None = None) -> list[dict]:
-    """:data:`REAL_PAIRS` through ``reblur detect`` (rows of size 1 MP, content ``real:
-    NAME``); a pair whose files are missing is skipped with a line on stderr."""
+#: GoPro GOPR0477 frame averages (``--real``): the sharp frame 13 against the mean of the
+#: ``k`` consecutive 240 fps hand-held frames around it (:func:`reblur.testbed.gopro_pair`,
+#: 1280 x 720 RGB), as ``(centre, k)``.  The longer the average, the further the shake
+#: reaches: from about k = 11 on, the alignment verifies the blur at 16 px, and the
+#: estimate's weights reach the +-12 px grid's edge without a wider grid fitting better.
+GOPRO_AVERAGES = ((13, 8), (13, 12), (13, 16))
+
+
+def gopro_averages(cache: Path):
+    """``(name, reference path, observation path)`` of :data:`GOPRO_AVERAGES`, written as
+    PNG under ``cache`` (or reused); skipped with a line on stderr when the shared data's
+    frames are missing."""
+    import cv2
+
+    from reblur.testbed import gopro_pair
+
+    for centre, k in GOPRO_AVERAGES:
+        name = f"GoPro 0477 frame {centre}, {k} frames"
+        d = cache / f"gopro0477_{centre}_{k}"
+        ref_p, obs_p = d / "ref.png", d / "obs.png"
+        if not obs_p.exists():
+            try:
+                ref, obs = gopro_pair(centre, k)
+            except (FileNotFoundError, OSError) as err:
+                print(f"skipped {name}: {err}", file=sys.stderr)
+                continue
+            d.mkdir(parents=True, exist_ok=True)
+            for path, img in ((ref_p, ref), (obs_p, obs)):
+                tmp = path.with_suffix(".tmp.png")
+                cv2.imwrite(str(tmp), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+                os.replace(tmp, path)
+        yield name, ref_p, obs_p
+
+
+def measure_real(src: Path | None = None, out_root: Path | None = None,
+                 cache: Path | None = None) -> list[dict]:
+    """:data:`REAL_PAIRS` and :data:`GOPRO_AVERAGES` (written under ``cache``, default the
+    cases' folder) through ``reblur detect`` (rows of size 1 MP, content ``real: NAME``); a
+    pair whose files are missing is skipped with a line on stderr."""
     _compile_package(src)
     rows = []
-    for name, ref_p, obs_p in real_pairs():
+    pairs = [*real_pairs(), *gopro_averages(cache or CACHE)]
+    for name, ref_p, obs_p in pairs:
         row = {"mp": 1, "content": f"real: {name}", "file_create_ms": file_create_ms(out_root),
                **run_pair(ref_p, obs_p, src, out_root)}
         print(json.dumps(row, default=float), flush=True)
@@ -464,7 +501,7 @@ def main(sizes: list[int] | None = None, contents: list[str] | None = None,
     cache = cache or CACHE
     rows = measure(sizes, contents, cache, src, out_root) if sizes and contents else []
     if real:
-        rows += measure_real(src, out_root)
+        rows += measure_real(src, out_root, cache)
     if src is not None:
         old = json.loads(BEFORE.read_text())["rows"] if BEFORE.exists() else []
         rows = _merged(old, rows)
