@@ -454,6 +454,36 @@ def test_batch_grows_with_the_active_set():
     assert np.linalg.norm(op.matvec(w) - g) <= 1e-3 * np.linalg.norm(g)
 
 
+def test_warm_start_record_counts_the_poses_its_own_optimum_keeps():
+    """``info["warm_start"]``: a warm start on 30 poses of positive weight and 20 poses the
+    data holds with a small negative weight keeps, once its own weights are optimised, as
+    many poses as the non-negative least squares on those 50 columns (``scipy.optimize.nnls``
+    on the explicit matrix; lam ~ 0): fewer than it started from."""
+    import cv2
+    from scipy.optimize import nnls
+
+    rng = np.random.default_rng(5)
+    f = cv2.GaussianBlur(rng.random((120, 120)), (0, 0), 1.0)
+    grid = PoseGrid((120, 120), tx=np.arange(-5, 6), ty=np.arange(-5, 6))
+    op = BlurOperator(f, grid, (20, 20, 80, 80))
+    picks = rng.choice(grid.size, 50, replace=False)
+    w_true = np.zeros(grid.size)
+    w_true[picks[:30]] = rng.random(30) + 0.5
+    w_true /= w_true.sum()
+    w_true[picks[30:]] = -0.002
+    g = op.matvec(w_true.reshape(grid.shape))
+    w0 = np.zeros(grid.size)
+    w0[picks] = 1.0 / 50
+    _, info = active_set([op], [g], lam=1e-9, occlusion=False, w0=w0.reshape(grid.shape))
+    m = op.valid.ravel()
+    A = np.stack([op.column(k)[:, :, 0].ravel()[m] for k in picks], axis=1).astype(float)
+    x, _ = nnls(A, g[:, :, 0].ravel()[m].astype(float))
+    assert info["warm_start"] == {"poses": 50, "kept": int(np.count_nonzero(x > 1e-9))}
+    assert 0 < info["warm_start"]["kept"] < 50
+    _, cold = active_set([op], [g], lam=1e-9, occlusion=False)
+    assert "warm_start" not in cold
+
+
 def test_coarse_to_fine_solves_the_centres_before_the_full_windows(levir_gray):
     """Four windows: the finest roll stride is solved on their central parts first, then
     on the full windows with the same poses, reaching the optimum of the direct solve.

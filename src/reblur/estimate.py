@@ -132,7 +132,8 @@ def estimate_motion(
         quarter of the translation range): finer shifts cannot be told apart there.
         Levels before the last solve on the windows' central :func:`coarse_side` pixels;
         at the finest stride those are solved first and the full windows then start from
-        their solution (:data:`_FINE_ON_CENTRES`).  ``info["levels"]`` lists the levels.
+        their solution (:data:`_FINE_ON_CENTRES`).  ``info["levels"]`` lists the levels
+        (with the solver's ``warm_start`` record where a level starts from weights).
         ``"auto"``: when the grid varies only ``rz`` and has more than ``max_bases`` angles.
         This keeps fine rotation grids (a step that moves the farthest pixel of a huge
         image by one pixel) affordable.
@@ -926,7 +927,9 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
                                n_t=len(part.tx) * len(part.ty),
                                side=int(max(bx[0].h, bx[0].w)), t_max=_t_max(part),
                                n_outer=info["n_outer"], time_s=info["time_s"],
-                               n_active=info["n_active"]))
+                               n_active=info["n_active"],
+                               **({"warm_start": info["warm_start"]}
+                                  if "warm_start" in info else {})))
             total["objective"] += info["objective"]
             total["n_outer"] += info["n_outer"]
             total["time_s"] += info["time_s"]

@@ -469,7 +469,9 @@ def active_set(
         ``stalled`` (stopped by ``rtol``), ``time_s``, ``kkt`` (most negative inactive
         gradient, relative to ``kkt_scale``:
         the largest gradient of the data term at ``w = 0``, the same whether the solve
-        starts cold or from ``w0``).
+        starts cold or from ``w0``); from ``w0``, ``warm_start``: its non-zero poses
+        (``poses``) and those still non-zero once its own weights are optimised, before
+        any pose is added (``kept``).
     """
     t_start = time.perf_counter()
     grid = ops[0].grid
@@ -524,6 +526,7 @@ def _active_set(ws, grid, lam, batch, max_outer, max_irls, tol, w0, time_limit, 
     kkt = np.nan
     n_outer = 0
     n_newton = 0
+    warm: dict[str, int] | None = None
     if active:
         # optimise the warm start's weights first: the KKT test below looks at the inactive
         # poses only, and a warm start from other data (a coarser level, other windows, a
@@ -531,6 +534,7 @@ def _active_set(ws, grid, lam, batch, max_outer, max_irls, tol, w0, time_limit, 
         wa, res, n_newton, G, b, d = _huber_newton(ws, active, wa, res, G, b, d, lam,
                                                    max_irls)
         keep = wa > 0
+        warm = dict(poses=len(active), kept=int(keep.sum()))
         if not keep.all():
             idx = np.flatnonzero(keep)
             active = [active[i] for i in idx]
@@ -598,6 +602,8 @@ def _active_set(ws, grid, lam, batch, max_outer, max_irls, tol, w0, time_limit, 
         time_s=time.perf_counter() - t_start,
         solver="active-set",
     )
+    if warm is not None:
+        info["warm_start"] = warm
     return w, info
 
 
