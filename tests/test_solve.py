@@ -515,6 +515,12 @@ def test_coarse_to_fine_solves_the_centres_before_the_full_windows(levir_gray):
     assert [(v["stride"], v["side"]) for v in lv[-2:]] == [(1, 128), (1, 260)]
     assert lv[-2]["n_angles"] == lv[-1]["n_angles"] and lv[-2]["n_t"] == lv[-1]["n_t"]
     assert all(v["side"] == 128 for v in lv[:-1])
+    # the first level starts cold; each later one from all of the poses the level before
+    # ended on (its angles a lattice through theirs), and records what it kept of them
+    assert "warm_start" not in lv[0]
+    for before, v in zip(lv[:-1], lv[1:], strict=True):
+        assert v["warm_start"]["poses"] == before["n_active"]
+        assert 0 < v["warm_start"]["kept"] <= v["warm_start"]["poses"]
     ops = [BlurOperator(levir_gray, grid, b) for b in boxes]
     gs = [obs[b[0] : b[0] + b[2], b[1] : b[1] + b[3], None] for b in boxes]
     f_direct = huber_objective(ops, gs, direct.weights, 0.1)

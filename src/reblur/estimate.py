@@ -923,13 +923,13 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
                          occlusion, "active-set", max_outer, time_limit, 0, w0, gs=gs,
                          scratch=scratch, threads=threads, rtol=rtol)
             info = out[1]
-            levels.append(dict(stride=stride, t_stride=ts, n_angles=len(part.rz),
-                               n_t=len(part.tx) * len(part.ty),
-                               side=int(max(bx[0].h, bx[0].w)), t_max=_t_max(part),
-                               n_outer=info["n_outer"], time_s=info["time_s"],
-                               n_active=info["n_active"],
-                               **({"warm_start": info["warm_start"]}
-                                  if "warm_start" in info else {})))
+            rec = dict(stride=stride, t_stride=ts, n_angles=len(part.rz),
+                       n_t=len(part.tx) * len(part.ty), side=int(max(bx[0].h, bx[0].w)),
+                       t_max=_t_max(part), n_outer=info["n_outer"], time_s=info["time_s"],
+                       n_active=info["n_active"])
+            if "warm_start" in info:
+                rec["warm_start"] = info["warm_start"]
+            levels.append(rec)
             total["objective"] += info["objective"]
             total["n_outer"] += info["n_outer"]
             total["time_s"] += info["time_s"]
