@@ -56,6 +56,18 @@ def _check_pair(reference, observed) -> tuple[int, int]:
 #: below it (1.5e-4 down to 1e-8 each).
 RTOL = 1e-4
 
+#: ``rtol`` of the coarse-to-fine schedule's last level, at least: the full windows,
+#: started from the central parts' weights (see :data:`_FINE_ON_CENTRES`).  On long real
+#: shakes that level is most of the estimate: it keeps few of the central parts' poses
+#: (GoPro GOPR0477 frame 13 against the mean of 16 frames, at ``RTOL``: 16 of its final
+#: 157), and its tail of outer iterations each lowers the objective by 1e-4 to 1e-3 while
+#: the active set grows by 3-8 of the 24 poses each adds.  Against ``RTOL`` (``reblur
+#: detect``, the two alternated, ``motion.info.levels`` of ``report.json``), the mean of
+#: 8 / 12 / 16 frames: estimate 4.4 / 6.2 / 6.9-7.0 -> 3.1-3.2 / 3.6 / 4.3-4.4 s, the
+#: windows' reblur within 0.05 dB; GoPro 0374 2.9 -> 2.6-2.8 s; 1 Gpx unchanged (its last
+#: level ends on the KKT test: ``python -m benchmarks.large_motion --case 32000``).
+FINE_RTOL = 1e-3
+
 
 def estimate_motion(
     reference,
@@ -71,6 +83,7 @@ def estimate_motion(
     scale: float | None = None,
     max_outer: int = 60,
     rtol: float = RTOL,
+    fine_rtol: float = FINE_RTOL,
     time_limit: float | None = None,
     fista_iter: int = 500,
     coarse_to_fine: bool | str = "auto",
@@ -122,6 +135,9 @@ def estimate_motion(
         fraction (:func:`reblur.solve.active_set`'s ``rtol``): on windows the model does
         not fit, the active set otherwise grows for tens of iterations of hundreds of
         poses for gains of 1e-4 to 1e-6.  0: the KKT test alone.
+    fine_rtol : float
+        ``rtol`` of the coarse-to-fine schedule's last level (the full windows, from the
+        central parts' weights), at least ``rtol``: :data:`FINE_RTOL` by default.
     coarse_to_fine : bool or "auto"
         Solve on a subset of the roll angles first (at most ``max_bases``, evenly spread),
         then refine, level by level with a quarter of the angle stride, only around the
@@ -268,6 +284,9 @@ def estimate_motion(
         threads = _default_threads()
     if int(threads) < 1:
         raise ValueError(f"threads must be >= 1, got {threads}")
+    for name, v in (("rtol", rtol), ("fine_rtol", fine_rtol)):
+        if isinstance(v, bool) or not (isinstance(v, (int, float, np.number)) and 0 <= v < 1):
+            raise ValueError(f"{name} must lie in [0, 1), got {v!r}")
     if isinstance(t_grow, bool) or not isinstance(t_grow, (int, np.integer)) or t_grow < 1:
         raise ValueError(f"t_grow must be an integer >= 1, got {t_grow!r}")
     if isinstance(blur_reach, bool) or not (
@@ -281,7 +300,8 @@ def estimate_motion(
             w, info, ops, gs, grid_used, grid = _rz_coarse_to_fine(
                 reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, occlusion,
                 max_outer, time_limit, max_bases, levels, scratch, threads=int(threads),
-                rtol=rtol, stop_occluded=stop_occluded, resume=resume, t_grow=int(t_grow),
+                rtol=rtol, fine_rtol=max(rtol, fine_rtol), stop_occluded=stop_occluded,
+                resume=resume, t_grow=int(t_grow),
                 log=log,
             )
         else:
@@ -829,8 +849,9 @@ def coarse_side(n_windows: int) -> int:
 
 def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam,
                        occlusion, max_outer, time_limit, max_bases, levels, scratch=None,
-                       t_margin: int = 3, threads=None, rtol=0.0, stop_occluded=None,
-                       resume=None, t_grow: int = 1, log: list | None = None):
+                       t_margin: int = 3, threads=None, rtol=0.0, fine_rtol=0.0,
+                       stop_occluded=None, resume=None, t_grow: int = 1,
+                       log: list | None = None):
     """Coarse-to-fine over the roll angles of ``grid`` (see :func:`estimate_motion`).
 
     Coarse levels solve on the central :func:`coarse_side` pixels of each window (the
@@ -839,8 +860,10 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
     coarse levels, nested from level to level so that warm starts carry over).  At the
     finest stride the central parts are solved first when they hold at most half of the
     windows' pixels; the last level then uses the full windows, the same poses, and the
-    warm start of that solve (see :data:`_FINE_ON_CENTRES`).  The result is embedded in the
-    full grid.  The observation windows are read once: the central parts are views of them.
+    warm start of that solve (see :data:`_FINE_ON_CENTRES`), and stops at ``fine_rtol``
+    (the levels before it at ``rtol``; each level's record holds its own).  The result is
+    embedded in the full grid.  The observation windows are read once: the central parts
+    are views of them.
 
     With ``stop_occluded``, a first level that leaves a window's part more than that share
     change ends the schedule there (``info["stopped_early"]``, ``info["resume"]``: the
@@ -918,15 +941,16 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
         bx, gs = (boxes, g_full) if last else (small, g_small)
         ops = None  # the previous level's stacks and spectra go before the next's come
 
-        def solve(part, w0, bx=bx, gs=gs, stride=stride, ts=ts):
+        def solve(part, w0, bx=bx, gs=gs, stride=stride, ts=ts, last=last):
+            lv_rtol = fine_rtol if last else rtol
             out = _solve(reference, observed, part, bx, base, engine, s_ref, s_obs, lam,
                          occlusion, "active-set", max_outer, time_limit, 0, w0, gs=gs,
-                         scratch=scratch, threads=threads, rtol=rtol)
+                         scratch=scratch, threads=threads, rtol=lv_rtol)
             info = out[1]
             rec = dict(stride=stride, t_stride=ts, n_angles=len(part.rz),
                        n_t=len(part.tx) * len(part.ty), side=int(max(bx[0].h, bx[0].w)),
                        t_max=_t_max(part), n_outer=info["n_outer"], time_s=info["time_s"],
-                       n_active=info["n_active"])
+                       n_active=info["n_active"], rtol=lv_rtol)
             if "warm_start" in info:
                 rec["warm_start"] = info["warm_start"]
             levels.append(rec)
