@@ -650,6 +650,20 @@ def test_fit_model_error_matches_reference(bands):
     assert len(fits) == 3 and all(f[0] > 0 for f in fits)
 
 
+def test_sample_order_equals_the_stable_argsort():
+    """The order that sorts a sample of indices (``_take_concatenated``): that of numpy's
+    stable argsort, for a sample without replacement (the marking shortcut) and for one
+    with repeats (the fallback)."""
+    from reblur.decide.statistic import _sorting_order
+
+    rng = np.random.default_rng(12)
+    for n, k, repeats in ((10_000, 4_000, False), (10_000, 4_000, True), (3, 3, False),
+                          (50, 0, False)):
+        idx = rng.choice(n, k, replace=repeats)
+        assert repeats == (np.unique(idx).size < k)
+        np.testing.assert_array_equal(_sorting_order(idx, n), np.argsort(idx, kind="stable"))
+
+
 def test_tile_completeness_and_stop_incomplete():
     from reblur.decide import Photometry, decide_tile
 

@@ -330,8 +330,10 @@ def _fit_band_error(acc: list[list[np.ndarray]], pick: np.ndarray | None, sigma:
     rows, rhs, wts = [], [], []
     # the cells' pixels in their sample order (a stable sort groups them: the same
     # elements in the same order as a boolean mask per cell, one pass instead of one
-    # per cell)
-    by_cell = np.argsort(cell, kind="stable")
+    # per cell); on 8- or 16-bit keys numpy's stable sort is a radix sort (4 x 10^5 cells
+    # of 64, ``python -m timeit``: 2.7 ms against 16 ms as int64)
+    by_cell = np.argsort(cell.astype(np.uint8 if bins * bins <= 256 else np.uint16),
+                         kind="stable")
     starts = np.flatnonzero(np.diff(cell[by_cell], prepend=-1))
     for s0, s1 in zip(starts, np.append(starts[1:], cell.size), strict=True):
         sel = by_cell[s0:s1]
@@ -350,12 +352,26 @@ def _fit_band_error(acc: list[list[np.ndarray]], pick: np.ndarray | None, sigma:
     return float(a), float(b)
 
 
+def _sorting_order(idx: np.ndarray, n: int) -> np.ndarray:
+    """``np.argsort(idx, kind="stable")`` for indices into ``range(n)``.  Distinct ones (a
+    sample without replacement) are sorted by marking them: one pass over ``n`` flags
+    instead of a comparison sort (4 x 10^5 of 10^6, ``python -m timeit``: 3.6 ms against
+    31 ms)."""
+    mark = np.zeros(n, bool)
+    mark[idx] = True
+    if int(np.count_nonzero(mark)) != idx.size:  # repeated indices: no shortcut
+        return np.argsort(idx, kind="stable")
+    pos = np.empty(n, np.intp)
+    pos[idx] = np.arange(idx.size)
+    return pos[np.flatnonzero(mark)]
+
+
 def _take_concatenated(lists: list[list[np.ndarray]], idx: np.ndarray) -> list[np.ndarray]:
     """``np.concatenate(pieces)[idx]`` for each list of pieces (all of the same sizes),
     without building the concatenations: ``idx`` is sorted once, so each piece serves a
     contiguous run of it, written back to the positions it came from."""
     offsets = np.cumsum([0] + [a.size for a in lists[0]])
-    order = np.argsort(idx, kind="stable")
+    order = _sorting_order(idx, int(offsets[-1]))
     sidx = idx[order]
     bounds = np.searchsorted(sidx, offsets)
     outs = []
