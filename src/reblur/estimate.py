@@ -301,8 +301,7 @@ def estimate_motion(
                 reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, occlusion,
                 max_outer, time_limit, max_bases, levels, scratch, threads=int(threads),
                 rtol=rtol, fine_rtol=max(rtol, fine_rtol), stop_occluded=stop_occluded,
-                resume=resume, t_grow=int(t_grow),
-                log=log,
+                resume=resume, t_grow=int(t_grow), log=log,
             )
         else:
             def solve(sub, w0):
@@ -849,7 +848,7 @@ def coarse_side(n_windows: int) -> int:
 
 def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam,
                        occlusion, max_outer, time_limit, max_bases, levels, scratch=None,
-                       t_margin: int = 3, threads=None, rtol=0.0, fine_rtol=0.0,
+                       t_margin: int = 3, threads=None, rtol=0.0, fine_rtol=None,
                        stop_occluded=None, resume=None, t_grow: int = 1,
                        log: list | None = None):
     """Coarse-to-fine over the roll angles of ``grid`` (see :func:`estimate_motion`).
@@ -861,9 +860,9 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
     finest stride the central parts are solved first when they hold at most half of the
     windows' pixels; the last level then uses the full windows, the same poses, and the
     warm start of that solve (see :data:`_FINE_ON_CENTRES`), and stops at ``fine_rtol``
-    (the levels before it at ``rtol``; each level's record holds its own).  The result is
-    embedded in the full grid.  The observation windows are read once: the central parts
-    are views of them.
+    (default ``rtol``; the levels before it at ``rtol``; each level's record holds its
+    own).  The result is embedded in the full grid.  The observation windows are read once:
+    the central parts are views of them.
 
     With ``stop_occluded``, a first level that leaves a window's part more than that share
     change ends the schedule there (``info["stopped_early"]``, ``info["resume"]``: the
@@ -910,6 +909,7 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
 
     t_limit = _t_limit(grid, boxes, t_grow)
     log = [] if log is None else log
+    fine_rtol = rtol if fine_rtol is None else fine_rtol
     small = [_shrink(b, coarse_side(len(boxes))) for b in boxes]
     g_full = [read_window(observed, b, np.float64) / s_obs for b in boxes]
     g_small = [g[s.y0 - b.y0 : s.y1 - b.y0, s.x0 - b.x0 : s.x1 - b.x0]
