@@ -151,6 +151,40 @@ def test_cog_masks_no_data_and_its_overviews_ignore_it(tmp_path):
         np.testing.assert_allclose(ov[~np.isnan(ov)], 0.8, rtol=1e-6)
 
 
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.uint32])
+@pytest.mark.parametrize("how", ["mean", "max"])
+def test_overview_blocks_of_valid_pixels_equal_an_explicit_reduction(dtype, how):
+    """An overview pixel of integer output (:func:`reblur.gis._reduce2_valid`) is the mean
+    (rounded half to even) or the maximum of the valid pixels of its 2 x 2 block (an odd
+    last row / column: a block of its own pixels), 0 and invalid where none is valid:
+    block by block in exact rational arithmetic, extreme values included."""
+    from fractions import Fraction
+
+    from reblur.gis import _reduce2_valid
+
+    rng = np.random.default_rng(58)
+    top = int(np.iinfo(dtype).max)
+    a = rng.integers(0, top, (2, 9, 7), dtype=dtype, endpoint=True)
+    a[:, :4] = rng.choice([0, 1, top - 1, top], (2, 4, 7)).astype(dtype)
+    valid = rng.random((9, 7)) > 0.35
+    valid[:2, :2] = False  # a block without a valid pixel
+    out, ok = _reduce2_valid(a, valid, how)
+    assert out.dtype == a.dtype and out.shape == (2, 5, 4) and ok.shape == (5, 4)
+    for i in range(5):
+        for j in range(4):
+            ys, xs = slice(2 * i, 2 * i + 2), slice(2 * j, 2 * j + 2)
+            vals = [[int(v) for v in a[b, ys, xs][valid[ys, xs]]] for b in range(2)]
+            assert ok[i, j] == bool(vals[0])
+            for b in range(2):
+                if not vals[b]:
+                    want = 0
+                elif how == "max":
+                    want = max(vals[b])
+                else:
+                    want = round(Fraction(sum(vals[b]), len(vals[b])))  # half to even
+                assert int(out[b, i, j]) == want, (b, i, j)
+
+
 def test_cogs_written_from_two_threads_are_whole(tmp_path):
     """``write_report`` writes the masks' and the reblurred image's COGs from two threads:
     a masked uint8 COG and a max-overview mask COG written side by side must each read back
