@@ -244,6 +244,47 @@ def test_ecc_refines_finer_levels_in_few_iterations(scene, monkeypatch):
     assert _ref_corner_error(H, H_full, prep.ref_shape) * prep.levels[0].scale <= 0.05
 
 
+def test_tolerant_ecc_gives_the_levels_after_a_failed_one_a_refinements_budget(
+        scene, monkeypatch):
+    """From a trusted start (``tolerant``), a first level that fails is skipped and the
+    finer levels run at most ``REFINE_ITERATIONS`` (the failed one spent the whole budget
+    from that start); without ``tolerant`` the failure ends the refinement."""
+    from reblur.align import ecc as ecc_mod
+
+    ref, obs, H_true = scene
+    params = AlignParams()
+    prep = coarse_mod._prepare(ref, obs, params, None)
+    top = len(prep.levels) - 1
+    assert top >= 2
+    used = []
+    level = ecc_mod._ecc_level
+
+    def first_fails(lv, H, motion, sigma, iterations, eps):
+        used.append(iterations)
+        if len(used) == 1:  # the first level, as an ECC that does not converge
+            raise cv2.error("no convergence")
+        return level(lv, H, motion, sigma, iterations, eps)
+
+    monkeypatch.setattr(ecc_mod, "_ecc_level", first_fails)
+    H, rho, scale = ecc_mod.ecc_refine(prep.levels, H_true, top, 0, prep.ref_shape, params,
+                                       max_jump=0.05, tolerant=True)
+    assert used == [params.ecc_iterations] + [ecc_mod.REFINE_ITERATIONS] * top
+    assert ecc_mod.REFINE_ITERATIONS < params.ecc_iterations
+    assert scale == prep.levels[0].scale and rho > 0.5
+    # on a pair that correlates, where the uncapped levels put it
+    monkeypatch.setattr(ecc_mod, "REFINE_ITERATIONS", params.ecc_iterations)
+    used.clear()
+    H_full, _, _ = ecc_mod.ecc_refine(prep.levels, H_true, top, 0, prep.ref_shape, params,
+                                      max_jump=0.05, tolerant=True)
+    assert used == [params.ecc_iterations] * (top + 1)
+    assert _ref_corner_error(H, H_full, prep.ref_shape) * prep.levels[0].scale <= 0.05
+    used.clear()
+    with pytest.raises(AlignmentError, match="ECC did not converge"):
+        ecc_mod.ecc_refine(prep.levels, H_true, top, 0, prep.ref_shape, params,
+                           max_jump=0.05)
+    assert used == [params.ecc_iterations]
+
+
 def _slow_block_match(level, H, *, block, search, step, sigma):
     """The gradient blocks' matching, block by block (the reference for ``_block_match``)."""
     from reblur.align import blocks as blocks_mod

@@ -94,7 +94,12 @@ def ecc_refine(
     when no level converges or the estimate jumps by more than ``max_jump`` of a level's
     size (at the first level) -- later levels that fail keep the coarser estimate.  With
     ``tolerant`` (a trusted initial ``H``), levels that fail before any converged are
-    skipped instead.
+    skipped instead, and the levels after the first then run :data:`REFINE_ITERATIONS`
+    at most: the first level spent the whole budget from that start and diverged (or
+    failed), so a finer one may still confirm an optimum near it, as a refinement does,
+    but not climb ``ecc_iterations`` towards a far one that the jump test refuses.  On a
+    years-apart pair (the shared data's LEVIR test_12, 1 MP) the second level's 100
+    iterations took 0.75 s for an estimate 102 px away, refused.
     """
     motion, blur_px, sigma_min = MOTIONS[params.motion], params.blur_px, 1.0
     iterations = params.ecc_iterations
@@ -104,7 +109,10 @@ def ecc_refine(
         size = f"{lv.ref.shape[1]}x{lv.ref.shape[0]} px"
         try:
             sigma = max(sigma_min, blur_px * lv.scale)
-            its = min(iterations, REFINE_ITERATIONS) if done else iterations
+            # the refinement's budget once a level has converged, and at a level after
+            # one that failed from the same trusted start (see the docstring)
+            its = (min(iterations, REFINE_ITERATIONS) if done or (tolerant and i < start)
+                   else iterations)
             Hn, rho = _ecc_level(lv, H, motion, sigma, its, 1e-6)
             jump = max_corner_shift(Hn, H, ref_shape) * lv.scale
             if not np.all(np.isfinite(Hn)) or jump > max_jump * lv.side:
