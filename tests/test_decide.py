@@ -408,6 +408,35 @@ def test_prefit_bands_side_by_side_equal_each_band_alone():
     assert (alone[0].agreement == 1).sum() > (both.agreement == 1).sum() > 0
 
 
+def test_prefit_on_a_sample_agrees_with_the_fit_on_every_pixel():
+    """A prefit map larger than ``FIT_SAMPLES`` fits its line on a seeded sample: the gain
+    and offset stay within a fraction of a grey level of the same robust fit on every
+    pixel of the map (computed here), and of the truth, with a quarter of the view changed;
+    the agreement map is judged on every pixel (the change is a disagreement)."""
+    import cv2
+
+    from reblur.decide.photometry import FIT_SAMPLES
+    from reblur.pipeline import photometric_prefit
+    from reblur.robust import robust_line
+
+    rng = np.random.default_rng(11)
+    ref = (255 * np.clip(_texture((512, 512), 1, rng)[:, :, 0], 0, 1)).astype(np.uint8)
+    obs = np.clip(ref * 1.1 + 255 * 0.04 + rng.normal(0, 2, ref.shape), 0, 255)
+    obs[:256, :256] = 255 - obs[:256, :256]  # a quarter of the view changed
+    obs = obs.astype(np.uint8)
+    pre = photometric_prefit(ref, obs, np.eye(3), 255.0, 255.0)
+    # every pixel of the prefit's map (one per pixel here), low-passed as it does
+    assert pre.factor == 1
+    r, o = (cv2.GaussianBlur(a.astype(np.float32) / 255.0, (0, 0), 6.0) for a in (ref, obs))
+    inner = (slice(8, -8), slice(8, -8))
+    assert r[inner].size > FIT_SAMPLES
+    g_all, b_all, _ = robust_line(r[inner].astype(float).ravel(), o[inner].astype(float).ravel())
+    assert abs(pre.gain[0] - g_all) < 2e-3 and abs(pre.offset[0] - b_all) < 1e-3
+    assert abs(pre.gain[0] - 1.1) < 0.01 and abs(pre.offset[0] - 0.04) < 0.005
+    assert np.mean(pre.agreement[30:226, 30:226] == 0) > 0.95
+    assert np.mean(pre.agreement[300:480, 300:480] == 1) > 0.95
+
+
 def test_photometry_from_tiles_and_downsampled(colour):
     obs, reb, _, unknown = colour
     whole = fit_photometry(obs, reb, ~unknown, field_block=96)

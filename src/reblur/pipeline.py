@@ -33,7 +33,7 @@ from .decide import (
 )
 from .decide._common import FIT_BLAS_THREADS, band_map
 from .decide.calibrate import calibrate_tolerance, marked_pixels, unchanged_pixels
-from .decide.photometry import with_model_error
+from .decide.photometry import FIT_SAMPLES, with_model_error
 from .estimate import estimate_motion, intensity_scale
 from .grid import GridParams, PoseGrid
 from .io import chunk_cached
@@ -174,7 +174,11 @@ def photometric_prefit(
     at most ``max_side``, or the nearest overview an :class:`~reblur.align.OverviewCache`
     already holds) on the aligned, low-pass images (blur matters little there), by
     :func:`reblur.robust.robust_line`: Huber's fit, or a high-breakdown one where a large
-    change (a quarter of the view or more, a black hole) drags Huber's away.  ``s_ref`` and
+    change (a quarter of the view or more, a black hole) drags Huber's away.  The line is
+    fitted on a seeded sample of at most :data:`~reblur.decide.photometry.FIT_SAMPLES`
+    pixels, as the decision's own photometry is (the low-passed pixels are far from
+    independent: a 512 px map holds 262144 of them), and the agreement is judged on all
+    of them.  ``s_ref`` and
     ``s_obs`` are the images' full-scale values (:func:`reblur.estimate.intensity_scale`).
     The agreement map lets the window selection keep away from large changes and the
     estimate leave them out (the l1 fit of the motion gives up on a window about half
@@ -206,6 +210,12 @@ def photometric_prefit(
         return Prefit(gain, offset)
     sigma = max(2.0, float(sigma_px) / ko)
 
+    # the pixels the line is fitted on: a seeded sample, the same in every band
+    n_cover = int(cover.sum())
+    fit_idx = slice(None)
+    if n_cover > FIT_SAMPLES:
+        fit_idx = np.sort(np.random.default_rng(0).choice(n_cover, FIT_SAMPLES, replace=False))
+
     # the images in this thread (OpenCV), the fits on the bands' threads (numpy only)
     low_passed = []
     for c in range(C):
@@ -216,7 +226,7 @@ def photometric_prefit(
 
     def fit_band(c: int) -> tuple[float, float, dict, np.ndarray | None]:
         r, o = low_passed[c]
-        g, b, fit = robust_line(r[cover].astype(float), o[cover].astype(float))
+        g, b, fit = robust_line(r[cover][fit_idx].astype(float), o[cover][fit_idx].astype(float))
         if not g > 0.05:  # not a sane gain: keep the identity
             g, b = 1.0, 0.0
         scale = fit.get("scale")
