@@ -178,8 +178,8 @@ def photometric_prefit(
     fitted on a seeded sample of at most :data:`~reblur.decide.photometry.FIT_SAMPLES`
     pixels, as the decision's own photometry is (the low-passed pixels are far from
     independent: a 512 px map holds 262144 of them), and the agreement is judged on all
-    of them.  ``s_ref`` and
-    ``s_obs`` are the images' full-scale values (:func:`reblur.estimate.intensity_scale`).
+    of them.  ``s_ref`` and ``s_obs`` are the images' full-scale values
+    (:func:`reblur.estimate.intensity_scale`).
     The agreement map lets the window selection keep away from large changes and the
     estimate leave them out (the l1 fit of the motion gives up on a window about half
     covered by a new object).  Both images are low-passed beyond the shake's reach
