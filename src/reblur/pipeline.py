@@ -210,11 +210,12 @@ def photometric_prefit(
         return Prefit(gain, offset)
     sigma = max(2.0, float(sigma_px) / ko)
 
-    # the pixels the line is fitted on: a seeded sample, the same in every band
-    n_cover = int(cover.sum())
-    fit_idx = slice(None)
-    if n_cover > FIT_SAMPLES:
-        fit_idx = np.sort(np.random.default_rng(0).choice(n_cover, FIT_SAMPLES, replace=False))
+    # the map pixels the line is fitted on (flat indices): a seeded sample of the covered
+    # ones, the same in every band
+    fit_pix = np.flatnonzero(cover)
+    if fit_pix.size > FIT_SAMPLES:
+        pick = np.random.default_rng(0).choice(fit_pix.size, FIT_SAMPLES, replace=False)
+        fit_pix = fit_pix[np.sort(pick)]
 
     # the images in this thread (OpenCV), the fits on the bands' threads (numpy only)
     low_passed = []
@@ -226,7 +227,7 @@ def photometric_prefit(
 
     def fit_band(c: int) -> tuple[float, float, dict, np.ndarray | None]:
         r, o = low_passed[c]
-        g, b, fit = robust_line(r[cover][fit_idx].astype(float), o[cover][fit_idx].astype(float))
+        g, b, fit = robust_line(r.ravel()[fit_pix].astype(float), o.ravel()[fit_pix].astype(float))
         if not g > 0.05:  # not a sane gain: keep the identity
             g, b = 1.0, 0.0
         scale = fit.get("scale")
