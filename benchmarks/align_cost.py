@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import REPO
-from benchmarks.cost import CACHE, CONTENTS, _scenes, make_case
+from benchmarks.cost import CACHE, CONTENTS, RGB16, _scenes, make_case
 
 
 def truth_error(H: np.ndarray, mp: int, content: str) -> float:
@@ -35,7 +35,7 @@ def truth_error(H: np.ndarray, mp: int, content: str) -> float:
     from reblur.grid import map_points
     from reblur.testbed import plan_pair, shake_for
 
-    ref, _ = _scenes(mp, content)
+    ref, _ = _scenes(mp, content.removesuffix(RGB16))  # (the same scene in 16-bit bands)
     plan = plan_pair(ref, bits=8, noise_dn=0.5, n_changes=0, seed=0,
                      motion=shake_for(ref.shape), viewpoint={"shift_px": 20.0})
     h, w = ref.shape[:2]

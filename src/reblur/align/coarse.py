@@ -585,10 +585,13 @@ def _matched_features(ctx: _Shake, i: int) -> Features:
     return f
 
 
-def _feature_ecc(ctx: _Shake, f: Features) -> tuple[np.ndarray, float, float]:
-    """ECC refinement of ``f.H`` on the working level, its residual to the matches before
-    and after; AlignmentError when it fails, is implausible or correlates too little."""
-    He, rho, _ = ecc_refine(ctx.levels, f.H, min(ctx.work + 1, ctx.top), ctx.work,
+def _feature_ecc(ctx: _Shake, f: Features, level: int | None = None
+                 ) -> tuple[np.ndarray, float, float]:
+    """ECC refinement of ``f.H`` on ``level`` (default the working level), its residual
+    to the matches before and after; AlignmentError when it fails, is implausible or
+    correlates too little."""
+    i = ctx.work if level is None else level
+    He, rho, _ = ecc_refine(ctx.levels, f.H, min(i + 1, ctx.top), i,
                             ctx.prep.ref_shape, ctx.params, max_jump=0.05, tolerant=True)
     ctx.plausible(He)
     if rho < ctx.params.min_ecc:
@@ -621,12 +624,15 @@ def _gradient_blocks(ctx: _Shake, seed: _Estimate | None) -> _Estimate | None:
     first = ["gradient"] if ctx.hint is None else ["hint", "gradient"]
     for s in ([seed, None] if seed is not None else [None]):
         H0 = None if s is None else s.H
+        coarser = None if s is None or s.feats is None else functools.partial(
+            _features_on, ctx, s.feats)
         try:
             # memoised: reads the shake extent only through ``fine`` and the seed
             blocks: Blocks = ctx.prep.cached(
                 ("gradient", fine, None if H0 is None else H0.tobytes(), ctx.key),
                 functools.partial(gradient_align, ctx.levels, ctx.prep.ref_shape, fine,
-                                  ctx.params, ctx.plausible, seed=H0, hypotheses=hypotheses),
+                                  ctx.params, ctx.plausible, seed=H0, hypotheses=hypotheses,
+                                  coarser_seed=coarser),
             )
         except AlignmentError as err:
             log.debug("gradient alignment failed (seed %s): %s", s is not None, err)
@@ -635,9 +641,31 @@ def _gradient_blocks(ctx: _Shake, seed: _Estimate | None) -> _Estimate | None:
         blocks = replace(blocks, H=blocks.H.copy())
         if s is None:
             return _Estimate(blocks.H, first, n_blocks=blocks.n_agree)
-        return _Estimate(blocks.H, s.stages + ["gradient"], feats=s.feats,
+        stages = s.stages
+        if coarser is not None and blocks.side != ctx.levels[fine].side:
+            # verified on a coarser level, from the features refined there
+            i = next(j for j, lv in enumerate(ctx.levels) if lv.side == blocks.side)
+            refined = not np.array_equal(coarser(i), s.feats.H)
+            stages = ["features", "ecc"] if refined else ["features"]
+        return _Estimate(blocks.H, stages + ["gradient"], feats=s.feats,
                          n_blocks=blocks.n_agree)
     return None
+
+
+def _features_on(ctx: _Shake, f: Features, i: int) -> np.ndarray:
+    """The features' estimate ``f`` refined by ECC on level ``i`` (as on the working
+    level, :func:`_features_estimate`), or as it is when that fails or leaves the
+    matches by more than a pixel of level ``i``: the seed of the gradient blocks on a
+    level coarser than the working level's (:func:`~reblur.align.blocks.gradient_align`)."""
+    try:
+        He, res_f, res_e = ctx.prep.cached(("features-ecc-on", f.H.tobytes(), i, ctx.key),
+                                           functools.partial(_feature_ecc, ctx, f, i))
+    except AlignmentError as err:
+        log.debug("ECC of the features at level %d rejected (%s)", i, err)
+        return f.H.copy()
+    if res_e > max(2.0 * res_f, 1.0 / ctx.levels[i].scale):
+        return f.H.copy()
+    return He.copy()
 
 
 def _polish_and_keep(ctx: _Shake, est: _Estimate) -> None:
