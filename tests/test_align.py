@@ -332,10 +332,12 @@ def test_gradient_blocks_match_the_block_by_block_reference(scene, block):
     np.testing.assert_array_equal(np.c_[src, dst, ncc], want)
 
 
-def _coarse_match_fine_differs(fine_amp: float, seed: int = 3, n: int = 1024):
-    """A pair whose coarse structure (a random field low-passed at 6 px) is the same,
-    moved by (5, -3) px, and whose fine texture (0.7 px, ``fine_amp`` times the coarse
-    field's contrast) is drawn afresh in the observation."""
+def _coarse_match_fine_differs(fine_amp: float, seed: int = 3, n: int = 1024,
+                               coarse_sigma: float = 6.0, fine_sigma: float = 0.7,
+                               shift: tuple[float, float] = (5.0, -3.0)):
+    """A pair whose coarse structure (a random field low-passed at ``coarse_sigma`` px) is
+    the same, moved by ``shift`` px, and whose fine texture (``fine_sigma`` px,
+    ``fine_amp`` times the coarse field's contrast) is drawn afresh in the observation."""
     rng = np.random.default_rng(seed)
 
     def field(sigma, amp):
@@ -343,9 +345,9 @@ def _coarse_match_fine_differs(fine_amp: float, seed: int = 3, n: int = 1024):
                              (0, 0), sigma)
         return amp * a / a.std()
 
-    coarse = field(6.0, 1.0)
-    fine_ref, fine_obs = field(0.7, fine_amp), field(0.7, fine_amp)
-    moved = cv2.warpAffine(coarse, np.float32([[1, 0, 5.0], [0, 1, -3.0]]),
+    coarse = field(coarse_sigma, 1.0)
+    fine_ref, fine_obs = field(fine_sigma, fine_amp), field(fine_sigma, fine_amp)
+    moved = cv2.warpAffine(coarse, np.float32([[1, 0, shift[0]], [0, 1, shift[1]]]),
                            coarse.shape[::-1], flags=cv2.INTER_CUBIC)
 
     def unit(a):
@@ -384,6 +386,23 @@ def test_seeded_gradient_blocks_verify_on_the_finest_level_that_agrees():
     other, _ = _coarse_match_fine_differs(1.0, seed=9)
     with pytest.raises(AlignmentError, match="inconsistent|could not be verified"):
         run(ref, other)
+
+
+def test_shake_extent_verifies_where_the_blocks_agree_on_a_coarser_level():
+    """A 2048 px pair whose 1.5 px texture differs between the captures: at shake_px=8
+    the working level (1024 px) shows that texture and its blocks do not agree with the
+    features' estimate; on the 512 px level, from the features refined by ECC there, they
+    do, and the result is within 1.5 px of the true (10, -6) shift at every corner.  (The
+    fallbacks at 1024 px all fail: before the coarser level was tried, this extent was
+    refused and a larger one ran.)"""
+    n = 2048
+    ref, obs = _coarse_match_fine_differs(1.0, n=n, coarse_sigma=12.0, fine_sigma=1.5,
+                                          shift=(10.0, -6.0))
+    a = coarse_align(ref, obs, shake_px=8)
+    assert a.method == "features+ecc+gradient", a.method
+    assert a.shake_px == 8.0
+    c = np.array([[0, 0], [n - 1, 0], [n - 1, n - 1], [0, n - 1]], float)
+    assert np.abs(map_points(a.H, c) - (c + [10.0, -6.0])).max() <= 1.5
 
 
 def test_gradient_block_coverage_counts():
