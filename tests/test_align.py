@@ -401,6 +401,7 @@ def test_shake_extent_verifies_where_the_blocks_agree_on_a_coarser_level():
     a = coarse_align(ref, obs, shake_px=8)
     assert a.method == "features+ecc+gradient", a.method
     assert a.shake_px == 8.0
+    assert a.blocks_side == 512 and a.to_dict()["blocks_side"] == 512
     c = np.array([[0, 0], [n - 1, 0], [n - 1, n - 1], [0, n - 1]], float)
     assert np.abs(map_points(a.H, c) - (c + [10.0, -6.0])).max() <= 1.5
 
@@ -609,6 +610,7 @@ def test_real_pair_years_apart_aligns_by_gradient_blocks():
     a = coarse_align(ref, obs, shake_px=8)
     assert a.method.startswith("gradient"), a
     assert a.n_blocks >= 20
+    assert a.blocks_side == 512  # the working level of an 8 px shake on a 1024 px pair
     assert _ref_corner_error(a.H, H_true, ref.shape) <= 4.0, a
 
 

@@ -510,6 +510,7 @@ class _Estimate:
     feats: Features | None = None
     n_regions: int = 0
     n_blocks: int = 0
+    blocks_side: int = 0  # the level the blocks verified on (its longest side)
     #: the polish regions by outcome, when a polish of this estimate ran and was not kept
     unkept: dict[str, int] | None = None
 
@@ -640,7 +641,8 @@ def _gradient_blocks(ctx: _Shake, seed: _Estimate | None) -> _Estimate | None:
             continue
         blocks = replace(blocks, H=blocks.H.copy())
         if s is None:
-            return _Estimate(blocks.H, first, n_blocks=blocks.n_agree)
+            return _Estimate(blocks.H, first, n_blocks=blocks.n_agree,
+                             blocks_side=blocks.side)
         stages = s.stages
         if coarser is not None and blocks.side != ctx.levels[fine].side:
             # verified on a coarser level, from the features refined there
@@ -648,7 +650,7 @@ def _gradient_blocks(ctx: _Shake, seed: _Estimate | None) -> _Estimate | None:
             refined = not np.array_equal(coarser(i), s.feats.H)
             stages = ["features", "ecc"] if refined else ["features"]
         return _Estimate(blocks.H, stages + ["gradient"], feats=s.feats,
-                         n_blocks=blocks.n_agree)
+                         n_blocks=blocks.n_agree, blocks_side=blocks.side)
     return None
 
 
@@ -786,6 +788,7 @@ def _result(ctx: _Shake, est: _Estimate) -> Alignment:
         n_matches=f.n_matches if f else 0, n_inliers=f.n_inliers if f else 0,
         scale=ctx.prep.scale0, residual_px=residual, ecc=rho if np.isfinite(rho) else None,
         overlap=overlap, n_regions=est.n_regions, n_blocks=est.n_blocks,
+        blocks_side=est.blocks_side if est.n_blocks else 0,
         overviews={k: dict(v) for k, v in (ctx.prep.sources or {}).items()},
         shake_px=float(ctx.shake_px), polishes=tuple(dict(r) for r in ctx.polishes),
         content_misfit=est.unkept is not None and content_misfit(est.unkept),

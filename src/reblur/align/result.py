@@ -44,6 +44,10 @@ class Alignment:
     n_blocks : int
         Gradient blocks whose correlation is confident and that agree with ``H`` (0 when
         the gradient blocks were not used).
+    blocks_side : int
+        Longest side, in pixels, of the overview level the gradient blocks verified ``H``
+        on (0 when they were not used): coarser than the working level's when the finer
+        level's blocks did not agree (:func:`reblur.align.blocks.gradient_align`).
     overviews : dict or None
         Where each image's overviews came from: ``{"reference": ..., "observation":
         ...}``, each ``{"source": "file levels", "file": ..., "level": ...}`` (the
@@ -79,6 +83,7 @@ class Alignment:
     overlap: float
     n_regions: int = 0
     n_blocks: int = 0
+    blocks_side: int = 0
     overviews: dict | None = None
     shake_px: float | None = None
     polishes: tuple[dict, ...] = ()
@@ -98,6 +103,7 @@ class Alignment:
             "overlap": float(self.overlap),
             "n_regions": int(self.n_regions),
             "n_blocks": int(self.n_blocks),
+            "blocks_side": int(self.blocks_side),
             **({} if self.overviews is None else {"overviews": self.overviews}),
             "shake_px": None if self.shake_px is None else float(self.shake_px),
             "polishes": [dict(p) for p in self.polishes],
