@@ -261,18 +261,20 @@ def _seeded(levels: list[Level], ref_shape: tuple[int, int], fine: int, params: 
     hypotheses' first refinement level whose blocks verify the seed refined on it."""
     plausible(seed)
     last = max(fine, _hypothesis_level(levels, fine) - 1)
-    for i in range(fine, last + 1):
+
+    def on(i: int) -> Blocks:  # the seed refined on level i, verified
+        start = seed if i == fine or coarser_seed is None else coarser_seed(i)
+        out = _level_estimate(levels[i], start, ref_shape, params, plausible)
+        _verified(out, params)
+        return out
+
+    for i in range(fine, last):
         try:
-            start = seed if i == fine or coarser_seed is None else coarser_seed(i)
-            out = _level_estimate(levels[i], start, ref_shape, params, plausible)
-            _verified(out, params)
-            return out
+            return on(i)
         except AlignmentError:
-            if i == last:
-                raise
             log.debug("gradient blocks from the seed do not verify at %d px; trying %d px",
                       levels[i].side, levels[i + 1].side)
-    raise AssertionError("unreachable")
+    return on(last)
 
 
 def _level_estimate(lv: Level, H: np.ndarray, ref_shape: tuple[int, int], params: AlignParams,

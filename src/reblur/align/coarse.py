@@ -788,7 +788,7 @@ def _result(ctx: _Shake, est: _Estimate) -> Alignment:
         n_matches=f.n_matches if f else 0, n_inliers=f.n_inliers if f else 0,
         scale=ctx.prep.scale0, residual_px=residual, ecc=rho if np.isfinite(rho) else None,
         overlap=overlap, n_regions=est.n_regions, n_blocks=est.n_blocks,
-        blocks_side=est.blocks_side if est.n_blocks else 0,
+        blocks_side=est.blocks_side,
         overviews={k: dict(v) for k, v in (ctx.prep.sources or {}).items()},
         shake_px=float(ctx.shake_px), polishes=tuple(dict(r) for r in ctx.polishes),
         content_misfit=est.unkept is not None and content_misfit(est.unkept),
