@@ -49,6 +49,8 @@ BENCHES = {
     "pictures": ("benchmarks.pictures", "main"),
     # camera shake beyond the pose grid: time and accuracy against its extent (#28)
     "shake_extent": ("benchmarks.shake_extent", "main"),
+    # the estimate's Gram products at 1 MP: work, rate, share of the estimate (#28)
+    "gram_work": ("benchmarks.gram_work", "main"),
 }
 
 

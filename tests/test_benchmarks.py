@@ -153,3 +153,26 @@ def test_window_side_boxes_are_the_windows_central_parts():
         by, bx, bh, bw = map(int, b.split(","))
         assert y <= by and by + bh <= y + h and x <= bx and bx + bw <= x + w
         assert abs((by - y) - (y + h - by - bh)) <= 1
+
+
+def test_gram_work_counts_a_warm_start_as_its_full_product(levir_gray):
+    """A warm start on every pose of a small grid grows the Gram once, by all of them:
+    P x P products over every pixel of the window (the dense path, no triangle below
+    2 x 48 columns); stopped before any pose is added (``time_limit=0``)."""
+    import reblur.solve as S
+    from benchmarks.gram_work import counted_blocks
+    from reblur import PoseGrid
+    from reblur.operator import BlurOperator
+    from reblur.solve import active_set
+
+    grid = PoseGrid(levir_gray.shape, tx=[-1, 0, 1], ty=[-1, 0, 1], rz=[0.0])
+    box = (200, 300, 96, 80)
+    op = BlurOperator(levir_gray, grid, box)
+    g = op.matvec(np.full(grid.shape, 1.0 / grid.size)).reshape(op.dimsd)
+    with counted_blocks() as counts:
+        active_set([op], [g], w0=np.full(grid.shape, 1.0 / grid.size), time_limit=0.0)
+    P = grid.size
+    assert counts["macs"] == P * P * 96 * 80 * op.dimsd[2]
+    assert counts["copied"] == P * 96 * 80 * op.dimsd[2]
+    assert counts["blocks"] >= 1
+    assert S._Window._block.__name__ == "_block"  # restored
