@@ -64,6 +64,35 @@ def gemm_rate(shape: tuple[int, int, int], repeat: int = 40) -> float:
     return n_all * n_new * n_pix / best / 1e9
 
 
+def copy_and_product(shape: tuple[int, int, int] = TYPICAL_SHAPE, repeat: int = 100
+                     ) -> tuple[float, float]:
+    """Seconds of one Gram block's column copies and of its product, single thread: the
+    ``n_all`` columns of ``n_pix`` pixels (rows of a 500 px window, shifted views of 13
+    angle images, as ``_Window._block`` copies them) into one buffer, then the buffer
+    against its last ``n_new`` rows."""
+    from threadpoolctl import threadpool_limits
+
+    n_all, n_new, n_pix = shape
+    rng = np.random.default_rng(0)
+    side, rows = 500, n_pix // 500
+    images = rng.random((13, side + 30, side + 30, 1))
+    views = [images[rng.integers(13), dy:dy + side, dx:dx + side]
+             for dy, dx in rng.integers(0, 25, (n_all, 2))]
+    buf = np.empty((n_all, rows * side))
+    with threadpool_limits(1, user_api="blas"):
+        t = time.perf_counter()
+        for i in range(repeat):
+            r0 = (i % (side // rows)) * rows
+            for j, v in enumerate(views):
+                np.copyto(buf[j].reshape(rows, side, 1), v[r0:r0 + rows])
+        copy = (time.perf_counter() - t) / repeat
+        t = time.perf_counter()
+        for _ in range(repeat):
+            buf @ buf[-n_new:].T
+        product = (time.perf_counter() - t) / repeat
+    return copy, product
+
+
 @contextmanager
 def counted_blocks():
     """Count the Gram growths of every :func:`reblur.solve.active_set` run inside: yields a
@@ -144,6 +173,7 @@ def pairs() -> list[tuple[str, Path, Path]]:
 def main() -> str:
     """Run every pair in a fresh process; the markdown section."""
     typical, square = gemm_rate(TYPICAL_SHAPE), gemm_rate(SQUARE_SHAPE)
+    copy, product = copy_and_product()
     cores = len(os.sched_getaffinity(0))
     rows = []
     for name, ref, obs in pairs():
@@ -160,8 +190,10 @@ def main() -> str:
         f"single-thread DGEMM: {typical:.1f} GMAC/s for the solver's typical product "
         f"({TYPICAL_SHAPE[0]} x {TYPICAL_SHAPE[2]} against {TYPICAL_SHAPE[1]} x "
         f"{TYPICAL_SHAPE[2]}), {square:.1f} GMAC/s for a square-ish one "
-        f"({SQUARE_SHAPE[0]} x {SQUARE_SHAPE[1]}). Floor: the work at the typical rate on "
-        f"{cores} cores.",
+        f"({SQUARE_SHAPE[0]} x {SQUARE_SHAPE[1]}). One block of the typical shape: its "
+        f"columns' copy {1e3 * copy:.2f} ms, its product {1e3 * product:.2f} ms "
+        f"({100 * copy / (copy + product):.0f} % copying). Floor: the work at the typical "
+        f"rate on {cores} cores.",
         "",
         "| pair | total (s) | estimate (s) | outer its. | active poses | Gram work (GMAC) "
         "| copied (G values) | Gram CPU (s) | rate (GMAC/s per thread) | floor (s) |",
