@@ -109,7 +109,7 @@ def counted_blocks():
         c = time.thread_time()
         block(self, views, n_new, r0, r1, mk, buf, G, b, d, triangular)
         cpu = time.thread_time() - c
-        w, C = self.op.box.w, self.op.dimsd[2]
+        w, C = self.op.dimsd[1:]
         dense = mk.mean() >= S._DENSE_BLOCK
         n_pix = (r1 - r0) * w * C if dense else int(mk.sum()) * C
         n_all = len(views)

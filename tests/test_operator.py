@@ -190,3 +190,49 @@ def test_combine_in_threads_equals_the_explicit_sum(monkeypatch, threads):
     got = op.combine(ks, vals)
     assert got.dtype == np.float64
     assert np.all(np.abs(got - want) <= _single_run_bound(op, ks, vals))
+
+
+@pytest.mark.parametrize("engine", ["fast", "exact"])
+@pytest.mark.parametrize("channels", [1, 3])
+@pytest.mark.parametrize("step", [2, 3])
+def test_rows_restrict_the_operator_to_every_step_th_row(engine, channels, step):
+    """``rows(step)`` is ``S F`` with ``S`` the window's rows ``0, step, ...``: its columns,
+    products and validity are the whole operator's at those rows, its adjoint the whole
+    adjoint of the residual placed back on them (zero between), and it shares the stack."""
+    rng = np.random.default_rng(11 * step + channels)
+    img = cv2.GaussianBlur(rng.random(SHAPE + ((channels,) if channels > 1 else ())),
+                           (0, 0), 1.0)
+    g = _grid()
+    box = (40, 250, 49, 56)  # 49 rows: the last sampled row is the window's last or not
+    full = BlurOperator(img, g, box, engine=engine)
+    sub = full.rows(step)
+    assert full.rows(1) is full and full.row_step == 1 and sub.row_step == step
+    n = len(range(0, 49, step))
+    assert sub.dimsd == (n, 56, channels) and sub.shape == (n * 56 * channels, g.size)
+    np.testing.assert_array_equal(sub.valid, full.valid[::step])
+    if engine == "fast":
+        assert np.shares_memory(sub.column(5), full.stack)
+    for k in rng.choice(g.size, 6, replace=False):
+        np.testing.assert_array_equal(sub.column(int(k)), full.column(int(k))[::step])
+    for nz in (5, g.size):  # few poses: a sum of columns; all of them: the spectral product
+        w = np.zeros(g.size)
+        w[rng.choice(g.size, nz, replace=False)] = rng.random(nz)
+        want = full.matvec(w)[::step]
+        assert np.linalg.norm(sub.matvec(w) - want) <= 1e-6 * np.linalg.norm(want)
+    r = rng.standard_normal(sub.dimsd)
+    placed = np.zeros(full.dimsd)
+    placed[::step] = r
+    want = full.rmatvec(placed)
+    assert np.linalg.norm(sub.rmatvec(r) - want) <= 1e-6 * np.linalg.norm(want)
+    lhs, rhs = dottest(sub, rng)
+    assert abs(lhs - rhs) <= 1e-6 * max(abs(lhs), abs(rhs))
+    ks = rng.choice(g.size, 4, replace=False)
+    rows, cols = rng.integers(0, n, 30), rng.integers(0, 56, 30)
+    chans = rng.integers(0, channels, 30)
+    got = sub.gather_many(ks, rows, cols, chans)
+    want = np.stack([full.column(int(k))[rows * step, cols, chans] for k in ks], axis=1)
+    np.testing.assert_array_equal(got, want)
+    with pytest.raises(ValueError, match="at least 1"):
+        full.rows(0)
+    with pytest.raises(ValueError, match="already"):
+        sub.rows(2)

@@ -518,6 +518,10 @@ def test_coarse_to_fine_solves_the_centres_before_the_full_windows(levir_gray):
     assert [(v["stride"], v["side"]) for v in lv[-2:]] == [(1, 128), (1, 260)]
     assert lv[-2]["n_angles"] == lv[-1]["n_angles"] and lv[-2]["n_t"] == lv[-1]["n_t"]
     assert all(v["side"] == 128 for v in lv[:-1])
+    # rows fitted (estimate.row_step): every row of the 128 px central parts (16384 px, under
+    # ROW_SAMPLE_PIXELS), every other row of the 260 px windows (67600 px: 2 x 32768 and
+    # more, all valid)
+    assert [v["row_step"] for v in lv] == [1] * (len(lv) - 1) + [2]
     # the first level starts cold; each later one from all of the poses the level before
     # ended on (its angles a lattice through theirs), and records what it kept of them
     assert "warm_start" not in lv[0]
@@ -846,3 +850,69 @@ def test_full_window_level_stops_at_the_fine_rtol_on_a_long_real_shake():
     assert lv[-1]["n_outer"] < slow.info["levels"][-1]["n_outer"]
     assert fine.info["objective"][-1] <= 1.01 * slow.info["objective"][-1]
     assert min(fine.info["psnr"]) >= min(slow.info["psnr"]) - 0.1
+
+
+def test_row_step_rule():
+    """``estimate.row_step``: the largest step up to ``MAX_ROW_STEP`` leaving every window
+    ``ROW_SAMPLE_PIXELS`` of its pixels and half that of its valid ones."""
+    from types import SimpleNamespace
+
+    from reblur.estimate import MAX_ROW_STEP, ROW_SAMPLE_PIXELS, row_step
+    from reblur.warp import Box
+
+    def op(side, valid_share=1.0):
+        valid = np.zeros((side, side), bool)
+        valid.flat[: int(round(valid_share * side * side))] = True
+        return SimpleNamespace(box=Box(0, 0, side, side), valid=valid)
+
+    assert (MAX_ROW_STEP, ROW_SAMPLE_PIXELS) == (4, 32768)
+    assert row_step([op(500, 0.8), op(500, 0.77)]) == 4  # 7 by the area, 11 by the valid
+    assert row_step([op(256, 0.8)]) == 2  # 65536 px: 2; 52429 valid: 3
+    assert row_step([op(500), op(256)]) == 2  # one step for all the windows
+    assert row_step([op(500, 0.2)]) == 3  # 50000 valid: 3 x 16384 and more
+    assert row_step([op(180)]) == 1
+    assert row_step([op(500), op(500, 0.0)]) == 1  # a window with no data left
+
+
+@pytest.mark.parametrize("one_sided", [False, True])
+def test_row_step_solves_the_sampled_rows_with_the_l1_term_scaled(one_sided):
+    """``active_set(row_step=s)`` fits the windows' rows ``0, s, 2s, ...`` with the
+    weights' l1 term divided by ``s``: its result passes the KKT test of that problem on
+    the explicit matrix of those rows (the Huber threshold still ``lam / 2``), and the
+    objective it reports is ``s`` times that problem's, the whole windows' units."""
+    import cv2
+
+    rng = np.random.default_rng(21)
+    f = cv2.GaussianBlur(rng.random((160, 160)), (0, 0), 1.5)
+    grid = PoseGrid((160, 160), tx=np.arange(-2, 3), ty=np.arange(-2, 3), rz=[-1.0, 0.0, 1.0])
+    ops = [BlurOperator(f, grid, b) for b in ((10, 10, 61, 70), (90, 80, 60, 70))]
+    w_true = np.zeros(grid.shape)
+    w_true[0, 2, 2], w_true[2, 1, 3], w_true[1, 3, 1] = 0.5, 0.3, 0.2
+    gs = [op.matvec(w_true) + rng.normal(0, 0.01, op.dimsd) for op in ops]
+    gs[1][:25, :30] += 0.3  # a change in the second window
+    masks = [op.valid.copy() for op in ops]
+    masks[0][30:34] = False  # pixels left out of the data term
+    signs = [np.ones(op.dimsd) for op in ops] if one_sided else None
+    lam, step = 0.05, 3
+    delta = lam / 2
+    w, info = active_set(ops, gs, lam=lam, masks=masks, signs=signs, row_step=step)
+    assert info["converged"] and info["row_step"] == step
+    A = np.concatenate([np.stack([op.column(k)[::step][m[::step]].ravel()
+                                  for k in range(grid.size)], axis=1)
+                        for op, m in zip(ops, masks, strict=True)])
+    gv = np.concatenate([g[::step][m[::step]].ravel() for g, m in zip(gs, masks, strict=True)])
+    sv = None if signs is None else np.ones_like(gv)
+    r = gv - A @ w.ravel()
+    out = np.abs(r) > delta if sv is None else sv * r > delta
+    assert out.sum() > 100  # the change is in the linear part of the loss
+    psi = np.where(out, 2 * delta * np.sign(r), 2 * r)
+    grad = lam / step - A.T @ psi
+    on = w.ravel() > 0
+    scale = np.abs(A.T @ np.where(np.abs(gv) > delta, 2 * delta * np.sign(gv), 2 * gv)).max()
+    assert np.all(np.abs(grad[on]) <= 1e-6 * scale)
+    assert np.all(grad[~on] >= -1e-6 * scale)
+    loss = np.where(out, 2 * delta * np.abs(r) - delta * delta, r * r).sum()
+    assert info["objective"][-1] == pytest.approx(step * loss + lam * w.sum(), rel=1e-6)
+    assert mass_near_truth(w, w_true) > 0.9
+    with pytest.raises(ValueError, match="row_step"):
+        active_set(ops, gs, lam=lam, row_step=0)

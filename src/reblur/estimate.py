@@ -596,6 +596,33 @@ def _widening_info(start: PoseGrid, grid: PoseGrid, log: list, w: np.ndarray) ->
                 edge_share=round(edge_share(w, grid), 4))
 
 
+#: The solver fits every ``k``-th row of the windows (``active_set(row_step=k)``), ``k``
+#: the largest up to :data:`MAX_ROW_STEP` that leaves every window at least
+#: :data:`ROW_SAMPLE_PIXELS` of its pixels and half that many of its valid ones
+#: (:func:`row_step`): 2 on the coarse levels' 256 px central parts, 4 on 500 px windows.
+#: The solver's products (the Gram blocks, the forward sums, the line searches) scale with
+#: the pixels fitted, while a few hundred weights are as well determined by a quarter of a
+#: 500 px window's rows as by all of them: the rows keep the window's extent, whose spread
+#: is what makes the weights observable (a smaller window loses it:
+#: ``benchmarks.window_side``).  1 MP pairs (``python -m benchmarks.gram_work``, against
+#: every row): estimate 1.4-1.7x faster; GoPro reblur PSNR, the realism matrix at 1 / 4 MP,
+#: Fig. 6 and the failure modes within 0.05 dB / 0.001 JC (docs/NOTES.md).
+MAX_ROW_STEP = 4
+#: See :data:`MAX_ROW_STEP`: a 181 px square window's pixels.
+ROW_SAMPLE_PIXELS = 2**15
+
+
+def row_step(ops) -> int:
+    """The row step of a solve on the windows of the operators ``ops`` (see
+    :data:`MAX_ROW_STEP`); 1 where a window holds few valid pixels (the data left after
+    exclusions and no data are all that is fitted there)."""
+    k = MAX_ROW_STEP
+    for op in ops:
+        k = min(k, op.box.h * op.box.w // ROW_SAMPLE_PIXELS,
+                int(np.count_nonzero(op.valid)) // (ROW_SAMPLE_PIXELS // 2))
+    return int(max(1, k))
+
+
 def _solve(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, occlusion,
            solver, max_outer, time_limit, fista_iter, w0, gs=None, scratch=None, threads=None,
            rtol=0.0):
@@ -612,6 +639,7 @@ def _solve(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, oc
         w, info = active_set(
             ops, gs, lam=lam, occlusion=occlusion, max_outer=max_outer, time_limit=time_limit,
             w0=w0, scratch=scratch, workers=1 if threads is None else threads, rtol=rtol,
+            row_step=row_step(ops),
         )
     elif solver == "fista":
         if len(ops) != 1:
@@ -753,7 +781,8 @@ def _refit_photometry(ops, gs, w, info, lam, occlusion, max_outer, time_limit,
         w_new, more = active_set(ops, gs_new, lam=lam, occlusion=occlusion,
                                  max_outer=max_outer, time_limit=time_limit, w0=w,
                                  scratch=scratch, workers=ops[0].threads,
-                                 rtol=max(rtol, REFIT_RTOL))
+                                 rtol=max(rtol, REFIT_RTOL),
+                                 row_step=row_step(ops))
         info["n_outer"] = int(info.get("n_outer", 0)) + int(more["n_outer"])
         info["time_s"] = float(info.get("time_s", 0.0)) + float(more["time_s"])
         obj = float(more["objective"][-1])
@@ -950,7 +979,8 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
             rec = dict(stride=stride, t_stride=ts, n_angles=len(part.rz),
                        n_t=len(part.tx) * len(part.ty), side=int(max(bx[0].h, bx[0].w)),
                        t_max=_t_max(part), n_outer=info["n_outer"], time_s=info["time_s"],
-                       n_active=info["n_active"], rtol=lv_rtol)
+                       n_active=info["n_active"], rtol=lv_rtol,
+                       row_step=int(info.get("row_step", 1)))
             if "warm_start" in info:
                 rec["warm_start"] = info["warm_start"]
             levels.append(rec)

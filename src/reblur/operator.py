@@ -19,6 +19,8 @@ solver ignores them; they are never treated as "no change".
 
 from __future__ import annotations
 
+import copy
+
 import cv2
 import numpy as np
 import scipy.fft as sfft
@@ -99,6 +101,10 @@ class BlurOperator:
         Output image shape ``(h, w, C)``.
     valid : (h, w) bool ndarray
         Pixels where every pose of the grid reads real reference pixels.
+    row_step : int
+        1, or the step of the window's rows the operator is restricted to (see
+        :meth:`rows`): its outputs, inputs of the adjoint and :attr:`valid` then hold
+        rows ``0, row_step, 2 row_step, ...`` of the window only.
 
     Raises
     ------
@@ -143,6 +149,7 @@ class BlurOperator:
         h, w = self.box.h, self.box.w
         self.dimsd = (h, w, C)
         self.shape = (h * w * C, grid.size)
+        self.row_step = 1
         self._tx = np.asarray(grid.tx)
         self._ty = np.asarray(grid.ty)
         self._n_tx = len(grid.tx)
@@ -277,32 +284,75 @@ class BlurOperator:
             valid &= v
         self.valid = valid
 
+    def rows(self, step: int) -> BlurOperator:
+        """This operator restricted to every ``step``-th row of its window: ``S F``, with
+        ``S`` the selection of rows ``0, step, 2 step, ...`` (adjoint ``F^T S^T``).
+
+        A view: it shares the warped stack and its spectra (no copy).  Its columns are
+        strided views of the stack, so the products over the columns (the solver's Gram
+        blocks, forward sums and line searches) read ``1 / step`` of the pixels;
+        :meth:`rmatvec` places the rows back into the window before the same spectral
+        product.  :attr:`valid` and ``excluded`` are restricted the same way.
+
+        Parameters
+        ----------
+        step : int
+            Row step, at least 1 (1: the operator itself).
+
+        Returns
+        -------
+        BlurOperator
+        """
+        step = int(step)
+        if step < 1:
+            raise ValueError(f"row step must be at least 1, got {step}")
+        if step == 1:
+            return self
+        if self.row_step != 1:
+            raise ValueError("the operator is already restricted to a row step")
+        out = copy.copy(self)
+        out.row_step = step
+        h, w, C = self.dimsd
+        n = -(-h // step)
+        out.dimsd = (n, w, C)
+        out.shape = (n * w * C, self.grid.size)
+        out.valid = self.valid[::step]
+        if getattr(self, "excluded", None) is not None:
+            out.excluded = self.excluded[::step]
+        out._xbuf = None  # rmatvec's work buffer: not shared with the full operator
+        return out
+
     # ------------------------------------------------------------------ columns
     def column(self, k: int) -> np.ndarray:
-        """Column ``k`` of ``F`` as an ``(h, w, C)`` image (for the fast engine a float32
-        view into the warped stack, whose values are single precision by construction)."""
+        """Column ``k`` of ``F`` as an image of shape :attr:`dimsd` (for the fast engine a
+        float32 view into the warped stack, whose values are single precision by
+        construction; strided over the rows under a :attr:`row_step`)."""
+        s = self.row_step
         if self.engine == "fast":
             # plain integer arithmetic (np.unravel_index costs more than the view; the
             # solver asks for tens of thousands of columns)
             b, rest = divmod(int(k), self._n_t)
             iy, ix = divmod(rest, self._n_tx)
             oy, ox = int(self._oy[iy]), int(self._ox[ix])
-            return self.stack[b, oy : oy + self.box.h, ox : ox + self.box.w]
+            return self.stack[b, oy : oy + self.box.h : s, ox : ox + self.box.w]
         b, iy, ix = np.unravel_index(int(k), self.grid.shape)
         H = self.grid.homography((int(b), int(iy), int(ix))) @ self.base
-        col = warp_window(self.reference, H, self.box, dtype=np.float32)[0].astype(self.dtype)
+        col = warp_window(self.reference, H, self.box, dtype=np.float32)[0][::s]
+        col = col.astype(self.dtype)
         return col / self.scale if self.scale != 1.0 else col
 
     def gather(self, k: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        """Values of column ``k`` at window pixels ``(rows, cols)``: ``(n, C)`` array."""
+        """Values of column ``k`` at pixels ``(rows, cols)`` of :attr:`dimsd`: ``(n, C)``
+        array."""
         if self.engine == "fast":
+            rows = np.asarray(rows) * self.row_step
             b, iy, ix = np.unravel_index(int(k), self.grid.shape)
             return self.stack[b, rows + self._oy[iy], cols + self._ox[ix]]
         return self.column(k)[rows, cols]
 
     def gather_many(self, ks, rows: np.ndarray, cols: np.ndarray,
                     chans: np.ndarray) -> np.ndarray:
-        """Values of the columns ``ks`` at window pixels ``(rows, cols, chans)``:
+        """Values of the columns ``ks`` at pixels ``(rows, cols, chans)`` of :attr:`dimsd`:
         an ``(n, len(ks))`` array (one flat ``take`` on the fast engine)."""
         ks = np.asarray(ks, dtype=np.int64)
         if ks.size == 0:
@@ -311,7 +361,7 @@ class BlurOperator:
             b, iy, ix = np.unravel_index(ks, self.grid.shape)
             _, He, We, C = self.stack.shape
             col_off = ((b * He + self._oy[iy]) * We + self._ox[ix]) * C
-            pix_off = (rows.astype(np.int64) * We + cols) * C + chans
+            pix_off = (rows.astype(np.int64) * self.row_step * We + cols) * C + chans
             return np.take(self.stack.reshape(-1), pix_off[:, None] + col_off[None, :])
         sel = np.arange(rows.size)
         return np.stack([self.gather(int(k), rows, cols)[sel, chans] for k in ks], axis=1)
@@ -353,7 +403,7 @@ class BlurOperator:
                     run.fill(0.0)
             return out
 
-        big = len(order) * self.box.h * self.box.w * self.dimsd[2] >= _PARALLEL_SUM
+        big = len(order) * h * wd * C >= _PARALLEL_SUM
         return split_sum(part, order, self.threads if big else 1)
 
     def matvec(self, weights: np.ndarray) -> np.ndarray:
@@ -384,11 +434,17 @@ class BlurOperator:
             prod += np.einsum("byxc,byx->yxc", self.spec[c0:c1], ks)
         full = sfft.irfft2(prod, s=self._fshape, axes=(0, 1), workers=self.threads)
         h, wd = self.box.h, self.box.w
-        return full[self.Dy : self.Dy + h, self.Dx : self.Dx + wd].astype(self.dtype, copy=False)
+        out = full[self.Dy : self.Dy + h : self.row_step, self.Dx : self.Dx + wd]
+        return out.astype(self.dtype, copy=False)
 
     def rmatvec(self, residual: np.ndarray) -> np.ndarray:
         """``F^T r``: one inner product per pose, returned with shape ``grid.shape``."""
         r = np.asarray(residual, dtype=self.dtype).reshape(self.dimsd)
+        if self.row_step != 1 and (self.engine == "fast" and self.spec is not None):
+            # S^T r: the rows back in their places of the window, zero between them
+            full = np.zeros((self.box.h, *self.dimsd[1:]), self.dtype)
+            full[:: self.row_step] = r
+            r = full
         if self.engine == "exact" or self.spec is None:
             out = np.empty(self.grid.size)
             for k in range(self.grid.size):

@@ -207,8 +207,7 @@ class _Window:
         column ``k`` may be non-zero): a block then copies and multiplies only the columns
         that reach it, and the products of the others stay zero, which they are.
         """
-        h, w = self.op.box.h, self.op.box.w
-        C = self.op.dimsd[2]
+        h, w, C = self.op.dimsd
         # windows solved in parallel each take a share of the block size: the scratch
         # they hold together stays that of one block
         rows = max(1, _CHUNK // (w * C * self.n_slots))
@@ -258,7 +257,7 @@ class _Window:
                G: np.ndarray, b: np.ndarray, d: np.ndarray, triangular: bool = True) -> None:
         """Add one row block's products of ``views`` (the last ``n_new`` of them new) to
         ``G``, ``b`` and ``d`` (see :meth:`block_products`)."""
-        w, C = self.op.box.w, self.op.dimsd[2]
+        w, C = self.op.dimsd[1:]
         n_all = len(views)
         if mk.mean() >= _DENSE_BLOCK:
             # every pixel of the block, the masked ones included: they are outside the
@@ -404,6 +403,7 @@ def active_set(
     callback: Callable[[np.ndarray], None] | None = None,
     scratch: Scratch | None = None,
     workers: int = 1,
+    row_step: int = 1,
 ) -> tuple[np.ndarray, dict]:
     """Solve eq. 5 (or eq. 3) over one or more windows sharing one set of pose weights.
 
@@ -460,6 +460,14 @@ def active_set(
         one thread each (the result does not depend on it beyond rounding).  1 (default):
         the windows one after the other, each product using the threads BLAS and the
         operator have.
+    row_step : int
+        Fit every ``row_step``-th row of each window only (:meth:`BlurOperator.rows`;
+        ``gs``, ``masks`` and ``signs`` are given whole and restricted here), the weights'
+        l1 term divided by ``row_step``: the data term of the rows kept, times
+        ``row_step``, estimates that of the whole window, so the problem solved is an
+        unbiased sample of eq. 5 at ``1 / row_step`` of the products' cost.  The
+        objective is reported in the whole window's units (times ``row_step``).  1
+        (default): every row.
 
     Returns
     -------
@@ -477,6 +485,17 @@ def active_set(
     grid = ops[0].grid
     delta = lam / 2.0 if occlusion else None
     scratch = Scratch() if scratch is None else scratch
+    step = int(row_step)
+    if step < 1:
+        raise ValueError(f"row_step must be at least 1, got {row_step}")
+    if step > 1:
+        gs = [np.ascontiguousarray(np.asarray(g, dtype=float).reshape(op.dimsd)[::step])
+              for op, g in zip(ops, gs, strict=True)]
+        masks = None if masks is None else [np.asarray(m, bool)[::step] for m in masks]
+        signs = None if signs is None else [
+            None if s is None else np.asarray(s, float).reshape(op.dimsd)[::step]
+            for op, s in zip(ops, signs, strict=True)]
+        ops = [op.rows(step) for op in ops]
     wins = [
         _Window(op, g, op.valid if masks is None else masks[i], delta,
                 None if signs is None else signs[i], scratch)
@@ -485,13 +504,20 @@ def active_set(
     if sum(int(w.m.sum()) for w in wins) == 0:
         raise ValueError("no valid pixel to estimate the motion from")
     with _Windows(wins, workers) as ws:
-        return _active_set(ws, grid, lam, batch, max_outer, max_irls, tol, w0, time_limit,
-                           callback, t_start, rtol)
+        # the l1 term over the sampled data term: lam / step (the Huber threshold, a
+        # property of each pixel, stays lam / 2)
+        w, info = _active_set(ws, grid, lam / step, batch, max_outer, max_irls, tol, w0,
+                              time_limit, callback, t_start, rtol)
+    if step > 1:
+        info["objective"] = [step * v for v in info["objective"]]
+        info["row_step"] = step
+    return w, info
 
 
 def _active_set(ws, grid, lam, batch, max_outer, max_irls, tol, w0, time_limit, callback,
                 t_start, rtol=0.0):
-    """The loop of :func:`active_set` over the windows ``ws`` (a :class:`_Windows`)."""
+    """The loop of :func:`active_set` over the windows ``ws`` (a :class:`_Windows`);
+    ``lam`` is the weights' l1 coefficient (the windows hold the Huber threshold)."""
     P = grid.size
 
     active: list[int] = []
