@@ -9,6 +9,9 @@ fresh ``reblur detect`` process with the defaults:
 
 * the multiply-adds of the products (GMAC) and the column values copied for them;
 * the CPU time spent in them (every thread's own CPU time, summed over the windows);
+* the CPU time of the adjoint products ``F^T r`` (:meth:`reblur.operator.BlurOperator.rmatvec`,
+  one per window per outer iteration: the KKT test's gradient over every pose), the
+  estimate's other large share;
 * the rate reached, against this machine's single-thread DGEMM rate for the solver's
   typical shape (124 active + new columns against 24 new ones, 16000 pixels per block) and
   for a square-ish one (the BLAS's best);
@@ -98,12 +101,25 @@ def counted_blocks():
     """Count the Gram growths of every :func:`reblur.solve.active_set` run inside: yields a
     dict whose ``macs`` (multiply-adds of the products), ``copied`` (column values copied
     for them), ``cpu_s`` (each thread's own CPU time in them, summed) and ``blocks`` grow
-    as they run.  The products themselves are left as they are."""
+    as they run; ``adjoints`` and ``adjoint_cpu_s`` count the operators' adjoint products
+    the same way.  The products themselves are left as they are."""
     import reblur.solve as S
+    from reblur.operator import BlurOperator
 
-    counts = {"macs": 0.0, "copied": 0.0, "cpu_s": 0.0, "blocks": 0}
+    counts = {"macs": 0.0, "copied": 0.0, "cpu_s": 0.0, "blocks": 0, "adjoints": 0,
+              "adjoint_cpu_s": 0.0}
     lock = threading.Lock()
     block = S._Window._block
+    rmatvec = BlurOperator.rmatvec
+
+    def counted_adjoint(self, residual):
+        c = time.thread_time()
+        out = rmatvec(self, residual)
+        cpu = time.thread_time() - c
+        with lock:
+            counts["adjoints"] += 1
+            counts["adjoint_cpu_s"] += cpu
+        return out
 
     def counted(self, views, n_new, r0, r1, mk, buf, G, b, d, triangular=True):
         c = time.thread_time()
@@ -127,10 +143,12 @@ def counted_blocks():
             counts["blocks"] += 1
 
     S._Window._block = counted
+    BlurOperator.rmatvec = counted_adjoint
     try:
         yield counts
     finally:
         S._Window._block = block
+        BlurOperator.rmatvec = rmatvec
 
 
 def one(ref: Path, obs: Path) -> dict:
@@ -196,25 +214,29 @@ def main() -> str:
         f"rate on {cores} cores.",
         "",
         "| pair | total (s) | estimate (s) | outer its. | active poses | Gram work (GMAC) "
-        "| copied (G values) | Gram CPU (s) | rate (GMAC/s per thread) | floor (s) |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| copied (G values) | Gram CPU (s) | rate (GMAC/s per thread) | floor (s) "
+        "| adjoints | adjoint CPU (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         rate = r["macs"] / 1e9 / r["cpu_s"] if r["cpu_s"] > 0 else float("nan")
         lines.append(
             f"| {r['name']} | {r['seconds']:.1f} | {r['estimate_s']:.2f} | {r['n_outer']} | "
             f"{r['n_active']} | {r['macs'] / 1e9:.1f} | {r['copied'] / 1e9:.2f} | "
-            f"{r['cpu_s']:.2f} | {rate:.1f} | {r['macs'] / 1e9 / typical / cores:.2f} |")
+            f"{r['cpu_s']:.2f} | {rate:.1f} | {r['macs'] / 1e9 / typical / cores:.2f} | "
+            f"{r['adjoints']} | {r['adjoint_cpu_s']:.2f} |")
     est = np.array([r["estimate_s"] for r in rows])
     work = np.array([r["macs"] / 1e9 for r in rows])
     slope, icpt = np.polyfit(work, est, 1)
     share = np.array([r["cpu_s"] for r in rows]) / cores / est
+    adjoint = np.array([r["adjoint_cpu_s"] for r in rows]) / cores / est
     outside = [r["seconds"] - r["estimate_s"] for r in rows]
     lines += [
         "",
         f"- estimate time against the Gram work (least squares over the rows): "
         f"{icpt:.2f} s + {1e3 * slope:.0f} ms per GMAC; the Gram CPU over {cores} cores is "
-        f"{100 * share.min():.0f}-{100 * share.max():.0f} % of the estimate's time",
+        f"{100 * share.min():.0f}-{100 * share.max():.0f} % of the estimate's time, the "
+        f"adjoints' {100 * adjoint.min():.0f}-{100 * adjoint.max():.0f} %",
         f"- rows' time outside the estimate: {min(outside):.1f}-{max(outside):.1f} s "
         "(in-process: no interpreter start-up)",
     ]

@@ -158,7 +158,8 @@ def test_window_side_boxes_are_the_windows_central_parts():
 def test_gram_work_counts_a_warm_start_as_its_full_product(levir_gray):
     """A warm start on every pose of a small grid grows the Gram once, by all of them:
     P x P products over every pixel of the window (the dense path, no triangle below
-    2 x 48 columns); stopped before any pose is added (``time_limit=0``)."""
+    2 x 48 columns), over every other row with ``row_step=2``; stopped before any pose is
+    added (``time_limit=0``).  The adjoint products are counted too."""
     import reblur.solve as S
     from benchmarks.gram_work import counted_blocks
     from reblur import PoseGrid
@@ -175,4 +176,13 @@ def test_gram_work_counts_a_warm_start_as_its_full_product(levir_gray):
     assert counts["macs"] == P * P * 96 * 80 * op.dimsd[2]
     assert counts["copied"] == P * 96 * 80 * op.dimsd[2]
     assert counts["blocks"] >= 1
+    # the adjoints: the KKT test's scale at w = 0, then the first outer iteration's
+    # gradient (the time limit stops it there)
+    assert counts["adjoints"] == 2 and counts["adjoint_cpu_s"] > 0
+    # on every other row (row_step=2) the products are over the 48 rows fitted
+    with counted_blocks() as half:
+        active_set([op], [g], w0=np.full(grid.shape, 1.0 / grid.size), time_limit=0.0,
+                   row_step=2)
+    assert half["macs"] == P * P * 48 * 80 * op.dimsd[2]
     assert S._Window._block.__name__ == "_block"  # restored
+    assert BlurOperator.rmatvec.__name__ == "rmatvec"
