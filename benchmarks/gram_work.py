@@ -10,8 +10,8 @@ fresh ``reblur detect`` process with the defaults:
 * the multiply-adds of the products (GMAC) and the column values copied for them;
 * the CPU time spent in them (every thread's own CPU time, summed over the windows);
 * the CPU time of the adjoint products ``F^T r`` (:meth:`reblur.operator.BlurOperator.rmatvec`,
-  one per window per outer iteration: the KKT test's gradient over every pose), the
-  estimate's other large share;
+  one per window per outer iteration: the KKT test's gradient over every pose, with the
+  spectra the first one of an operator computes), the estimate's other large share;
 * the rate reached, against this machine's single-thread DGEMM rate for the solver's
   typical shape (124 active + new columns against 24 new ones, 16000 pixels per block) and
   for a square-ish one (the BLAS's best);

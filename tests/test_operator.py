@@ -236,3 +236,35 @@ def test_rows_restrict_the_operator_to_every_step_th_row(engine, channels, step)
         full.rows(0)
     with pytest.raises(ValueError, match="already"):
         sub.rows(2)
+
+
+def test_spectra_are_computed_on_first_use_only():
+    """The spectra cost about 25 columns per base: a fresh operator sums the columns of a
+    product with up to 24 weighted poses per base of the grid and computes no spectra;
+    once they exist (the adjoint needs them), the same product takes them.  A row view's
+    adjoint computes its phases' spectra only.  Every path gives the explicit sum."""
+    from reblur import operator as operator_module
+
+    rng = np.random.default_rng(33)
+    img = cv2.GaussianBlur(rng.random(SHAPE), (0, 0), 1.0)
+    g = PoseGrid(SHAPE, tx=np.arange(-3, 4), ty=np.arange(-2, 5), rz=np.linspace(-2, 2, 12))
+    op = BlurOperator(img, g, (40, 250, 48, 56))
+    w = np.zeros(g.shape)  # 20 poses on every base: beyond 8 per base, within 24
+    w[:, :3, :] = rng.random((12, 3, 7))
+    w[:, 2, 6] = 0.0
+    assert (w > 0).sum() == 20 * 12
+    assert 20 > operator_module._COLUMNS_PER_BASE and 20 <= operator_module._COLUMNS_PER_COLD_BASE
+    want = sum(float(w.flat[k]) * op.column(k).astype(float) for k in range(g.size))
+    sub = op.rows(2)
+    r = rng.standard_normal(sub.dimsd)
+    placed = np.zeros(op.dimsd)
+    placed[::2] = r
+    explicit = np.array([np.vdot(op.column(k), placed) for k in range(g.size)])
+    got = sub.rmatvec(r).ravel()
+    assert np.linalg.norm(got - explicit) <= 1e-6 * np.linalg.norm(explicit)
+    assert ("rows", 2) in op._cache and "full" not in op._cache
+    nz = np.flatnonzero(w)
+    assert np.all(np.abs(op.matvec(w) - want) <= _single_run_bound(op, nz, w.ravel()[nz]))
+    assert "full" not in op._cache  # summed columns
+    assert op.spec.shape[0] == g.n_bases  # computed now
+    np.testing.assert_allclose(op.matvec(w), want, rtol=1e-5, atol=1e-8)

@@ -9,7 +9,10 @@
   column of pose ``(b, ty, tx)`` is then that image shifted by ``(tx, ty)``.  ``F w`` is, per
   base, a convolution with the ``len(ty) x len(tx)`` translation kernel and ``F^T r`` a
   cross-correlation at the translation lags: both by ``scipy.fft`` with the spectra of the
-  warped stack computed once.  The adjoint of convolution is correlation with the same kernel.
+  warped stack, computed once, on first use (for an operator restricted to every k-th row,
+  :meth:`BlurOperator.rows`, the adjoint correlates the kept rows with each row phase of
+  the stack, whose spectra are computed once too).  The adjoint of convolution is
+  correlation with the same kernel.
 
 Boundary handling: the window of the observation is fixed; every pose reads the reference
 pixels it needs from a larger reference window (read once).  Pixels for which some pose would
@@ -39,6 +42,11 @@ _BLOCK_BYTES = 16 * 2**20
 #: poses per base angle with weight: a 400 x 400 column costs ~0.1 ms, a base's share of
 #: the spectral product (its kernel's transform and product) ~1.5 ms on 2 cores.
 _COLUMNS_PER_BASE = 8
+
+#: ... and while there are at most this many per base angle of the grid when the spectra
+#: are not computed yet (they are computed on first use: a base's spectra cost about 25
+#: columns, 2.6 / 0.1 ms on a 500 px window, one thread).
+_COLUMNS_PER_COLD_BASE = 24
 
 #: :meth:`BlurOperator.combine` splits sums of at least this many column pixels across
 #: threads (smaller ones cost less than the threads' start).
@@ -73,7 +81,9 @@ class BlurOperator:
     dtype : numpy dtype
         Working precision of the warped stack and FFTs (float64 default).
     spectra : bool
-        Precompute FFT spectra (needed for dense ``matvec``/``rmatvec`` on the fast engine).
+        Spectral products (dense ``matvec``, ``rmatvec``) on the fast engine; the FFT
+        spectra they use are computed on first use (:attr:`spec`, and per row phase for a
+        :meth:`rows` view).  False: sums of columns and explicit inner products only.
     spectra_precision : {"single", "double"}
         Precision of the spectra.  ``"single"`` (default) computes them from the float32
         stack in single precision and stores them as complex64; ``rmatvec``'s products
@@ -150,6 +160,10 @@ class BlurOperator:
         self.dimsd = (h, w, C)
         self.shape = (h * w * C, grid.size)
         self.row_step = 1
+        # spectra, computed on first use and shared with the row-restricted views
+        # (:meth:`rows`): ``"full"`` for the window, ``("rows", k)`` per row phase
+        self._cache: dict = {}
+        self._spectral = engine == "fast" and bool(spectra)
         self._tx = np.asarray(grid.tx)
         self._ty = np.asarray(grid.ty)
         self._n_tx = len(grid.tx)
@@ -221,13 +235,55 @@ class BlurOperator:
         # flat-index helpers: lag offsets of every pose
         self._oy = self.tymax - ty  # row offset into ext for each iy
         self._ox = self.txmax - tx
-        self.spec = None
-        Fh = self._fshape[0]
-        k = np.arange(Fh)
-        self._row_idft = np.exp(2j * np.pi * np.outer(np.arange(self.Dy + 1), k) / Fh) / Fh
         self._xbuf = None  # rmatvec's work buffer (reused: see rmatvec)
-        if spectra:
-            self.spec = self._spectra()
+
+    @property
+    def spec(self) -> np.ndarray | None:
+        """Spectra of the warped stack (``(n_bases, Fh, Fw // 2 + 1, C)``), computed on
+        first use; None without spectral products (``spectra=False``, exact engine)."""
+        if not self._spectral:
+            return None
+        if "full" not in self._cache:
+            self._cache["full"] = self._spectra()
+        return self._cache["full"]
+
+    def _phase_spectra(self) -> np.ndarray:
+        """Spectra of the stack's row phases for :attr:`row_step` ``k``: ``[p, b]`` is the
+        transform of rows ``p, p + k, p + 2k, ...`` of base ``b``'s plane, on
+        ``Fh_k = next_fast_len(n + Dy // k)`` rows (``n`` the window's rows kept), so the
+        correlation of the kept rows with a phase at its ``(Dy - p) // k + 1`` row lags
+        does not wrap.  Computed on first use and shared with the operator."""
+        k = self.row_step
+        key = ("rows", k)
+        if key not in self._cache:
+            nb = self.grid.n_bases
+            Fw = self._fshape[1]
+            C = self.dimsd[2]
+            fh = sfft.next_fast_len(self.dimsd[0] + self.Dy // k)
+            ctype = np.result_type(self.dtype, np.complex64)
+            if self.spectra_precision == "single":
+                ctype = np.complex64
+            spec = _zeros((k, nb, fh, Fw // 2 + 1, C), ctype)
+            step = self._chunk()
+            for p in range(k):
+                for c0 in range(0, nb, step):
+                    c1 = min(c0 + step, nb)
+                    blk = self.stack[c0:c1, p::k]
+                    if ctype != np.complex64:
+                        blk = blk.astype(self.dtype)
+                    spec[p, c0:c1] = sfft.rfft2(blk, s=(fh, Fw), axes=(1, 2),
+                                                workers=self.threads)
+            self._cache[key] = spec
+        return self._cache[key]
+
+    def _idft_rows(self, n_lags: int, fh: int, ctype) -> np.ndarray:
+        """The inverse DFT's rows for lags ``0 .. n_lags - 1`` of a length-``fh`` transform
+        (``n_lags x fh``, in ``ctype``), cached."""
+        key = ("idft", n_lags, fh, np.dtype(ctype).str)
+        if key not in self._cache:
+            m = np.exp(2j * np.pi * np.outer(np.arange(n_lags), np.arange(fh)) / fh) / fh
+            self._cache[key] = m.astype(ctype)
+        return self._cache[key]
 
     def _chunk(self) -> int:
         """Bases per block of the spectral products: a block of cross spectra of about
@@ -273,7 +329,6 @@ class BlurOperator:
 
     def _build_exact(self) -> None:
         self.stack = None
-        self.spec = None
         valid = np.ones((self.box.h, self.box.w), bool)
         # validity of all poses: the extreme translations at every base suffice only for
         # affine bases; check every pose for exactness (cheap relative to any use of exact)
@@ -418,7 +473,9 @@ class BlurOperator:
         if not sparse and self.engine == "fast":
             n_bases = np.unique(np.unravel_index(nz, self.grid.shape)[0]).size
             sparse = nz.size <= _COLUMNS_PER_BASE * n_bases
-        if self.engine == "exact" or self.spec is None or sparse:
+            if not sparse and "full" not in self._cache:  # the spectra are still to compute
+                sparse = nz.size <= _COLUMNS_PER_COLD_BASE * self.grid.n_bases
+        if not self._spectral or sparse:
             return self.combine(nz, w.ravel()[nz])
         kern = np.zeros((self.grid.n_bases, self.Dy + 1, self.Dx + 1))
         iy = (self._ty - self.tymin).astype(int)
@@ -438,48 +495,62 @@ class BlurOperator:
         return out.astype(self.dtype, copy=False)
 
     def rmatvec(self, residual: np.ndarray) -> np.ndarray:
-        """``F^T r``: one inner product per pose, returned with shape ``grid.shape``."""
+        """``F^T r``: one inner product per pose, returned with shape ``grid.shape``.
+
+        On the fast engine, the cross-correlation of ``r`` with every base's plane at the
+        translation lags (rows ``0..Dy``, columns ``0..Dx``).  Under a :attr:`row_step`
+        ``k`` the kept rows are correlated with each row phase of the planes
+        (:meth:`_phase_spectra`): the lags ``p, p + k, ...`` of phase ``p``, the same
+        values at ``1 / k`` of the transform of ``r`` and of the inverse DFT along the
+        rows."""
         r = np.asarray(residual, dtype=self.dtype).reshape(self.dimsd)
-        if self.row_step != 1 and (self.engine == "fast" and self.spec is not None):
-            # S^T r: the rows back in their places of the window, zero between them
-            full = np.zeros((self.box.h, *self.dimsd[1:]), self.dtype)
-            full[:: self.row_step] = r
-            r = full
-        if self.engine == "exact" or self.spec is None:
+        if not self._spectral:
             out = np.empty(self.grid.size)
             for k in range(self.grid.size):
                 out[k] = float(np.vdot(self.column(k), r))
             return out.reshape(self.grid.shape)
-        Rc = np.conj(sfft.rfft2(r, s=self._fshape, axes=(0, 1), workers=self.threads))
-        if self.spec.dtype == np.complex64:
+        k = self.row_step
+        spec = self.spec[None] if k == 1 else self._phase_spectra()
+        fh = spec.shape[2]
+        Rc = np.conj(sfft.rfft2(r, s=(fh, self._fshape[1]), axes=(0, 1),
+                                workers=self.threads))
+        if spec.dtype == np.complex64:
             # single-precision spectra: the products in single precision too (half the
             # memory traffic, twice the arithmetic rate).  Their rounding is of the
             # spectra's own order, relative to |r| (the current residual, small near the
             # optimum where the solver's KKT test needs the gradient's sign)
             Rc = Rc.astype(np.complex64)
-        nb, Fh, F2, C = self.spec.shape
-        # Sum over bands before the inverse transform (linearity).  Only the lags 0..Dy
-        # (rows) and 0..Dx (columns) are needed: the inverse DFT along the rows is a small
-        # matrix product (Dy + 1 output rows), then a real inverse FFT along the columns --
-        # the same values as irfft2, a few times cheaper.  Done a block of bases at a time
-        # in one reused buffer: a full-size cross spectrum is a fresh allocation per call
-        # whose first-touch page faults cost more than the products on this kind of VM.
+        ctype = np.result_type(spec.dtype, Rc.dtype)
+        rows = np.empty((self.grid.n_bases, self.Dy + 1, spec.shape[3]), ctype)
+        for p in range(min(k, self.Dy + 1)):
+            self._lag_rows(spec[p], Rc, rows[:, p::k])
+        corr = sfft.irfft(rows, n=self._fshape[1], axis=2, workers=self.threads)
+        return corr[:, self._oy[:, None], self._ox[None, :]].astype(self.dtype, copy=False)
+
+    def _lag_rows(self, spec: np.ndarray, Rc: np.ndarray, out: np.ndarray) -> None:
+        """``out[b, q] = IDFT_rows(spec[b] * Rc summed over bands)[q]`` for the lags ``q``
+        of ``out``'s second axis.
+
+        Sum over bands before the inverse transform (linearity).  Only the first lags are
+        needed: the inverse DFT along the rows is a small matrix product (one output row
+        per lag), then a real inverse FFT along the columns (by the caller) -- the same
+        values as irfft2, a few times cheaper.  Done a block of bases at a time in one
+        reused buffer: a full-size cross spectrum is a fresh allocation per call whose
+        first-touch page faults cost more than the products on this kind of VM."""
+        nb, fh, F2, C = spec.shape
         step = self._chunk()
-        ctype = np.result_type(self.spec.dtype, Rc.dtype)
-        if self._xbuf is None or self._xbuf.dtype != ctype:
-            self._xbuf = np.empty((step, Fh, F2), ctype)
-        rows = np.empty((nb, self.Dy + 1, F2), ctype)
-        row_idft = self._row_idft.astype(ctype, copy=False)
+        xb = self._xbuf
+        if xb is None or xb.dtype != out.dtype or xb.shape[1:] != (fh, F2):
+            self._xbuf = np.empty((step, fh, F2), out.dtype)
+        idft = self._idft_rows(out.shape[1], fh, out.dtype)
         for c0 in range(0, nb, step):
             c1 = min(c0 + step, nb)
             buf = self._xbuf[: c1 - c0]
             if C == 1:
-                np.multiply(self.spec[c0:c1, :, :, 0], Rc[:, :, 0], out=buf)
+                np.multiply(spec[c0:c1, :, :, 0], Rc[:, :, 0], out=buf)
             else:
-                np.einsum("byxc,yxc->byx", self.spec[c0:c1], Rc, out=buf)
-            np.matmul(row_idft, buf, out=rows[c0:c1])
-        corr = sfft.irfft(rows, n=self._fshape[1], axis=2, workers=self.threads)
-        return corr[:, self._oy[:, None], self._ox[None, :]].astype(self.dtype, copy=False)
+                np.einsum("byxc,yxc->byx", spec[c0:c1], Rc, out=buf)
+            np.matmul(idft, buf, out=out[c0:c1])
 
     @property
     def H(self) -> _Adjoint:
