@@ -854,7 +854,8 @@ def test_full_window_level_stops_at_the_fine_rtol_on_a_long_real_shake():
 
 def test_row_step_rule():
     """``estimate.row_step``: the largest step up to ``MAX_ROW_STEP`` leaving every window
-    ``ROW_SAMPLE_PIXELS`` of its pixels and half that of its valid ones."""
+    ``ROW_SAMPLE_PIXELS`` of its pixels and half that of its valid ones; 1 with an
+    operator that has no row views (the rolling-shutter band model)."""
     from types import SimpleNamespace
 
     from reblur.estimate import MAX_ROW_STEP, ROW_SAMPLE_PIXELS, row_step
@@ -863,7 +864,7 @@ def test_row_step_rule():
     def op(side, valid_share=1.0):
         valid = np.zeros((side, side), bool)
         valid.flat[: int(round(valid_share * side * side))] = True
-        return SimpleNamespace(box=Box(0, 0, side, side), valid=valid)
+        return SimpleNamespace(box=Box(0, 0, side, side), valid=valid, rows=lambda k: None)
 
     assert (MAX_ROW_STEP, ROW_SAMPLE_PIXELS) == (4, 32768)
     assert row_step([op(500, 0.8), op(500, 0.77)]) == 4  # 7 by the area, 11 by the valid
@@ -872,6 +873,8 @@ def test_row_step_rule():
     assert row_step([op(500, 0.2)]) == 3  # 50000 valid: 3 x 16384 and more
     assert row_step([op(180)]) == 1
     assert row_step([op(500), op(500, 0.0)]) == 1  # a window with no data left
+    rolling = SimpleNamespace(box=Box(0, 0, 500, 500), valid=np.ones((500, 500), bool))
+    assert row_step([op(500), rolling]) == 1  # an operator without row views
 
 
 @pytest.mark.parametrize("one_sided", [False, True])

@@ -605,8 +605,9 @@ def _widening_info(start: PoseGrid, grid: PoseGrid, log: list, w: np.ndarray) ->
 #: 500 px window's rows as by all of them: the rows keep the window's extent, whose spread
 #: is what makes the weights observable (a smaller window loses it:
 #: ``benchmarks.window_side``).  1 MP pairs (``python -m benchmarks.gram_work``, against
-#: every row): estimate 1.4-1.7x faster; GoPro reblur PSNR, the realism matrix at 1 / 4 MP,
-#: Fig. 6 and the failure modes within 0.05 dB / 0.001 JC (docs/NOTES.md).
+#: every row, with the row views' phase adjoint): estimate 1.2-1.9x faster; GoPro reblur
+#: PSNR, the realism matrix at 1 / 4 / 25 MP, Fig. 6 and the failure modes within 0.05 dB
+#: / 0.001 JC (docs/NOTES.md).
 MAX_ROW_STEP = 4
 #: See :data:`MAX_ROW_STEP`: a 181 px square window's pixels.
 ROW_SAMPLE_PIXELS = 2**15
@@ -615,7 +616,10 @@ ROW_SAMPLE_PIXELS = 2**15
 def row_step(ops) -> int:
     """The row step of a solve on the windows of the operators ``ops`` (see
     :data:`MAX_ROW_STEP`); 1 where a window holds few valid pixels (the data left after
-    exclusions and no data are all that is fitted there)."""
+    exclusions and no data are all that is fitted there) and for operators that cannot be
+    restricted to rows (no ``rows`` method)."""
+    if not all(hasattr(op, "rows") for op in ops):
+        return 1
     k = MAX_ROW_STEP
     for op in ops:
         k = min(k, op.box.h * op.box.w // ROW_SAMPLE_PIXELS,

@@ -343,11 +343,12 @@ class BlurOperator:
         """This operator restricted to every ``step``-th row of its window: ``S F``, with
         ``S`` the selection of rows ``0, step, 2 step, ...`` (adjoint ``F^T S^T``).
 
-        A view: it shares the warped stack and its spectra (no copy).  Its columns are
+        A view: it shares the warped stack and the spectra (no copy).  Its columns are
         strided views of the stack, so the products over the columns (the solver's Gram
         blocks, forward sums and line searches) read ``1 / step`` of the pixels;
-        :meth:`rmatvec` places the rows back into the window before the same spectral
-        product.  :attr:`valid` and ``excluded`` are restricted the same way.
+        :meth:`rmatvec` correlates the kept rows with each row phase of the stack (spectra
+        computed once per step, :meth:`_phase_spectra`).  :attr:`valid` and ``excluded``
+        are restricted the same way.
 
         Parameters
         ----------

@@ -464,8 +464,8 @@ def active_set(
         Fit every ``row_step``-th row of each window only (:meth:`BlurOperator.rows`;
         ``gs``, ``masks`` and ``signs`` are given whole and restricted here), the weights'
         l1 term divided by ``row_step``: the data term of the rows kept, times
-        ``row_step``, estimates that of the whole window, so the problem solved is an
-        unbiased sample of eq. 5 at ``1 / row_step`` of the products' cost.  The
+        ``row_step``, estimates that of the whole window without bias, so the objective
+        minimised estimates eq. 5's at ``1 / row_step`` of the products' cost.  The
         objective is reported in the whole window's units (times ``row_step``).  1
         (default): every row.
 
