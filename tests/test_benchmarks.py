@@ -186,3 +186,33 @@ def test_gram_work_counts_a_warm_start_as_its_full_product(levir_gray):
     assert half["macs"] == P * P * 48 * 80 * op.dimsd[2]
     assert S._Window._block.__name__ == "_block"  # restored
     assert BlurOperator.rmatvec.__name__ == "rmatvec"
+
+
+def test_ab_scores_both_runs_on_the_pixels_both_left_known_and_unflagged():
+    """``benchmarks.ab.score``: each run's PSNR over the pixels no run flagged or left
+    unknown (one pixel value per run differs there: 10 log10(1 / (d^2 / n))), recall and
+    false alarms against a truth."""
+    from benchmarks.ab import score
+
+    obs = np.full((4, 5, 1), 0.5)
+    truth = np.zeros((4, 5), bool)
+    truth[0, :2] = True
+    runs = []
+    for d, flag in ((0.1, (0, 0)), (0.2, (3, 4))):
+        reb = obs.copy()
+        reb[1, 1, 0] += d  # the only kept pixel that differs
+        reb[0, 0, 0] += 0.9  # flagged by the first run: out of both scores
+        changes = np.zeros((4, 5), bool)
+        changes[flag] = True
+        unknown = np.zeros((4, 5), bool)
+        unknown[2, 2] = True
+        runs.append({"seconds": 1.0, "changes": changes, "unknown": unknown,
+                     "reblurred": reb})
+    rows = score(runs, obs, truth)
+    n = 20 - 3  # (0, 0), (3, 4) flagged, (2, 2) unknown
+    for row, d in zip(rows, (0.1, 0.2), strict=True):
+        assert row["psnr_db"] == pytest.approx(10 * np.log10(n / d**2))
+        assert row["scored"] == pytest.approx(n / 20)
+        assert "reblurred" not in row and row["seconds"] == 1.0
+    assert rows[0]["recall"] == 0.5 and rows[0]["false_alarms"] == 0.0
+    assert rows[1]["recall"] == 0.0 and rows[1]["false_alarms"] == pytest.approx(1 / 18)
