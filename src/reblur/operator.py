@@ -256,23 +256,10 @@ class BlurOperator:
         k = self.row_step
         key = ("rows", k)
         if key not in self._cache:
-            nb = self.grid.n_bases
-            Fw = self._fshape[1]
-            C = self.dimsd[2]
             fh = sfft.next_fast_len(self.dimsd[0] + self.Dy // k)
-            ctype = np.result_type(self.dtype, np.complex64)
-            if self.spectra_precision == "single":
-                ctype = np.complex64
-            spec = _zeros((k, nb, fh, Fw // 2 + 1, C), ctype)
-            step = self._chunk()
+            spec = _zeros((k, self.grid.n_bases, fh, *self._spectra_shape()), self._ctype())
             for p in range(k):
-                for c0 in range(0, nb, step):
-                    c1 = min(c0 + step, nb)
-                    blk = self.stack[c0:c1, p::k]
-                    if ctype != np.complex64:
-                        blk = blk.astype(self.dtype)
-                    spec[p, c0:c1] = sfft.rfft2(blk, s=(fh, Fw), axes=(1, 2),
-                                                workers=self.threads)
+                self._spectra_into(spec[p], slice(p, None, k))
             self._cache[key] = spec
         return self._cache[key]
 
@@ -292,24 +279,35 @@ class BlurOperator:
         per_base = Fh * (Fw // 2 + 1) * np.dtype(np.result_type(self.dtype, np.complex64)).itemsize
         return int(max(1, min(self.grid.n_bases, _BLOCK_BYTES // per_base)))
 
-    def _spectra(self) -> np.ndarray:
-        """Spectra of the stack, computed in the operator's precision a block of bases at
-        a time (no full-size temporary) and stored as ``spectra_precision`` says."""
-        nb = self.grid.n_bases
-        Fh, Fw = self._fshape
-        C = self.dimsd[2]
-        ctype = np.result_type(self.dtype, np.complex64)
+    def _ctype(self):
+        """Complex type of the stored spectra (``spectra_precision``)."""
         if self.spectra_precision == "single":
-            ctype = np.complex64
-        spec = _zeros((nb, Fh, Fw // 2 + 1, C), ctype)
-        step = self._chunk()
-        for c0 in range(0, nb, step):
-            c1 = min(c0 + step, nb)
-            blk = self.stack[c0:c1]
-            if ctype != np.complex64:
-                blk = blk.astype(self.dtype)
-            spec[c0:c1] = sfft.rfft2(blk, axes=(1, 2), workers=self.threads)
+            return np.dtype(np.complex64)
+        return np.result_type(self.dtype, np.complex64)
+
+    def _spectra_shape(self) -> tuple[int, int]:
+        """Columns and bands of a spectrum: ``(Fw // 2 + 1, C)``."""
+        return self._fshape[1] // 2 + 1, self.dimsd[2]
+
+    def _spectra(self) -> np.ndarray:
+        """Spectra of the stack (stored as ``spectra_precision`` says)."""
+        spec = _zeros((self.grid.n_bases, self._fshape[0], *self._spectra_shape()),
+                      self._ctype())
+        self._spectra_into(spec)
         return spec
+
+    def _spectra_into(self, out: np.ndarray, rows: slice = slice(None)) -> None:
+        """Fill ``out`` (``(n_bases, fh, Fw // 2 + 1, C)``) with the transforms of the
+        stack's ``rows`` on ``fh`` rows (zero-padded or cut), computed in the operator's
+        precision a block of bases at a time (no full-size temporary)."""
+        fh, Fw = out.shape[1], self._fshape[1]
+        step = self._chunk()
+        for c0 in range(0, self.grid.n_bases, step):
+            c1 = min(c0 + step, self.grid.n_bases)
+            blk = self.stack[c0:c1, rows]
+            if out.dtype != np.complex64:
+                blk = blk.astype(self.dtype)
+            out[c0:c1] = sfft.rfft2(blk, s=(fh, Fw), axes=(1, 2), workers=self.threads)
 
     def _all_pose_valid(self, bad: np.ndarray) -> np.ndarray:
         """Window pixels valid for every base and every translation, from the ``ext``
