@@ -11,8 +11,10 @@ a correlation peak towards a mode of the blur, does not bias the tie points.
 
 1. Tie points: probe windows on a regular lattice over the observation; each one's
    sub-pixel translation between the reblurred reference (estimated weights, refined base
-   homography) and the observation, by ECC (invariant to gain and offset).  A probe on a
-   change or an occlusion correlates poorly and is left out (``min_cc``).
+   homography) and the observation (:func:`reblur.align.refine.tie_shift`: normalised
+   cross-correlation, then ECC on a fixed support; invariant to gain and offset).  A probe
+   on a change or an occlusion correlates poorly and is left out (``min_cc``); one whose
+   correlation is flat over more than a pixel (along a blur streak) is not located.
 2. Outliers: the normalised median test of particle-image velocimetry (Westerweel and
    Scarano 2005): a tie point whose vector differs from the median of its lattice
    neighbours by more than ``median_test`` times their own median deviation (plus
