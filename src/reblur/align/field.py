@@ -565,7 +565,7 @@ def estimate_field(
     p = params or FieldParams()
     shape = tuple(int(v) for v in poses.grid.image_shape[:2])
     boxes = lattice_boxes(shape, p)
-    kw = dict(ref_scale=ref_scale, obs_scale=obs_scale, min_valid=p.min_cover)
+    kw = dict(ref_scale=ref_scale, obs_scale=obs_scale, min_valid=p.min_cover, search=True)
     xs = sorted({b.x0 for b in boxes})
     ys = sorted({b.y0 for b in boxes})
     steps = [b - a for v in (xs, ys) for a, b in zip(v, v[1:], strict=False)]
