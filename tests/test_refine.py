@@ -50,12 +50,13 @@ def test_probe_boxes_cover_the_image():
     assert probe_boxes((100, 80), size=256) == [probe_boxes((100, 80), size=80)[0]]
 
 
-def test_shifts_match_the_analytic_displacement(reference):
+@pytest.mark.parametrize("search", [False, True])
+def test_shifts_match_the_analytic_displacement(reference, search):
     # observation seen through a small scale + roll error the weights do not know about
     err = pose_homography(0.0, 0.0, 3e-4, 0.0, 0.0, 0.02, center=C)
     obs, grid, w = _observe(reference, err)
     boxes = probe_boxes((H, W))
-    every = measure_shifts(reference, obs, SparsePoses(w, grid), boxes)
+    every = measure_shifts(reference, obs, SparsePoses(w, grid), boxes, search=search)
     assert len(every) == len(boxes)
     shifts = [s for s in every if s.measured]
     assert len(shifts) >= 12
@@ -127,16 +128,17 @@ def test_tie_shift_refuses_what_it_cannot_locate():
     assert isinstance(got, str) and ("flat" in got or "edge" in got), got
 
 
-def test_threaded_shifts_equal_the_serial_ones(reference):
+@pytest.mark.parametrize("search", [False, True])
+def test_threaded_shifts_equal_the_serial_ones(reference, search):
     # the probes are measured side by side; each is computed alone, so the threads'
     # result is the one-thread result, bit for bit (the serial loop is the reference)
     err = pose_homography(0.3, -0.2, 3e-4, 0.0, 0.0, 0.02, center=C)
     obs, grid, w = _observe(reference, err)
     boxes = probe_boxes((H, W), size=128, n=8)
     poses = SparsePoses(w, grid)
-    serial = measure_shifts(reference, obs, poses, boxes, workers=1)
+    serial = measure_shifts(reference, obs, poses, boxes, workers=1, search=search)
     assert sum(s.measured for s in serial) >= 20
-    assert measure_shifts(reference, obs, poses, boxes, workers=3) == serial
+    assert measure_shifts(reference, obs, poses, boxes, workers=3, search=search) == serial
     with pytest.raises(ValueError, match="workers"):
         measure_shifts(reference, obs, poses, boxes, workers=0)
 
