@@ -91,10 +91,10 @@ def _streaked_windows(n_scenes: int, seed: int):
 
 
 def test_tie_shift_is_stable_and_accurate_along_a_blur_ridge():
-    # ECC over the whole window against the whole window (this measurement before) loses
-    # the part shifted out of the window, so it drifted along such ridges: 23 of 480 of
-    # these windows moved by over 0.05 px when the input changed in its sixth digit
-    # (GoPro GOPR0374: a third of the field's tie points, by 0.2-7 px)
+    # ECC over the whole window against the whole window (measure_shifts without search)
+    # loses the part shifted out of the window, so it drifts along such ridges: put in
+    # tie_shift's place, it fails the sixth-digit stability check below (GoPro GOPR0374:
+    # a third of the field's tie points moved, by 0.2-7 px)
     valid = np.ones((64, 64), bool)
     errs, refused = [], 0
     for obs, reb, d in _streaked_windows(12, seed=8):
@@ -126,6 +126,11 @@ def test_tie_shift_refuses_what_it_cannot_locate():
     stripes = np.tile(np.sin(np.arange(64) / 3.0).astype(np.float32)[:, None], (1, 64))
     got = tie_shift(stripes, stripes, valid)
     assert isinstance(got, str) and ("flat" in got or "edge" in got), got
+    # double-precision windows are measured as single-precision ones; shapes must agree
+    assert tie_shift(s.astype(np.float64), np.roll(s, 3, axis=1), valid) == tie_shift(
+        s, np.roll(s, 3, axis=1), valid)
+    with pytest.raises(ValueError, match="one shape"):
+        tie_shift(s, s[:60], valid)
 
 
 @pytest.mark.parametrize("search", [False, True])

@@ -219,9 +219,10 @@ def measure_shifts(
         against the whole window from zero shift, which reaches the nearest optimum only
         (the refinement's few large probes: with a search, GoPro GOPR0477's probes on
         walking people correlated at 0.95 with their motion, and the refined geometry cost
-        0.4-0.5 dB of reblur PSNR).  The whole-window measurement drifts along blur
-        ridges on small windows (:func:`tie_shift`); on the 240 px probes of GoPro
-        GOPR0374 none moved under the change that moved a third of its 64 px tie points.
+        0.4-0.5 dB of reblur PSNR).  The whole-window measurement can drift
+        (:func:`tie_shift`): on GOPR0374's 240 px probes none moved under the change that
+        moved a third of its 64 px tie points, but one over GOPR0477's people (16-frame
+        average) ends 0.6 or 4.2 px off with the last digits of its input.
 
     Returns
     -------
@@ -356,19 +357,20 @@ def tie_shift(observed: np.ndarray, reblurred: np.ndarray, valid: np.ndarray, *,
     is the search range) is located in ``observed``: first the best whole-pixel shift by
     normalised cross-correlation (:func:`cv2.matchTemplate`, gain and offset invariant),
     then ECC (:func:`cv2.findTransformECCWithMask`, translation) from there.  The support
-    is the same at every shift tried.  ECC on the whole window against the whole window,
-    as this measurement did before, loses the part of the window shifted out of it, so a
-    smaller overlap can correlate better: on real camera shake (GoPro GOPR0374, 64 px tie
-    points of the displacement field, horizontal blur of ~15 px) it wandered along the
-    blur to the far end of a flat correlation ridge, by up to 20 px, and a change of the
-    input in its sixth digit moved a third of the tie points by 0.2-7 px; whether the
-    field was applied then depended on the number of threads (5.6 % against 4.5 %
-    flagged).
+    is the same at every shift tried.  ECC on the whole window against the whole window
+    (:func:`measure_shifts` without ``search``) loses the part of the window shifted out
+    of it, so a smaller overlap can correlate better: on real camera shake (GoPro
+    GOPR0374, 64 px tie points of the displacement field, horizontal blur of ~15 px) it
+    wandered along the blur to the far end of a flat correlation ridge, by up to 20 px,
+    and a change of the input in its sixth digit moved a third of the tie points by
+    0.2-7 px; whether the field was applied then depended on the number of threads (5.6 %
+    against 4.5 % flagged).
 
     Parameters
     ----------
-    observed, reblurred : (h, w) float32 ndarray
-        The observation's window and the reblurred reference's, intensities on one scale.
+    observed, reblurred : (h, w) ndarray
+        The observation's window and the reblurred reference's, intensities on one scale
+        (computed in single precision).
     valid : (h, w) ndarray of bool
         Where ``reblurred`` is defined.
     min_valid : float
@@ -384,7 +386,12 @@ def tie_shift(observed: np.ndarray, reblurred: np.ndarray, valid: np.ndarray, *,
         a pixel along some direction (blur along it, or a straight edge), so the shift is
         not determined there.
     """
+    observed = np.ascontiguousarray(observed, dtype=np.float32)
+    reblurred = np.ascontiguousarray(reblurred, dtype=np.float32)
     h, w = observed.shape
+    if reblurred.shape != (h, w) or np.shape(valid) != (h, w):
+        raise ValueError(f"tie_shift needs windows of one shape, got {observed.shape}, "
+                         f"{reblurred.shape} and {np.shape(valid)}")
     mx, my = max(2, w // 8), max(2, h // 8)
     k = (_PRESMOOTH, _PRESMOOTH)
     obs = cv2.GaussianBlur(observed, k, 0)
