@@ -328,25 +328,26 @@ def _measure_one(reference, observed, poses: SparsePoses, b: Box, ref_scale: flo
     return ProbeShift(cx=cx, cy=cy, dx=dx, dy=dy, cc=cc)
 
 
+#: Pre-smoothing of both measurements (the 5 x 5 Gaussian ECC applies by default).
+_PRESMOOTH = 5
+#: ECC's stopping rule in both: 100 iterations, or a change of the correlation below 1e-5.
+_ECC_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-5)
+
+
 def _whole_window_shift(observed: np.ndarray, reblurred: np.ndarray, valid: np.ndarray
                         ) -> tuple[float, float, float] | str:
     """:func:`tie_shift`'s result by ECC of the whole window from zero shift (see
     :func:`measure_shifts`' ``search``)."""
-    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-5)
     warp = np.eye(2, 3, dtype=np.float32)
     try:
         cc, warp = cv2.findTransformECC(observed, reblurred, warp, cv2.MOTION_TRANSLATION,
-                                        crit, valid.astype(np.uint8), _PRESMOOTH)
+                                        _ECC_CRITERIA, valid.astype(np.uint8), _PRESMOOTH)
     except cv2.error:
         return "ECC did not converge"
     dx, dy = float(warp[0, 2]), float(warp[1, 2])
     if not (np.isfinite(dx) and np.isfinite(dy)) or max(abs(dx), abs(dy)) > observed.shape[1] / 4:
         return f"implausible shift ({dx:.3g}, {dy:.3g}) px"
     return dx, dy, float(cc)
-
-
-#: Pre-smoothing of :func:`tie_shift` (the 5 x 5 Gaussian ECC applies by default).
-_PRESMOOTH = 5
 
 
 def tie_shift(observed: np.ndarray, reblurred: np.ndarray, valid: np.ndarray, *,
@@ -410,11 +411,11 @@ def tie_shift(observed: np.ndarray, reblurred: np.ndarray, valid: np.ndarray, *,
     if not (0 < ix < 2 * mx and 0 < iy < 2 * my):
         return (f"the best whole-pixel shift ({mx - ix}, {my - iy}) px lies on the edge of "
                 f"the +-{mx} px search")
-    crit = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-5)
     warp = np.array([[1, 0, ix], [0, 1, iy]], np.float32)
     try:
         cc, warp = cv2.findTransformECCWithMask(tmpl, obs, tmask, np.ones_like(obs, np.uint8),
-                                                warp, cv2.MOTION_TRANSLATION, crit, 1)
+                                                warp, cv2.MOTION_TRANSLATION, _ECC_CRITERIA,
+                                                1)
     except cv2.error:
         return "ECC did not converge"
     tx, ty = float(warp[0, 2]), float(warp[1, 2])
