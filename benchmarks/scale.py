@@ -141,8 +141,10 @@ def io_floor(d: Path) -> dict:
 
     def tiles():
         for y in range(0, H, step):
-            m = ((np.asarray(obs[y : y + step]) > np.asarray(ref[y : y + step])) * 255)
-            m = m.astype(np.uint8)
+            m = np.asarray(obs[y : y + step]) > np.asarray(ref[y : y + step])
+            if m.ndim == 3:  # one mask for all the bands, as the pipeline writes
+                m = m.any(axis=2)
+            m = m.astype(np.uint8) * np.uint8(255)
             for x in range(0, W, step):
                 yield m[:, x : x + step]
 

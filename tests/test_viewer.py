@@ -137,6 +137,30 @@ def test_pyramid_levels_are_block_means_of_the_full_size(tmp_path):
         assert np.abs(got[:ref.shape[0], :ref.shape[1]] - ref).max() <= 1.0, level
 
 
+def test_sample_stretch_is_the_percentiles_of_its_windows_whatever_the_type():
+    # an image smaller than one window is sampled whole: its 1st and 99th percentiles in
+    # float64, computed here directly; integer samples kept in their type must agree
+    rng = np.random.default_rng(5)
+    rgb16 = rng.integers(0, 65536, (90, 110, 3)).astype(np.uint16)
+    gray = rng.integers(-32768, 32768, (100, 70)).astype(np.int16)
+    wide = rng.integers(0, 2**32, (60, 50, 3), dtype=np.uint64).astype(np.uint32)
+    for img in (rgb16, gray, wide):
+        lo, hi = np.percentile(img.astype(np.float64), [1.0, 99.0])
+        s = sample_stretch(img, img.dtype)
+        assert (s.lo, s.hi) == (lo, hi)
+    fl = rng.normal(size=(80, 80)).astype(np.float32)
+    fl[::7, ::5] = np.nan  # no data: left out
+    s = sample_stretch(fl, fl.dtype)
+    lo, hi = np.percentile(fl[np.isfinite(fl)].astype(np.float64), [1.0, 99.0])
+    assert (s.lo, s.hi) == (lo, hi)
+    # a larger image: 2 x 2 windows of 40 px at its corners
+    big = rng.integers(0, 4096, (100, 130)).astype(np.uint16)
+    wins = [big[y:y + 40, x:x + 40] for y in (0, 60) for x in (0, 90)]
+    lo, hi = np.percentile(np.concatenate([w.ravel() for w in wins]).astype(float), [1, 99])
+    s = sample_stretch(big, big.dtype, n=2, side=40)
+    assert (s.lo, s.hi) == (lo, hi)
+
+
 def test_pyramid_of_lazy_inputs_reads_windows_only(tmp_path):
     rng = np.random.default_rng(1)
     H, W = 700, 1000

@@ -57,6 +57,11 @@ def sample_stretch(array: Any, dtype: np.dtype, *, n: int = 8, side: int = 128) 
     """The display stretch of an image (numpy or lazy), from at most ``n x n`` windows of
     ``side`` pixels spread evenly over it: ``[0, 255]`` for uint8, else its 1st and 99th
     percentiles.
+
+    Integer samples stay in their type (``np.percentile`` interpolates them in float64,
+    the same values as a float64 copy): a 16-bit RGB sample is a quarter of the bytes, and
+    its float64 copy's first-touch page faults were most of the stretch's time (1 MP
+    ``5% rgb16``: 0.17 -> 0.03 s).
     """
     if np.dtype(dtype) == np.uint8:
         return Stretch(0.0, 255.0)
@@ -64,10 +69,12 @@ def sample_stretch(array: Any, dtype: np.dtype, *, n: int = 8, side: int = 128) 
     parts = []
     for y in np.unique(np.linspace(0, max(0, H - side), n).astype(int)):
         for x in np.unique(np.linspace(0, max(0, W - side), n).astype(int)):
-            win = np.asarray(array[y:y + side, x:x + side])
-            parts.append(_display_bands(win).astype(np.float64).ravel())
+            win = _display_bands(np.asarray(array[y:y + side, x:x + side]))
+            exact = win.dtype.kind in "iu" and win.dtype.itemsize <= 4  # exact in float64
+            parts.append(win.ravel() if exact else win.astype(np.float64).ravel())
     v = np.concatenate(parts)
-    v = v[np.isfinite(v)]
+    if v.dtype.kind == "f":
+        v = v[np.isfinite(v)]
     if v.size == 0:
         return Stretch(0.0, 1.0)
     lo, hi = np.percentile(v, [1.0, 99.0])
