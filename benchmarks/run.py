@@ -51,6 +51,8 @@ BENCHES = {
     "shake_extent": ("benchmarks.shake_extent", "main"),
     # the estimate's Gram products at 1 MP: work, rate, share of the estimate (#28)
     "gram_work": ("benchmarks.gram_work", "main"),
+    # the 1 MP pairs on one core and on all: the same bytes out (#28)
+    "cores": ("benchmarks.cores", "main"),
 }
 
 

@@ -46,6 +46,24 @@ def test_split_sum_covers_every_item_once(threads):
     assert len(seen) == min(threads, len(items))
 
 
+def test_split_sum_in_fixed_parts_rounds_alike_on_any_threads():
+    """With ``n_parts`` the parts, and so the rounding of their sum, are those of the parts
+    alone: the same float32 sums on 1, 2, 3 or 8 threads, equal to the parts summed in
+    order here (and not to one part per thread, which rounds otherwise)."""
+    from reblur._memory import parts, split_sum
+
+    rng = np.random.default_rng(2)
+    cols = rng.random((40, 5000)).astype(np.float32) * 1e3
+
+    def fn(idx):
+        return cols[list(idx)].sum(axis=0, dtype=np.float32)
+
+    want = sum((fn(p) for p in parts(list(range(40)), 4)), np.zeros(5000, np.float32))
+    for threads in (1, 2, 3, 8):
+        np.testing.assert_array_equal(split_sum(fn, list(range(40)), threads, 4), want)
+    assert not np.array_equal(split_sum(fn, list(range(40)), 2), want)
+
+
 @pytest.mark.parametrize("workers", [1, 2, 5])
 def test_thread_map_keeps_order_and_opencv_threads(workers):
     """Results come back in the items' order; OpenCV runs single-threaded inside the

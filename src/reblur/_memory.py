@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 __all__ = ["available_cpus", "glibc_mallopt", "parts", "retain_freed_memory", "small_pages",
-           "split_sum", "thread_map", "zeros"]
+           "opencv_single", "split_sum", "thread_map", "zeros"]
 
 #: Arrays below this size are zeroed by the calling thread alone.
 _PARALLEL_BYTES = 32 * 2**20
@@ -164,16 +164,22 @@ def parts(items, n: int) -> list:
     return [items[b0:b1] for b0, b1 in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
-def split_sum(fn, items, threads: int) -> np.ndarray:
-    """``sum(fn(part) for part in parts)``, ``items`` cut into ``threads`` contiguous parts
-    run in as many threads (``fn`` must release the GIL for most of its work, as numpy's
-    large-array arithmetic does).  The parts and the order of their sum depend only on
-    ``len(items)`` and ``threads``, so the result is deterministic."""
-    n = max(1, min(int(threads), len(items)))
+def split_sum(fn, items, threads: int, n_parts: int | None = None) -> np.ndarray:
+    """``sum(fn(part) for part in parts)``, ``items`` cut into ``n_parts`` (default
+    ``threads``) contiguous parts, run on at most ``threads`` threads (``fn`` must release
+    the GIL for most of its work, as numpy's large-array arithmetic does) and summed in
+    their order.  The parts and the order of their sum depend only on ``len(items)`` and
+    ``n_parts``: with ``n_parts`` given, the result does not depend on ``threads``."""
+    n = max(1, min(int(threads if n_parts is None else n_parts), len(items)))
     if n == 1:
         return fn(items)
-    with ThreadPoolExecutor(n) as ex:
-        results = list(ex.map(fn, parts(items, n)))
+    cut = parts(items, n)
+    workers = max(1, min(int(threads), n))
+    if workers == 1:
+        results = [fn(p) for p in cut]
+    else:
+        with ThreadPoolExecutor(workers) as ex:
+            results = list(ex.map(fn, cut))
     out = results[0]
     for r in results[1:]:
         out += r
@@ -202,6 +208,20 @@ def _cv_single(enter: bool) -> None:
                 cv2.setNumThreads(_cv_saved)
 
 
+@contextmanager
+def opencv_single():
+    """OpenCV single-threaded for the time of the block (nests, and with
+    :func:`thread_map`; OpenCV's own threads come back when the last user ends).  Its
+    bilinear warps then give the same pixels whatever the machine's cores: threaded, they
+    differ by a unit roundoff at a few pixels with the number of threads
+    (``tests/test_operator.py``)."""
+    _cv_single(True)
+    try:
+        yield
+    finally:
+        _cv_single(False)
+
+
 def thread_map(fn, items, workers: int) -> list:
     """``[fn(x) for x in items]`` on ``workers`` threads, OpenCV single-threaded inside
     each (so the threads do not oversubscribe the cores); in order.  Calls may run at once
@@ -209,9 +229,5 @@ def thread_map(fn, items, workers: int) -> list:
     items = list(items)
     if workers <= 1 or len(items) <= 1:
         return [fn(x) for x in items]
-    _cv_single(True)
-    try:
-        with ThreadPoolExecutor(min(int(workers), len(items))) as ex:
-            return list(ex.map(fn, items))
-    finally:
-        _cv_single(False)
+    with opencv_single(), ThreadPoolExecutor(min(int(workers), len(items))) as ex:
+        return list(ex.map(fn, items))

@@ -172,11 +172,11 @@ def estimate_motion(
         ``OMP_NUM_THREADS`` when set.  With several windows they split the windows: each
         thread builds its share of the operators and runs the solver's per-window steps
         for them (``active_set(workers=)``), BLAS, OpenCV and the operators' products
-        single-threaded inside.  With one window they go to its products instead: BLAS
-        (Gram products, the adjoint's row transforms), FFTs and the sums of columns
-        (:meth:`BlurOperator.combine`).  The estimate runs while nothing else does (the
-        tiles wait for its weights), so it may use the cores (docs/NOTES.md, "Eighth
-        stop", for the gain on 2 cores).
+        single-threaded inside.  With one window they go to its products instead: FFTs
+        and the sums of columns (:meth:`BlurOperator.combine`); the solver's BLAS stays
+        on one thread (its threaded sums would round with the number of cores).  The
+        estimate runs while nothing else does (the tiles wait for its weights), so it may
+        use the cores (docs/NOTES.md, "Eighth stop", for the gain on 2 cores).
     stop_occluded : float, optional
         With coarse-to-fine: after the first level, if a window's part came out more than
         this fraction change (the paper's rejection rule, 2/3), stop there.  The result

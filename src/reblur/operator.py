@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 import scipy.fft as sfft
 
-from ._memory import available_cpus, split_sum
+from ._memory import available_cpus, opencv_single, split_sum, thread_map
 from ._memory import zeros as _zeros
 from .grid import PoseGrid
 from .warp import Box, as_box, read_window, source_box, warp_window
@@ -49,8 +49,11 @@ _COLUMNS_PER_BASE = 8
 _COLUMNS_PER_COLD_BASE = 24
 
 #: :meth:`BlurOperator.combine` splits sums of at least this many column pixels across
-#: threads (smaller ones cost less than the threads' start).
+#: threads (smaller ones cost less than the threads' start) ...
 _PARALLEL_SUM = 2**22
+#: ... into this many parts, whatever the number of threads: the parts' sums are added in
+#: order, so the result does not depend on the machine's cores.
+SUM_PARTS = 4
 
 #: :meth:`BlurOperator.combine` (fast engine) sums this many float32 columns in single
 #: precision before adding them into the working-precision result: the error bound then
@@ -220,16 +223,28 @@ class BlurOperator:
                 src /= self.scale
             src = src.astype(np.float32, copy=False)
             bad[...] = False
-            for b, H in enumerate(Hs):
+
+            def warp(b: int) -> np.ndarray | None:
+                """Base ``b``'s plane of the stack; the ext pixels it leaves uncovered."""
                 # warp in float32: OpenCV then keeps single-precision coordinates, while
                 # float64 warps snap them to a 1/32-px table (less accurate)
-                _, ok = warp_window(self.reference, H, plane, dtype=np.float32,
+                _, ok = warp_window(self.reference, Hs[b], plane, dtype=np.float32,
                                     source=(src, sbox), out=self.stack[b])
-                bad |= ~ok[:eh, :ew]
+                miss = None if ok.all() else ~ok[:eh, :ew]
                 fin = np.isfinite(self.stack[b])
                 if not fin.all():  # no data (NaN) in the reference: not covered either
                     self.stack[b][~fin] = 0.0
-                    bad |= ~fin[:eh, :ew].all(axis=-1)
+                    nan = ~fin[:eh, :ew].all(axis=-1)
+                    miss = nan if miss is None else miss | nan
+                return miss
+
+            # the bases on the operator's threads, each warp on one OpenCV thread: OpenCV's
+            # threaded bilinear warps differ with the number of its threads (a unit
+            # roundoff at a few pixels), which the solver's iterations then amplify
+            with opencv_single():
+                for miss in thread_map(warp, range(nb), self.threads):
+                    if miss is not None:
+                        bad |= miss
             del src
         self.valid = self._all_pose_valid(bad)
         # flat-index helpers: lag offsets of every pose
@@ -458,7 +473,7 @@ class BlurOperator:
             return out
 
         big = len(order) * h * wd * C >= _PARALLEL_SUM
-        return split_sum(part, order, self.threads if big else 1)
+        return split_sum(part, order, self.threads, SUM_PARTS if big else 1)
 
     def matvec(self, weights: np.ndarray) -> np.ndarray:
         """``F w``: the window of the reference blurred with pose weights ``w``.

@@ -40,8 +40,14 @@ from threadpoolctl import threadpool_limits
 from ._memory import parts
 from .operator import BlurOperator
 
-#: Pixels per block when building explicit active columns (bounds the solver's memory).
+#: Pixel scale of the gathers' blocks (:meth:`_Window.repartition`: ``8 * _CHUNK`` values).
 _CHUNK = 32768
+#: Pixels per row block of the Gram products, in every window (bounds the solver's
+#: memory: one block of the active columns per window solved at once).  It was 32768
+#: shared by the windows solved in parallel, so the blocks' rows, and the products'
+#: rounding, changed with the number of cores (GoPro 0477 / 16 frames flagged 2.22 % on
+#: one core and 2.02 % on two); 16384 is the share two windows had.
+_SLOT_CHUNK = 16384
 #: Share of valid pixels from which a row block of the Gram products copies all of its
 #: pixels (the masked ones then add zeros) rather than gathering the valid ones: a gather
 #: by boolean mask costs ~4x a plain copy per pixel (10 against 2.5-3 ns per column and
@@ -93,8 +99,8 @@ class Scratch:
 
     The Gram products copy the active columns of a row block into one float64 buffer.
     Windows processed one after the other share it; windows processed in parallel threads
-    (``active_set(workers=)``) use one buffer per thread (``slot``), each for blocks of a
-    matching share of the rows, so together they hold what one did.  A caller that
+    (``active_set(workers=)``) use one buffer per thread (``slot``), each for blocks of
+    :data:`_SLOT_CHUNK` pixels.  A caller that
     solves several related problems (the levels of a coarse-to-fine schedule, photometric
     refits) can pass the same ``Scratch`` to each: the buffer then grows a few times in
     all instead of once per window and call.  Fresh memory is not free: its pages fault in
@@ -134,7 +140,6 @@ class _Window:
                  scratch: Scratch | None = None):
         self.op = op
         self.slot = 0  # this window's buffer in the shared scratch (set by _Windows)
-        self.n_slots = 1  # buffers in use at once (windows solved in parallel)
         self.delta = delta
         self.g = np.asarray(g, dtype=float).reshape(op.dimsd)
         self.m = np.asarray(mask, bool)
@@ -208,9 +213,10 @@ class _Window:
         that reach it, and the products of the others stay zero, which they are.
         """
         h, w, C = self.op.dimsd
-        # windows solved in parallel each take a share of the block size: the scratch
-        # they hold together stays that of one block
-        rows = max(1, _CHUNK // (w * C * self.n_slots))
+        # a fixed block height, whatever the number of windows solved at once: the blocks'
+        # products are summed block by block, so their rows decide the rounding, which
+        # must not depend on the machine's cores (see _SLOT_CHUNK)
+        rows = max(1, _SLOT_CHUNK // (w * C))
         n_all, n_new = len(cols_all), len(cols_new)
         G = np.zeros((n_all, n_new))
         b = np.zeros(n_new)
@@ -333,9 +339,11 @@ class _Windows:
     With ``workers > 1`` and several windows, the windows are cut into ``workers``
     contiguous groups, one thread each, and every per-window step (residuals, adjoints,
     Gram products, line-search sums, repartitions) runs in those threads; their results
-    are summed in window order, so the solve does not depend on the thread timing.  BLAS
-    then runs one thread per call and every operator's own products
-    (:attr:`BlurOperator.threads`) one thread too: the windows are the parallel work.
+    are summed in window order, so the solve does not depend on the thread timing; every
+    operator's own products (:attr:`BlurOperator.threads`) then run on one thread: the
+    windows are the parallel work.  BLAS runs on one thread in every case: its threaded
+    sums round with the number of threads, and the solve must not depend on the cores
+    (``tests/test_solve.py``: one thread or two, the same weights bit for bit).
     """
 
     def __init__(self, wins: list[_Window], workers: int = 1):
@@ -344,15 +352,18 @@ class _Windows:
         self.groups = parts(list(range(len(wins))), n)
         for slot, grp in enumerate(self.groups):
             for i in grp:
-                wins[i].slot, wins[i].n_slots = slot, n
+                wins[i].slot = slot
         self._stack = ExitStack()
         self._ex = None
 
     def __enter__(self) -> _Windows:
+        # BLAS on one thread whatever the groups: OpenBLAS splits the long sums of some
+        # products (a Gram block's few columns over thousands of pixels) across its
+        # threads, so their rounding would change with the machine's cores
+        self._stack.enter_context(threadpool_limits(1, user_api="blas"))
         if len(self.groups) > 1:
             try:
                 self._ex = self._stack.enter_context(ThreadPoolExecutor(len(self.groups)))
-                self._stack.enter_context(threadpool_limits(1, user_api="blas"))
                 saved = [w.op.threads for w in self.wins]
                 self._stack.callback(_restore_threads, self.wins, saved)
                 for w in self.wins:
