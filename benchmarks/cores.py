@@ -28,9 +28,12 @@ def detect(ref: Path, obs: Path, out: Path, cpus: list[int], src: Path | None) -
     env = dict(os.environ)
     if src is not None:
         env["PYTHONPATH"] = str(src)
-    r = subprocess.run([sys.executable, "-m", "reblur", "detect", str(ref), str(obs), "--out",
+    # the CPUs set in the child before numpy, BLAS and OpenCV size their thread pools
+    code = (f"import os, runpy, sys; os.sched_setaffinity(0, {list(cpus)}); "
+            "sys.argv[0] = 'reblur'; runpy.run_module('reblur', run_name='__main__')")
+    r = subprocess.run([sys.executable, "-c", code, "detect", str(ref), str(obs), "--out",
                         str(out), "-q"], capture_output=True, text=True, env=env, cwd=REPO,
-                       check=False, preexec_fn=lambda: os.sched_setaffinity(0, cpus))
+                       check=False)
     if r.returncode:
         raise RuntimeError(f"reblur detect {ref} {obs} failed: {r.stderr.strip()[-300:]}")
     return {n: (out / n).read_bytes() for n in ("changes.png", "unknown.png", "reblurred.tif")}

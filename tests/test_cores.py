@@ -21,13 +21,18 @@ import pytest
 CPUS = sorted(os.sched_getaffinity(0))
 
 
+#: ``python -m reblur`` with the process's CPUs set first (before numpy, BLAS and OpenCV
+#: size their thread pools); no ``preexec_fn``, which is unsafe in a threaded parent.
+_ON_CPUS = ("import os, runpy, sys; os.sched_setaffinity(0, {cpus}); sys.argv[0] = 'reblur'; "
+            "runpy.run_module('reblur', run_name='__main__')")
+
+
 def _detect(ref, obs, out, cpus) -> dict:
     """``reblur detect`` on ``cpus``; its report, masks and reblurred image's bytes."""
     res = subprocess.run(
-        [sys.executable, "-m", "reblur", "detect", str(ref), str(obs), "--out", str(out),
-         "-q"],
-        capture_output=True, text=True, check=False,
-        preexec_fn=lambda: os.sched_setaffinity(0, cpus))
+        [sys.executable, "-c", _ON_CPUS.format(cpus=list(cpus)), "detect", str(ref),
+         str(obs), "--out", str(out), "-q"],
+        capture_output=True, text=True, check=False)
     assert res.returncode == 0, res.stderr
     rep = json.loads((out / "report.json").read_text())
     return {"report": rep, **{n: (out / n).read_bytes()
