@@ -23,6 +23,7 @@ solver ignores them; they are never treated as "no change".
 from __future__ import annotations
 
 import copy
+import threading
 
 import cv2
 import numpy as np
@@ -223,28 +224,29 @@ class BlurOperator:
                 src /= self.scale
             src = src.astype(np.float32, copy=False)
             bad[...] = False
+            lock = threading.Lock()
 
-            def warp(b: int) -> np.ndarray | None:
-                """Base ``b``'s plane of the stack; the ext pixels it leaves uncovered."""
+            def warp(b: int) -> None:
+                """Base ``b``'s plane of the stack; the ext pixels it leaves uncovered
+                marked in ``bad`` (an OR: the order of the bases does not matter)."""
                 # warp in float32: OpenCV then keeps single-precision coordinates, while
                 # float64 warps snap them to a 1/32-px table (less accurate)
                 _, ok = warp_window(self.reference, Hs[b], plane, dtype=np.float32,
                                     source=(src, sbox), out=self.stack[b])
-                miss = None if ok.all() else ~ok[:eh, :ew]
+                if not ok.all():
+                    with lock:
+                        bad[...] |= ~ok[:eh, :ew]
                 fin = np.isfinite(self.stack[b])
                 if not fin.all():  # no data (NaN) in the reference: not covered either
                     self.stack[b][~fin] = 0.0
-                    nan = ~fin[:eh, :ew].all(axis=-1)
-                    miss = nan if miss is None else miss | nan
-                return miss
+                    with lock:
+                        bad[...] |= ~fin[:eh, :ew].all(axis=-1)
 
             # the bases on the operator's threads, each warp on one OpenCV thread: OpenCV's
             # threaded bilinear warps differ with the number of its threads (a unit
             # roundoff at a few pixels), which the solver's iterations then amplify
             with opencv_single():
-                for miss in thread_map(warp, range(nb), self.threads):
-                    if miss is not None:
-                        bad |= miss
+                thread_map(warp, range(nb), self.threads)
             del src
         self.valid = self._all_pose_valid(bad)
         # flat-index helpers: lag offsets of every pose
