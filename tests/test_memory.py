@@ -28,7 +28,7 @@ def test_zeros_overwrites_every_byte(monkeypatch, threads, shape):
 @pytest.mark.parametrize("threads", [1, 2, 3, 20])
 def test_split_sum_covers_every_item_once(threads):
     """Every item lands in exactly one part (the parts are contiguous), whatever the
-    thread count, including more threads than items."""
+    number of parts, including more parts than items (on as many threads)."""
     from reblur._memory import split_sum
 
     items = list(range(11))
@@ -40,7 +40,7 @@ def test_split_sum_covers_every_item_once(threads):
         out[list(part)] += 1.0
         return out
 
-    np.testing.assert_array_equal(split_sum(fn, items, threads), np.ones(11))
+    np.testing.assert_array_equal(split_sum(fn, items, threads, threads), np.ones(11))
     assert sorted(i for p in seen for i in p) == items
     assert all(p == list(range(p[0], p[-1] + 1)) for p in seen)
     assert len(seen) == min(threads, len(items))
@@ -49,7 +49,7 @@ def test_split_sum_covers_every_item_once(threads):
 def test_split_sum_in_fixed_parts_rounds_alike_on_any_threads():
     """With ``n_parts`` the parts, and so the rounding of their sum, are those of the parts
     alone: the same float32 sums on 1, 2, 3 or 8 threads, equal to the parts summed in
-    order here (and not to one part per thread, which rounds otherwise)."""
+    order here (and not to two parts, which round otherwise)."""
     from reblur._memory import parts, split_sum
 
     rng = np.random.default_rng(2)
@@ -61,7 +61,7 @@ def test_split_sum_in_fixed_parts_rounds_alike_on_any_threads():
     want = sum((fn(p) for p in parts(list(range(40)), 4)), np.zeros(5000, np.float32))
     for threads in (1, 2, 3, 8):
         np.testing.assert_array_equal(split_sum(fn, list(range(40)), threads, 4), want)
-    assert not np.array_equal(split_sum(fn, list(range(40)), 2), want)
+    assert not np.array_equal(split_sum(fn, list(range(40)), 2, 2), want)
 
 
 @pytest.mark.parametrize("workers", [1, 2, 5])

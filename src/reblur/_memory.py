@@ -164,13 +164,13 @@ def parts(items, n: int) -> list:
     return [items[b0:b1] for b0, b1 in zip(bounds[:-1], bounds[1:], strict=True)]
 
 
-def split_sum(fn, items, threads: int, n_parts: int | None = None) -> np.ndarray:
-    """``sum(fn(part) for part in parts)``, ``items`` cut into ``n_parts`` (default
-    ``threads``) contiguous parts, run on at most ``threads`` threads (``fn`` must release
-    the GIL for most of its work, as numpy's large-array arithmetic does) and summed in
-    their order.  The parts and the order of their sum depend only on ``len(items)`` and
-    ``n_parts``: with ``n_parts`` given, the result does not depend on ``threads``."""
-    n = max(1, min(int(threads if n_parts is None else n_parts), len(items)))
+def split_sum(fn, items, threads: int, n_parts: int) -> np.ndarray:
+    """``sum(fn(part) for part in parts)``, ``items`` cut into ``n_parts`` contiguous
+    parts, run on at most ``threads`` threads (``fn`` must release the GIL for most of its
+    work, as numpy's large-array arithmetic does) and summed in their order.  The parts and
+    the order of their sum depend only on ``len(items)`` and ``n_parts``, never on
+    ``threads``: the result is the same on any machine."""
+    n = max(1, min(int(n_parts), len(items)))
     if n == 1:
         return fn(items)
     cut = parts(items, n)

@@ -100,13 +100,13 @@ class Scratch:
     The Gram products copy the active columns of a row block into one float64 buffer.
     Windows processed one after the other share it; windows processed in parallel threads
     (``active_set(workers=)``) use one buffer per thread (``slot``), each for blocks of
-    :data:`_SLOT_CHUNK` pixels.  A caller that
-    solves several related problems (the levels of a coarse-to-fine schedule, photometric
-    refits) can pass the same ``Scratch`` to each: the buffer then grows a few times in
-    all instead of once per window and call.  Fresh memory is not free: its pages fault in
-    on first touch, which on some virtual machines costs more than the products
-    themselves (2-7 ms per MB on the benchmark machine, varying with its host, against
-    0.1 ms for pages the host still backs: ``python -m benchmarks.first_touch``).
+    :data:`_SLOT_CHUNK` pixels.  A caller that solves several related problems (the levels
+    of a coarse-to-fine schedule, photometric refits) can pass the same ``Scratch`` to
+    each: the buffer then grows a few times in all instead of once per window and call.
+    Fresh memory is not free: its pages fault in on first touch, which on some virtual
+    machines costs more than the products themselves (2-7 ms per MB on the benchmark
+    machine, varying with its host, against 0.1 ms for pages the host still backs:
+    ``python -m benchmarks.first_touch``).
     """
 
     def __init__(self) -> None:
