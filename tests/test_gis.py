@@ -515,6 +515,7 @@ def test_reblurred_store_round_trip(tmp_path):
     rng = np.random.default_rng(7)
     v = rng.random((70, 90, 3)).astype(np.float32)
     v[0, 0] = [-0.2, 1.3, np.nan]
+    v[1, 0] = [np.inf, -np.inf, 0.5]
     s = ReblurredStore(tmp_path / "rb", v.shape, np.uint16, chunk=32)
     assert s.chunks == (32, 32, 3) and s.dtype == np.float32
     s[0:32, 0:64] = v[0:32, 0:64]

@@ -30,7 +30,7 @@ from reblur.io import Image, write_tiff
 from reblur.outdir import output_set
 from reblur.report import write_report
 from reblur.viewer import ViewerOptions, build_pyramids, write_viewer
-from reblur.viewer.layers import image_layer, mask_layer, sample_stretch
+from reblur.viewer.layers import Stretch, image_layer, mask_layer, sample_stretch
 from reblur.viewer.outlines import region_outline
 from reblur.viewer.pyramid import DziLayout
 
@@ -159,6 +159,28 @@ def test_sample_stretch_is_the_percentiles_of_its_windows_whatever_the_type():
     lo, hi = np.percentile(np.concatenate([w.ravel() for w in wins]).astype(float), [1, 99])
     s = sample_stretch(big, big.dtype, n=2, side=40)
     assert (s.lo, s.hi) == (lo, hi)
+
+
+def test_stretch_clips_and_shows_no_data_as_black():
+    # the linear map written out in float64, then clipped; NaN (no data) is black and
+    # infinities clip like any large value
+    rng = np.random.default_rng(11)
+    a = rng.normal(500.0, 300.0, (64, 48, 3)).astype(np.float32)
+    a[3, :5, 0] = [np.nan, np.inf, -np.inf, 1e30, -1e30]
+    before = a.copy()
+    lo, hi = 200.0, 900.0
+    want = (a.astype(np.float64) - lo) * (255.0 / (hi - lo))
+    want = np.where(np.isnan(want), 0.0, np.clip(want, 0.0, 255.0))
+    got = Stretch(lo, hi).apply(a)
+    assert got.dtype == np.float32 and np.isfinite(got).all()
+    assert np.abs(got - want).max() <= 1e-3
+    assert list(got[3, :5, 0]) == [0.0, 255.0, 0.0, 255.0, 0.0]
+    np.testing.assert_array_equal(a, before)  # the input is left alone
+    u16 = rng.integers(0, 65536, (20, 30)).astype(np.uint16)
+    np.testing.assert_allclose(Stretch(1000.0, 60000.0).apply(u16),
+                               np.clip((u16 - 1000.0) * (255.0 / 59000.0), 0, 255),
+                               rtol=0, atol=1e-3)
+    assert not Stretch(5.0, 5.0).apply(u16).any()  # a flat stretch shows black
 
 
 def test_pyramid_of_lazy_inputs_reads_windows_only(tmp_path):

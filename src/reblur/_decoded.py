@@ -2,7 +2,7 @@
 
 PNG and JPEG cannot be read window by window: a decoder starts at the first row.  Decoded
 whole, a 30000^2 gray pair takes 1.8 GB before the first window is looked at.  Here a large
-one is decoded once, top to bottom, into a zarr array of 512 x 512 tiles (zstd) in a
+one is decoded once, top to bottom, into a zarr array of 512 x 512 tiles (LZ4) in a
 temporary directory, and the image is then read from it like a large tiled TIFF:
 
 * PNG (8 or 16 bits, gray, gray + alpha, RGB, RGBA; not interlaced, no palette, no
@@ -41,7 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import InputError, _Sized
+from .io import InputError, _Sized, scratch_compressors
 
 #: Prefix of the temporary directories holding decoded images.
 PREFIX = "reblur-decoded-"
@@ -134,15 +134,13 @@ def _new_root() -> Path:
 
 def _create(root: Path, shape: tuple[int, ...], dtype: np.dtype):
     """The store: 512 x 512 tiles, LZ4 (Blosc, level 1: writes 192 MB in about half the
-    time zstd level 1 takes, for 15 % more bytes on a noisy picture)."""
+    time zstd level 1 takes, for 15 % more bytes on a noisy picture;
+    :func:`reblur.io.scratch_compressors`)."""
     import zarr
-    from zarr.codecs import BloscCodec
 
     chunks = (STRIP_ROWS, STRIP_ROWS) + tuple(shape[2:])
-    shuffle = "shuffle" if np.dtype(dtype).itemsize > 1 else "noshuffle"
     return zarr.create_array(str(root / "0"), shape=shape, chunks=chunks, dtype=dtype,
-                             fill_value=0,
-                             compressors=[BloscCodec(cname="lz4", clevel=1, shuffle=shuffle)])
+                             fill_value=0, compressors=scratch_compressors(dtype))
 
 
 class _Writer:

@@ -59,7 +59,7 @@ import cv2
 import numpy as np
 
 from .decide import DecisionParams, Photometry
-from .io import chunk_cached
+from .io import chunk_cached, scratch_compressors
 from .tiled import SparsePoses
 from .tilejob import TileJob, pad_box, run_tile, tile_work, tune_worker_malloc
 
@@ -228,7 +228,8 @@ def _spill(a: np.ndarray, name: str, store) -> Any:
                                      dir=None if store is None else str(store)))
         chunks = (SPILL_CHUNK, SPILL_CHUNK) + tuple(a.shape[2:])
         z = zarr.create_array(str(root / "0"), shape=a.shape, chunks=chunks, dtype=a.dtype,
-                              fill_value=0, overwrite=True)
+                              fill_value=0, overwrite=True,
+                              compressors=scratch_compressors(a.dtype))
         for y in range(0, a.shape[0], 4 * SPILL_CHUNK):
             z[y : y + 4 * SPILL_CHUNK] = a[y : y + 4 * SPILL_CHUNK]
         z = zarr.open_array(str(root / "0"), mode="r")
@@ -388,7 +389,7 @@ def _zarr_out(root: Path, name: str, shape, chunks, dtype):
 
     return zarr.create_array(
         str(root / name), shape=shape, chunks=chunks, dtype=dtype, fill_value=0,
-        overwrite=True,
+        overwrite=True, compressors=scratch_compressors(dtype),
     )
 
 

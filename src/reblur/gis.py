@@ -44,7 +44,7 @@ import numpy as np
 
 from ._bands import any_bands
 from ._memory import available_cpus
-from .io import atomic_path, iter_windows
+from .io import atomic_path, iter_windows, scratch_compressors
 
 __all__ = [
     "COG_BLOCK",
@@ -108,8 +108,11 @@ def quantize(block: np.ndarray, dtype) -> np.ndarray:
     if dtype.kind not in "ui":
         return b.astype(dtype, copy=False)
     info = np.iinfo(dtype)
-    b = np.nan_to_num(np.asarray(b, np.float32), nan=0.0) * np.float32(info.max)
-    return np.clip(np.rint(b), info.min, info.max).astype(dtype)
+    b = np.asarray(b, np.float32) * np.float32(info.max)  # a new array: changed in place
+    np.rint(b, out=b)
+    np.clip(b, info.min, info.max, out=b)  # infinities clip, NaN stays
+    np.copyto(b, np.float32(0.0), where=np.isnan(b))
+    return b.astype(dtype)
 
 
 def _colour_names(count: int, alpha: bool) -> list[str]:
@@ -491,7 +494,7 @@ class ReblurredStore:
 
             self.stored = zarr.create_array(
                 str(directory), shape=shape, chunks=self._chunks, dtype=np.dtype(dtype),
-                fill_value=0, overwrite=True)
+                fill_value=0, overwrite=True, compressors=scratch_compressors(dtype))
         self.shape = shape
         self.dtype = np.dtype(np.float32)
         self.ndim = len(shape)

@@ -72,6 +72,33 @@ def _grid_sample(grid: np.ndarray, ys: np.ndarray, xs: np.ndarray, block: int) -
     )
 
 
+#: Rows of a tile mapped at once by :func:`_gain_offset`.
+_GAIN_ROWS = 32
+
+
+def _gain_offset(x: np.ndarray, gain: np.ndarray, offset: np.ndarray, out: np.ndarray) -> None:
+    """``out[..., c] = gain[c] * x[..., c] + offset[c]`` for ``(h, w, C)`` arrays, in the
+    type of that expression (float64 for a float32 tile and float64 coefficients), then
+    stored in ``out``'s type: the per-band expression's values exactly.
+
+    Done :data:`_GAIN_ROWS` rows at a time in one reused buffer, the bands interleaved as
+    stored (the coefficients repeated along a row): per band over the whole tile, each band
+    was a strided pass and each intermediate a full-size float64 array.
+    """
+    h, w, C = x.shape
+    if C == 1:
+        src, dst, g, o = x[:, :, 0], out[:, :, 0], gain.reshape(-1)[0], offset.reshape(-1)[0]
+    else:
+        src, dst = np.ascontiguousarray(x).reshape(h, w * C), out.reshape(h, w * C)
+        g, o = np.tile(gain.reshape(-1), w), np.tile(offset.reshape(-1), w)
+    buf = np.empty((min(_GAIN_ROWS, h), src.shape[1]), np.result_type(x, gain, offset))
+    for y in range(0, h, _GAIN_ROWS):
+        t = buf[: min(_GAIN_ROWS, h - y)]
+        np.multiply(src[y : y + len(t)], g, out=t)
+        t += o
+        dst[y : y + len(t)] = t
+
+
 @dataclass(frozen=True, eq=False)
 class Photometry:
     """Per-band photometric model ``observed ~ gain(x) * reblurred + offset(x)``.
@@ -143,13 +170,12 @@ class Photometry:
         if (h, w) != rc.shape[:2]:
             raise ValueError(f"box size {(h, w)} does not match the tile shape {rc.shape[:2]}")
         out = np.empty(rc.shape, dtype=r.dtype)
-        for c in range(rc.shape[2]):
-            if self.has_field:
-                g = _grid_interp(self.field_gain[c], y0, x0, h, w, self.field_block)
-                o = _grid_interp(self.field_offset[c], y0, x0, h, w, self.field_block)
-                out[:, :, c] = g * rc[:, :, c] + o
-            else:
-                out[:, :, c] = self.gain[c] * rc[:, :, c] + self.offset[c]
+        if not self.has_field:
+            _gain_offset(rc, np.asarray(self.gain), np.asarray(self.offset), out)
+        for c in range(rc.shape[2] if self.has_field else 0):
+            g = _grid_interp(self.field_gain[c], y0, x0, h, w, self.field_block)
+            o = _grid_interp(self.field_offset[c], y0, x0, h, w, self.field_block)
+            out[:, :, c] = g * rc[:, :, c] + o
         return out[:, :, 0] if r.ndim == 2 else out
 
     def residual_sigma(

@@ -28,17 +28,23 @@ UNKNOWN_RGB = (30, 30, 70)
 
 @dataclass(frozen=True)
 class Stretch:
-    """Linear display stretch: ``lo`` maps to 0, ``hi`` to 255 (clipped)."""
+    """Linear display stretch: ``lo`` maps to 0, ``hi`` to 255 (clipped); NaN (no data) to
+    0."""
 
     lo: float
     hi: float
 
     def apply(self, a: np.ndarray) -> np.ndarray:
+        """``a`` stretched, float32 in [0, 255]: NaN becomes 0, infinities 0 or 255."""
         a = np.asarray(a, dtype=np.float32)
         if self.hi <= self.lo:
             return np.zeros_like(a)
-        return np.clip((a - np.float32(self.lo)) * np.float32(255.0 / (self.hi - self.lo)),
-                       0.0, 255.0)
+        out = np.subtract(a, np.float32(self.lo))
+        out *= np.float32(255.0 / (self.hi - self.lo))
+        # fmax takes the number where the other operand is NaN: the clip and the NaN
+        # replacement in two passes in place, not a clip and np.nan_to_num's four
+        np.fmax(out, np.float32(0.0), out=out)
+        return np.fmin(out, np.float32(255.0), out=out)
 
 
 def _display_bands(a: np.ndarray) -> np.ndarray:
@@ -102,7 +108,7 @@ def image_layer(name: str, array: Any, stretch: Stretch, *, scale: float = 1.0,
         if as_is:
             return a.astype(np.float32)
         a = a.astype(np.float32) * np.float32(scale) if scale != 1.0 else a
-        return np.nan_to_num(stretch.apply(a), copy=False, nan=0.0)  # no data: black
+        return stretch.apply(a)  # no data (NaN): black
 
     return Layer(name, read, _encode_image, fmt=fmt, reduce="mean", quality=quality)
 
