@@ -151,6 +151,51 @@ def test_cog_masks_no_data_and_its_overviews_ignore_it(tmp_path):
         np.testing.assert_allclose(ov[~np.isnan(ov)], 0.8, rtol=1e-6)
 
 
+@pytest.mark.parametrize("case", ["rgb16", "gray8-nodata", "float-nan", "mask-max"])
+def test_first_overview_made_beside_the_full_size_equals_it_made_from_the_file(tmp_path,
+                                                                              case):
+    """The first overview level is reduced from each window as the full size is written;
+    the reference is the level :func:`reblur.gis._write_level` makes by reading the written
+    full-size file back (pixels and mask).  Odd sides, a chunked (zarr) source whose
+    chunks are not a whole number of block pairs, several levels."""
+    import zarr
+
+    from reblur import gis
+
+    rng = np.random.default_rng(17)
+    h, w, block, how = 333, 457, 32, "average"
+    mask = None
+    if case == "rgb16":
+        img = rng.integers(0, 65536, (h, w, 3)).astype(np.uint16)
+    elif case == "gray8-nodata":
+        img = rng.integers(0, 256, (h, w)).astype(np.uint8)
+        mask = np.zeros((h, w), bool)
+        mask[:101, :77] = True
+        mask[200:, 300:] = True
+    elif case == "float-nan":
+        img = rng.random((h, w)).astype(np.float32)
+        img[50:90, 10:333] = np.nan
+    else:
+        img = (rng.random((h, w)) < 0.02).astype(np.uint8) * 255
+        how = "max"
+    z = zarr.create_array(str(tmp_path / "z"), shape=img.shape, chunks=(48, 48) + img.shape[2:],
+                          dtype=img.dtype, fill_value=0)
+    z[...] = img
+    shapes = gis._level_shapes(h, w, block)
+    assert len(shapes) >= 3
+    with rasterio.Env(GDAL_TIFF_INTERNAL_MASK=True):
+        gis._write_level0(tmp_path / "l0.tif", z, img.shape, img.dtype, None, block, None,
+                          nodata_mask=mask, level1=(tmp_path / "fused.tif", shapes[0], how))
+        gis._write_level(tmp_path / "l0.tif", tmp_path / "read.tif", shapes[0], block, how)
+        with rasterio.open(tmp_path / "fused.tif") as a, \
+                rasterio.open(tmp_path / "read.tif") as b:
+            assert (a.height, a.width) == (b.height, b.width) == shapes[0]
+            np.testing.assert_array_equal(a.read(), b.read())
+            np.testing.assert_array_equal(a.read_masks(), b.read_masks())
+            if mask is not None:  # the mask is the valid pixels' cover, not all set
+                assert not a.read_masks(1).all() and a.read_masks(1).any()
+
+
 @pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.uint32])
 @pytest.mark.parametrize("how", ["mean", "max"])
 def test_overview_blocks_of_valid_pixels_equal_an_explicit_reduction(dtype, how):
@@ -276,7 +321,9 @@ def test_cog_and_polygons_read_windows_never_the_whole_image(tmp_path):
     m = (_blobs((400, 300), 2) * 255).astype(np.uint8)
     src = _Recorder(m)
     write_cog(tmp_path / "m.tif", src, GEO, block=64, overviews="max")
-    assert max(src.reads) <= 64 * 64 < m.size
+    # windows of two blocks a side: the first overview's blocks are written whole beside
+    # the full size's
+    assert max(src.reads) <= (2 * 64) ** 2 < m.size
     src.reads.clear()
     fc = change_features(src, GEO, tile=100)
     assert max(src.reads) <= 100 * 100

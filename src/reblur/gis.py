@@ -143,10 +143,17 @@ def _gdal_threads() -> int:
 def _write_level0(path: Path, data, shape: tuple[int, ...], dtype: np.dtype,
                   georef: dict[str, Any] | None, block: int,
                   convert: Callable | None, alpha: bool = False,
-                  nodata_mask=None) -> None:
+                  nodata_mask=None, level1: tuple[Path, tuple[int, int], str] | None = None
+                  ) -> None:
     """The full-size image as a tiled GeoTIFF, window by window (the COG's source); where
     ``nodata_mask`` is True or the source is NaN: NaN (float output) or 0 and an internal
-    mask (integer output)."""
+    mask (integer output).
+
+    ``level1 = (path, shape, how)``: the first overview level is written in the same pass,
+    each window reduced as it is written -- the pixels (and mask) :func:`_write_level`
+    makes from the written file, without reading it back.  That read (decompressing the
+    full-size level, its bands interleaved) took most of the overviews' time: 3/4 of their
+    pixels are this level's."""
     import rasterio
     from rasterio.enums import ColorInterp
     from rasterio.windows import Window
@@ -165,8 +172,17 @@ def _write_level0(path: Path, data, shape: tuple[int, ...], dtype: np.dtype,
         if count == 4:
             profile["alpha"] = "UNASSOCIATED" if alpha else "NO"
     step = _step(shape, block, getattr(data, "chunks", None))
-    with rasterio.open(path, "w", **profile) as dst:
+    if level1 is not None:  # whole blocks of the level too: windows of whole block pairs
+        step = 2 * block * max(1, -(-step // (2 * block)))
+    with contextlib.ExitStack() as files:
+        dst = files.enter_context(rasterio.open(path, "w", **profile))
         dst.colorinterp = [ColorInterp[n.lower()] for n in _colour_names(count, alpha)]
+        low = None
+        if level1 is not None:
+            low_path, low_shape, how = level1
+            low = files.enter_context(rasterio.open(
+                low_path, "w", **dict(profile, height=low_shape[0], width=low_shape[1],
+                                      transform=None, crs=None)))
         for ys, xs in iter_windows(shape, step):
             b = np.asarray(data[ys, xs])
             bad = None if nodata_mask is None else _no_data(nodata_mask, b, ys, xs)
@@ -182,6 +198,28 @@ def _write_level0(path: Path, data, shape: tuple[int, ...], dtype: np.dtype,
                 dst.write(b, 1, window=win)
             else:
                 dst.write(np.moveaxis(b, -1, 0), window=win)
+            if low is not None:
+                valid = None if bad is None or dtype.kind == "f" else ~bad
+                _write_reduced(low, b, valid, ys.start // 2, xs.start // 2, dtype, how)
+
+
+def _write_reduced(dst, b: np.ndarray, valid: np.ndarray | None, y: int, x: int,
+                   dtype: np.dtype, how: str) -> None:
+    """The 2 x 2 reduction of a level's window ``b`` ((h, w) or (h, w, C), even corner) at
+    ``(y, x)`` of the next level ``dst``: :func:`_reduce2`, or over the ``valid`` pixels
+    with the next level's mask (:func:`_reduce2_valid`)."""
+    from rasterio.windows import Window
+
+    a = np.asarray(b, dtype)
+    # band-first and contiguous: reduced faster than through strided band views
+    a = a[None] if a.ndim == 2 else np.ascontiguousarray(np.moveaxis(a, -1, 0))
+    if valid is not None:
+        r, ok = _reduce2_valid(a, valid, how)
+        dst.write_mask(np.where(ok, 255, 0).astype(np.uint8),
+                       window=Window(x, y, r.shape[2], r.shape[1]))
+    else:
+        r = _reduce2(a, how)
+    dst.write(r, window=Window(x, y, r.shape[2], r.shape[1]))
 
 
 def _no_data(nodata_mask, b: np.ndarray, ys: slice, xs: slice) -> np.ndarray:
@@ -433,14 +471,17 @@ def _write_cog_locked(path: Path, data, georef, shape, dtype, block, overviews, 
             with rasterio.Env(GDAL_CACHEMAX=_GDAL_CACHE_BYTES, CPL_LOG="/dev/null",
                               GDAL_TIFF_INTERNAL_MASK=True):
                 src = work / "level0.tif"
-                _write_level0(src, data, shape, dtype, georef, block, convert, alpha,
-                              nodata_mask)
                 shapes = _level_shapes(*shape[:2], block) if overviews != "none" else []
-                if shapes:  # each level from the one above, window by window
-                    levels = [src]
-                    for k, lv in enumerate(shapes, 1):
-                        levels.append(work / f"level{k}.tif")
-                        _write_level(levels[-2], levels[-1], lv, block, overviews)
+                # the first overview level beside the full size, the others each from the
+                # one above, window by window
+                levels = [src] + [work / f"level{k}.tif" for k in range(1, len(shapes) + 1)]
+                _write_level0(src, data, shape, dtype, georef, block, convert, alpha,
+                              nodata_mask,
+                              level1=(levels[1], shapes[0], overviews) if shapes else None)
+                if shapes:
+                    for k in range(2, len(levels)):
+                        _write_level(levels[k - 1], levels[k], shapes[k - 1], block,
+                                     overviews)
                     src = work / "pyramid.vrt"
                     _vrt(src, levels, shape, dtype, georef, alpha, masked)
                     opts["OVERVIEWS"] = "FORCE_USE_EXISTING"
