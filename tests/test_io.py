@@ -405,6 +405,19 @@ def test_flat_png_holds_the_same_pixels_compactly(tmp_path, rng):
                                                    cv2.IMREAD_UNCHANGED)[..., [2, 1, 0, 3]], blank)
 
 
+def test_png_of_colour_images_keeps_the_channel_order():
+    # RGB and RGBA, 8 and 16 bits: decoded by OpenCV (BGR / BGRA) and swapped back
+    rng = np.random.default_rng(4)
+    for dt, top in ((np.uint8, 256), (np.uint16, 65536)):
+        for bands, back in ((3, [2, 1, 0]), (4, [2, 1, 0, 3])):
+            a = rng.integers(0, top, (37, 53, bands)).astype(dt)
+            for view in (a, a[::-1, ::2]):  # strided input too
+                data = encode_png(view)
+                got = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+                assert got.dtype == dt
+                np.testing.assert_array_equal(got[..., back], view)
+
+
 def test_write_tiff_from_tile_iterator(tmp_path, rng):
     h, w, t = 300, 250, 64
     full = (rng.random((h, w)) > 0.5).astype(np.uint8) * 255

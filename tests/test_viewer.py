@@ -137,6 +137,20 @@ def test_pyramid_levels_are_block_means_of_the_full_size(tmp_path):
         assert np.abs(got[:ref.shape[0], :ref.shape[1]] - ref).max() <= 1.0, level
 
 
+def test_colour_tiles_keep_their_channel_order(tmp_path):
+    # a red-green-blue striped RGB image: its JPEG and PNG tiles decode (read_level: OpenCV's
+    # BGR swapped back) to the same stripes; a swapped order would put blue where red is
+    img = np.zeros((64, 96, 3), np.uint8)
+    img[:, :32, 0] = 250
+    img[:, 32:64, 1] = 250
+    img[:, 64:, 2] = 250
+    for fmt in ("jpg", "png"):
+        layer = image_layer(fmt, img, sample_stretch(img, img.dtype), fmt=fmt)
+        lay = build_pyramids(tmp_path, [layer], img.shape[:2], tile_size=64, block=128)
+        got = read_level(tmp_path, fmt, lay.max_level).astype(int)
+        assert np.abs(got - img).max() <= (8 if fmt == "jpg" else 0), fmt
+
+
 def test_sample_stretch_is_the_percentiles_of_its_windows_whatever_the_type():
     # an image smaller than one window is sampled whole: its 1st and 99th percentiles in
     # float64, computed here directly; integer samples kept in their type must agree

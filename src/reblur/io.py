@@ -2057,11 +2057,11 @@ def encode_png(array: np.ndarray, *, compression: int = 6, flat: bool = False) -
         raise ValueError(f"PNG holds uint8 or uint16 pixels, got {a.dtype}")
     if a.ndim == 3 and a.shape[2] == 1:
         a = a[:, :, 0]
-    if a.ndim == 3:
+    if a.ndim == 3:  # OpenCV's channel order, by its own swap (numpy's copies are slower)
         if a.shape[2] == 3:
-            a = a[:, :, ::-1]
+            a = cv2.cvtColor(np.ascontiguousarray(a), cv2.COLOR_RGB2BGR)
         elif a.shape[2] == 4:
-            a = a[:, :, [2, 1, 0, 3]]
+            a = cv2.cvtColor(np.ascontiguousarray(a), cv2.COLOR_RGBA2BGRA)
         else:
             raise ValueError(f"PNG holds 1, 3 or 4 bands, got {a.shape[2]}")
     params = [cv2.IMWRITE_PNG_COMPRESSION, int(compression)]
