@@ -1992,8 +1992,10 @@ def scratch_compressors(dtype) -> list[Any]:
     level 1, byte-shuffled for multi-byte types.
 
     zarr's default (zstd, level 3) packs a 16-bit RGB reblurred reference a few per cent
-    tighter for about three times the CPU, writing and reading; these stores live for one
-    run and are read several times.  Lossless: the values read back are those written.
+    tighter for several times the CPU, writing and reading; these stores live for one run
+    and are read several times (100 MP ``5% rgb16``, ``python -m benchmarks.cost``
+    alternated with ``--src``: CPU 108-111 -> 102-103 s with the in-place steps of the
+    same commit).  Lossless: the values read back are those written.
     """
     from zarr.codecs import BloscCodec
 
