@@ -161,9 +161,14 @@ def _write_level0(path: Path, data, shape: tuple[int, ...], dtype: np.dtype,
     h, w = shape[:2]
     count = 1 if len(shape) == 2 else shape[2]
     geo = georef or {}
+    # the temporaries are not compressed: each is written once and read once by the COG's
+    # copy, mostly from the page cache, and zstd level 1 cost more CPU than its smaller
+    # files saved (``python -m benchmarks.gis_outputs --megapixels 25``: reblurred.tif
+    # 1.3 -> 1.0 s).  They need the pixels' raw size on the output's disk, and a third more
+    # for the overviews: a failed write reports the disk as full when it lacks the raw size
     profile = dict(driver="GTiff", height=h, width=w, count=count, dtype=dtype.name,
-                   tiled=True, blockxsize=block, blockysize=block, compress="zstd",
-                   zstd_level=1, num_threads=_gdal_threads(), BIGTIFF="IF_SAFER",
+                   tiled=True, blockxsize=block, blockysize=block, compress="none",
+                   num_threads=_gdal_threads(), BIGTIFF="IF_SAFER",
                    crs=geo.get("crs"), transform=geo.get("transform"))
     if dtype.kind == "f":
         profile["nodata"] = np.nan
