@@ -204,20 +204,20 @@ def _write_level0(path: Path, data, shape: tuple[int, ...], dtype: np.dtype,
             else:
                 dst.write(np.moveaxis(b, -1, 0), window=win)
             if low is not None:
+                a = np.asarray(b, dtype)
+                # band-first and contiguous: reduced faster than through strided band views
+                a = a[None] if a.ndim == 2 else np.ascontiguousarray(np.moveaxis(a, -1, 0))
                 valid = None if bad is None or dtype.kind == "f" else ~bad
-                _write_reduced(low, b, valid, ys.start // 2, xs.start // 2, dtype, how)
+                _write_reduced(low, a, valid, ys.start // 2, xs.start // 2, how)
 
 
-def _write_reduced(dst, b: np.ndarray, valid: np.ndarray | None, y: int, x: int,
-                   dtype: np.dtype, how: str) -> None:
-    """The 2 x 2 reduction of a level's window ``b`` ((h, w) or (h, w, C), even corner) at
-    ``(y, x)`` of the next level ``dst``: :func:`_reduce2`, or over the ``valid`` pixels
-    with the next level's mask (:func:`_reduce2_valid`)."""
+def _write_reduced(dst, a: np.ndarray, valid: np.ndarray | None, y: int, x: int,
+                   how: str) -> None:
+    """The 2 x 2 reduction of a level's window ``a`` ((C, h, w), even corner) at ``(y, x)``
+    of the next level ``dst``: :func:`_reduce2`, or over the ``valid`` pixels with the next
+    level's mask (:func:`_reduce2_valid`)."""
     from rasterio.windows import Window
 
-    a = np.asarray(b, dtype)
-    # band-first and contiguous: reduced faster than through strided band views
-    a = a[None] if a.ndim == 2 else np.ascontiguousarray(np.moveaxis(a, -1, 0))
     if valid is not None:
         r, ok = _reduce2_valid(a, valid, how)
         dst.write_mask(np.where(ok, 255, 0).astype(np.uint8),
@@ -336,15 +336,10 @@ def _write_level(src: Path, dst: Path, shape: tuple[int, int], block: int, how: 
         with rasterio.open(dst, "w", **profile) as d:
             for ys, xs in iter_windows(shape, block):
                 h, w = ys.stop - ys.start, xs.stop - xs.start
+                # the window above, clipped to the level: its reduction is exactly h x w
                 win = Window(2 * xs.start, 2 * ys.start, 2 * w, 2 * h).intersection(whole)
-                out = Window(xs.start, ys.start, w, h)
-                if masked:  # the valid pixels only
-                    a, ok = _reduce2_valid(s.read(window=win), s.read_masks(1, window=win) > 0,
-                                           how)
-                    d.write_mask(np.where(ok[:h, :w], 255, 0).astype(np.uint8), window=out)
-                else:
-                    a = _reduce2(s.read(window=win), how)
-                d.write(a[:, :h, :w], window=out)
+                valid = s.read_masks(1, window=win) > 0 if masked else None  # valid only
+                _write_reduced(d, s.read(window=win), valid, ys.start, xs.start, how)
 
 
 def _vrt(path: Path, levels: list[Path], shape: tuple[int, ...], dtype: np.dtype,
