@@ -45,7 +45,7 @@ def test_huber_line_degenerate_inputs():
     assert np.allclose(huber_line(x, 2 * x - 1), (2.0, -1.0))  # exact line: MAD 0 stops
 
 
-@pytest.mark.parametrize("n", [1000, 65_536, 65_537, 300_001])
+@pytest.mark.parametrize("n", [1000, 8191, 8192, 8193, 20_000, 65_536, 65_537, 300_001])
 @pytest.mark.parametrize("kind", ["normal", "ties", "sorted", "half-constant", "nan", "float32"])
 def test_median_equals_numpy(n, kind):
     """The bracketed selection returns exactly ``np.median``'s value: odd and even counts,
@@ -97,3 +97,46 @@ def test_inlier_scale_equals_the_numpy_median_one(n):
     c0, s0, keep0 = _inlier_scale_numpy(r, 0.1, 0.4)
     assert (c, s) == (c0, s0) and np.array_equal(keep, keep0)
     assert abs(c - 0.5) < 1e-3 and abs(s - 0.02) < 2e-3
+
+
+@pytest.mark.parametrize("seed", range(40))
+def test_inlier_scale_equals_the_direct_iteration_on_hostile_residuals(seed):
+    """The sorted-run iteration gives exactly the direct one's centre, scale and inliers
+    (odd and even counts, heavy ties, NaN and infinities, a handful of values, starts
+    that leave fewer than three inliers or a zero scale)."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.choice([3, 4, 7, 10, 51, 500, 2_000, 8_193, 30_000]))
+    r = rng.normal(rng.uniform(-1, 1), rng.uniform(1e-3, 1.0), n)
+    if seed % 4 == 1:
+        r = np.round(r, 1)  # a few values repeated many times
+    if seed % 4 == 2:
+        r[rng.random(n) < 0.2] = rng.choice([np.nan, np.inf, -np.inf])
+    if seed % 4 == 3:
+        r[rng.random(n) < 0.5] = 0.3  # half of them one value: a zero MAD
+    bad = rng.random(n) < 0.3
+    r[bad] = rng.uniform(-50, 50, int(bad.sum()))
+    start = float(rng.choice([1e-4, 0.05, 0.5, 5.0]))
+    centre = float(rng.choice([0.0, float(np.nanmedian(r[np.isfinite(r)]))
+                               if np.isfinite(r).any() else 0.0, 3.0]))
+    got = inlier_scale(r, start, centre)
+    want = _inlier_scale_numpy(r, start, centre)
+    assert got[:2] == want[:2], (got[:2], want[:2])
+    assert np.array_equal(got[2], want[2])
+
+
+def test_inlier_scale_of_a_nan_centre_or_no_scale():
+    r = np.linspace(-1, 1, 101)
+    c, s, keep = inlier_scale(r, 0.1, float("nan"))
+    assert np.isnan(c) and s == 0.1 and not keep.any()  # nothing within reach of NaN
+    c, s, keep = inlier_scale(r, 0.0, 0.2)
+    assert (c, s) == (0.2, 0.0) and keep.all()  # no scale: all finite values, unchanged
+
+
+@pytest.mark.parametrize("n_iter", [1, 2, 20])
+def test_inlier_scale_excludes_values_exactly_at_the_bound(n_iter):
+    """``|r - c| < k s`` is strict: integers at exactly 3.5 x 2 = 7 from the centre are out
+    of the first step, as in the direct iteration (a ``<=`` bound fails this)."""
+    r = np.repeat(np.arange(-10.0, 11.0), [1 + (i % 3) for i in range(21)])
+    got = inlier_scale(r, 2.0, 0.0, n_iter=n_iter)
+    want = _inlier_scale_numpy(r, 2.0, 0.0, n_iter=n_iter)
+    assert got[:2] == want[:2] and np.array_equal(got[2], want[2])

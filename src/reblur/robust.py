@@ -12,11 +12,13 @@ __all__ = ["MAD_TO_SIGMA", "huber_line", "inlier_scale", "lqs_line", "mad", "med
 MAD_TO_SIGMA = 1.4826
 
 
-def mad(x: np.ndarray) -> float:
-    """Median absolute deviation scaled to a Gaussian's standard deviation (NaN if empty)."""
+def mad(x: np.ndarray, work: np.ndarray | None = None) -> float:
+    """Median absolute deviation scaled to a Gaussian's standard deviation (NaN if empty);
+    ``work``, an array like ``x``, receives the deviations when given."""
     if not x.size:
         return float("nan")
-    return float(MAD_TO_SIGMA * median(np.abs(x - median(x))))
+    dev = np.subtract(x, median(x), out=work)
+    return float(MAD_TO_SIGMA * median(np.abs(dev, out=dev)))
 
 
 #: Samples from which :func:`median` brackets the middle of a large array.
@@ -32,11 +34,13 @@ def median(x: np.ndarray) -> float:
     (a few per cent of them), and the selection runs on those alone.  The counts prove
     that the bracket holds the middle ranks; when it does not (a sample that misses them,
     NaN), ``np.median`` decides.  The two middle values of an even count are averaged as
-    ``np.median`` averages them.
+    ``np.median`` averages them.  From twice the sample's size on it is the faster one
+    (``python -m timeit``: 0.10 against 0.20 ms at 2 x 10^4 values, 0.26 against 0.55 ms
+    at 5.4 x 10^4); below that the sample would be the whole array.
     """
     x = np.asarray(x).reshape(-1)
     n = x.size
-    if n < 16 * _MEDIAN_SAMPLE or x.dtype.kind != "f":
+    if n < 2 * _MEDIAN_SAMPLE or x.dtype.kind != "f":
         return float(np.median(x))
     smp = np.sort(x[:: n // _MEDIAN_SAMPLE])
     m = smp.size
@@ -90,14 +94,24 @@ def huber_line(
     y = np.asarray(y, dtype=np.float64)
     if x.size < 2 or np.ptp(x) == 0:
         return 1.0, float(np.median(y - x)) if y.size else 0.0
-    p = _weighted_line(x, y, None) if start is None else np.asarray(start, dtype=np.float64)
+    # the steps' arrays, written in place: fresh ones of this size cost more in page
+    # faults than in arithmetic (``benchmarks.first_touch``)
+    r, w, t0, t1 = (np.empty_like(x) for _ in range(4))
+    x_max = float(np.abs(x).max())
+    p = (_weighted_line(x, y, None, x_max, (t0, t1)) if start is None
+         else np.asarray(start, dtype=np.float64))
     for _ in range(n_iter):
-        r = y - (p[0] * x + p[1])
-        s = mad(r)
+        np.multiply(p[0], x, out=t0)  # r = y - (gain x + offset)
+        t0 += p[1]
+        np.subtract(y, t0, out=r)
+        s = mad(r, work=t0)
         if not s > 0:
             break
-        wts = np.minimum(1.0, 1.345 * s / np.maximum(np.abs(r), 1e-12))
-        p_new = _weighted_line(x, y, wts)
+        np.abs(r, out=w)  # w = min(1, 1.345 s / max(|r|, 1e-12))
+        np.maximum(w, 1e-12, out=w)
+        np.divide(1.345 * s, w, out=w)
+        np.minimum(1.0, w, out=w)
+        p_new = _weighted_line(x, y, w, x_max, (t0, t1))
         done = np.allclose(p_new, p, rtol=0, atol=1e-6)
         p = p_new
         if done:
@@ -105,19 +119,26 @@ def huber_line(
     return float(p[0]), float(p[1])
 
 
-def _weighted_line(x: np.ndarray, y: np.ndarray, wts: np.ndarray | None) -> np.ndarray:
+def _weighted_line(x: np.ndarray, y: np.ndarray, wts: np.ndarray | None,
+                   x_max: float | None = None,
+                   work: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """Weighted least-squares line ``(gain, offset)`` in closed form about the weighted
     means (as stable as a QR of ``[x, 1]`` and a few times faster on 10^5-10^6 points);
-    ``np.linalg.lstsq`` when the weighted ``x`` has no spread."""
+    ``np.linalg.lstsq`` when the weighted ``x`` has no spread.  ``x_max`` is ``max |x|``
+    when known, ``work`` two arrays like ``x`` to compute in."""
     w = np.ones_like(x) if wts is None else wts
+    if x_max is None:
+        x_max = float(np.abs(x).max())
+    t0, t1 = work if work is not None else (np.empty_like(x), np.empty_like(x))
     sw = float(w.sum())
     if sw > 0:
         xm = float(w @ x) / sw
         ym = float(w @ y) / sw
-        dx = x - xm
-        sxx = float(w @ (dx * dx))
-        if sxx > 1e-12 * sw * max(float(np.abs(x).max()), 1e-300) ** 2:
-            gain = float(w @ (dx * (y - ym))) / sxx
+        dx = np.subtract(x, xm, out=t0)
+        sxx = float(w @ np.multiply(dx, dx, out=t1))
+        if sxx > 1e-12 * sw * max(x_max, 1e-300) ** 2:
+            np.subtract(y, ym, out=t1)
+            gain = float(w @ np.multiply(dx, t1, out=t1)) / sxx
             return np.array([gain, ym - gain * xm])
     sq = np.sqrt(w)
     A = np.stack([x * sq, sq], axis=1)
@@ -143,19 +164,30 @@ def inlier_scale(r: np.ndarray, start: float, centre: float = 0.0, k: float = 3.
     centre, scale : float
     keep : bool ndarray
         The inliers at the last step.
+
+    Notes
+    -----
+    ``r`` is sorted once.  ``r - c`` rounds monotonically in ``r``, so each step's inliers
+    are a run of the sorted values, found by bisection; their median is the run's middle,
+    and the median of their distances to it is the selection of two sorted runs (those
+    below it and those above).  Every comparison and difference is the element-wise
+    float64 one, so the result is exactly that of the direct iteration (medians of
+    ``r[keep]`` and of ``|r[keep] - c|`` each step; ``tests/test_robust.py``), at one
+    sort instead of a few passes over ``r`` per step.
     """
     r = np.asarray(r, dtype=np.float64)
     c, s = float(centre), float(start)
     keep = np.isfinite(r)
     if not s > 0:
         return c, s, keep
+    rs = np.sort(r, axis=None)  # NaN last
+    n = int(np.count_nonzero(~np.isnan(rs)))
     for _ in range(int(n_iter)):
-        keep = np.abs(r - c) < k * s
-        if np.count_nonzero(keep) < 3:
+        a, b = _run_within(rs, n, c, k * s)
+        if b - a < 3:
             break
-        inl = r[keep]
-        c_new = median(inl)  # np.median's value, by a bracketed selection on large arrays
-        s_new = MAD_TO_SIGMA * median(np.abs(inl - c_new))
+        c_new = _run_median(rs, a, b, c=None)
+        s_new = MAD_TO_SIGMA * _run_median(rs, a, b, c=c_new)
         if not s_new > 0:
             break
         done = abs(s_new - s) <= 1e-6 * s and abs(c_new - c) <= 1e-6 * s
@@ -163,6 +195,61 @@ def inlier_scale(r: np.ndarray, start: float, centre: float = 0.0, k: float = 3.
         if done:
             break
     return c, s, np.abs(r - c) < k * s
+
+
+def _run_within(rs: np.ndarray, n: int, c: float, t: float) -> tuple[int, int]:
+    """``a, b`` with ``|v - c| < t`` exactly on ``rs[a:b]`` of the sorted ``rs[:n]``."""
+    a = _first(rs, 0, n, lambda v: v - c > -t)
+    return a, _first(rs, a, n, lambda v: v - c >= t)
+
+
+def _first(rs: np.ndarray, lo: int, hi: int, pred) -> int:
+    """The first index of ``rs[lo:hi]`` where ``pred`` (false, then true along it) holds,
+    ``hi`` if none; ``pred`` gets the value as a Python float (float64 arithmetic)."""
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if pred(rs.item(mid)):
+            hi = mid
+        else:
+            lo = mid + 1
+    return lo
+
+
+def _run_median(rs: np.ndarray, a: int, b: int, c: float | None) -> float:
+    """``np.median(rs[a:b])`` of the sorted run (``c`` None), or ``np.median(|rs[a:b] -
+    c|)``: the two middle ranks selected from the distances below ``c`` (growing leftward)
+    and above it (growing rightward), without forming them."""
+    m = b - a
+    k0, k1 = (m - 1) // 2, m // 2
+    if c is None:
+        lo_v, hi_v = rs.item(a + k0), rs.item(a + k1)
+    else:
+        p = _first(rs, a, b, lambda v: v - c >= 0.0)
+        n_left, n_right = p - a, b - p
+
+        def left(j: int) -> float:
+            return abs(rs.item(p - 1 - j) - c)
+
+        def right(j: int) -> float:
+            return rs.item(p + j) - c
+
+        lo_v = _kth_of_two(left, n_left, right, n_right, k0)
+        hi_v = lo_v if k1 == k0 else _kth_of_two(left, n_left, right, n_right, k1)
+    return lo_v if k0 == k1 else float(np.mean(np.array([lo_v, hi_v])))
+
+
+def _kth_of_two(A, n_a: int, B, n_b: int, k: int) -> float:
+    """The ``k``-th smallest (0-based) of two non-decreasing sequences ``A(0..n_a-1)`` and
+    ``B(0..n_b-1)`` (functions of the index), by bisection on how many come from ``A``."""
+    lo, hi = max(0, k + 1 - n_b), min(k + 1, n_a)
+    while lo < hi:
+        i = (lo + hi) // 2  # i from A, k + 1 - i from B
+        if A(i) < B(k - i):
+            lo = i + 1
+        else:
+            hi = i
+    cands = ([A(lo - 1)] if lo > 0 else []) + ([B(k - lo)] if k - lo >= 0 else [])
+    return max(cands)
 
 
 def _narrowest(r: np.ndarray, h: int) -> tuple[float, float]:

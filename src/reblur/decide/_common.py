@@ -11,7 +11,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from .._memory import available_cpus
-from ..robust import MAD_TO_SIGMA
+from ..robust import MAD_TO_SIGMA, median
 
 
 def _channels(a: np.ndarray) -> np.ndarray:
@@ -45,14 +45,14 @@ def _robust_scale(r: np.ndarray, k: float = 3.5, n_iter: int = 5) -> float:
     r = r[np.isfinite(r)]
     if r.size == 0:
         return float("nan")
-    med = float(np.median(r))
+    med = median(r)  # np.median's values (reblur.robust.median)
     d = np.abs(r - med)
-    s = MAD_TO_SIGMA * float(np.median(d))
+    s = MAD_TO_SIGMA * median(d)
     for _ in range(n_iter):
         keep = d < k * s
         if not keep.any():
             break
-        s_new = MAD_TO_SIGMA * float(np.median(d[keep]))
+        s_new = MAD_TO_SIGMA * median(d[keep])
         if s_new == s:
             break
         s = s_new

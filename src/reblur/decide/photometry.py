@@ -26,7 +26,7 @@ import scipy.sparse.linalg as spla
 from threadpoolctl import threadpool_limits
 
 from .._bands import all_bands
-from ..robust import huber_line, inlier_scale, mad, robust_line
+from ..robust import huber_line, inlier_scale, mad, median, robust_line
 from ._common import FIT_BLAS_THREADS, _box, _channels, _float, _robust_scale, band_map
 from .params import DecisionParams
 from .statistic import fit_model_error
@@ -390,7 +390,7 @@ def _fit_poly_field(ys, xs, x, y, shape, start, scale, n_iter: int = 15
     # with p is x p0 + p6), then the design of the samples kept only: built for all of
     # them it was 12 float64 columns of every sample (1 MP: 96 MB, twice)
     r = y - (x * p[0] + p[6])
-    use = np.abs(r - np.median(r)) < 8.0 * scale if scale > 0 else np.ones(r.size, bool)
+    use = np.abs(r - median(r)) < 8.0 * scale if scale > 0 else np.ones(r.size, bool)
     if np.count_nonzero(use) < 100:
         use = np.ones(r.size, bool)
     idx = np.flatnonzero(use)
@@ -447,14 +447,14 @@ def _illumination(ys, xs, obs, reb, shape, gain, offset, sigma, fits, mode):
 
     def fit_band(c: int) -> None:  # each band writes its own rows
         r0 = obs[:, c] - gain[c] * reb[:, c] - offset[c]
-        s_global[c] = inlier_scale(r0, sigma[c], float(np.median(r0)))[1]
+        s_global[c] = inlier_scale(r0, sigma[c], median(r0))[1]
         a, b = _fit_poly_field(ys, xs, reb[:, c], obs[:, c], shape, (gain[c], offset[c]),
                                float(fits[c].get("scale", sigma[c])))
         fg[c] = _poly_grid(a, shape, block)
         fo[c] = _poly_grid(b, shape, block)
         r = obs[:, c] - _grid_sample(fg[c], ys, xs, block) * reb[:, c] \
             - _grid_sample(fo[c], ys, xs, block)
-        s_field[c] = inlier_scale(r, sigma[c], float(np.median(r)))[1]
+        s_field[c] = inlier_scale(r, sigma[c], median(r))[1]
 
     band_map(fit_band, C)
     # the same estimator of the inliers' scale for both models; a floor of a 16-bit

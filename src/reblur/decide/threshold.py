@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 from skimage.filters import threshold_otsu
 
-from ..robust import MAD_TO_SIGMA
+from ..robust import MAD_TO_SIGMA, median
 
 
 def estimate_threshold(
@@ -81,10 +81,10 @@ def estimate_threshold(
         raise ValueError(f"method must be 'auto', 'otsu' or 'mad', got {method!r}")
     if not broad >= 0:
         raise ValueError(f"broad must be >= 0, got {broad}")
-    med = float(np.median(x))
+    med = median(x)  # np.median's values (reblur.robust.median)
     dev = x - med  # robust.mad(x), its median computed once
     np.abs(dev, out=dev)
-    spread = float(MAD_TO_SIGMA * np.median(dev, overwrite_input=True))
+    spread = float(MAD_TO_SIGMA * dev.dtype.type(median(dev)))  # in x's precision
     del dev
     bound = med + float(k) * spread
     info: dict[str, Any] = {
