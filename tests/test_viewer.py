@@ -118,6 +118,41 @@ def test_pyramids_built_by_threads_equal_the_serial_build(tmp_path):
     assert not (tmp_path / "bad").exists()
 
 
+def test_uint8_windows_give_the_tiles_of_their_float32_copies(tmp_path):
+    """8-bit images and masks are read, encoded and halved in uint8 at full size: every
+    tile file equals the one made from float32 copies of the same windows (the reference),
+    at odd sizes, gray and RGB, masks with partial opacity and both reductions."""
+    from dataclasses import replace
+
+    rng = np.random.default_rng(11)
+    rgb = textured(rng, 203, 331)
+    gray = textured(rng, 203, 331)[:, :, 0]
+    m = rng.random(gray.shape) < 0.02
+    m[50:120, 90:200] = True
+
+    def layers():
+        st = Stretch(0.0, 255.0)
+        return [image_layer("rgb", rgb, st, fmt="jpg"), image_layer("gray", gray, st, fmt="png"),
+                mask_layer("chg", m, (255, 40, 40), alpha=0.45, reduce="max"),
+                mask_layer("unk", m, (30, 30, 70), alpha=0.75, reduce="mean")]
+
+    def as_float(layer):
+        return replace(layer, read=lambda ys, xs, r=layer.read: np.asarray(
+            r(ys, xs), dtype=np.float32))
+
+    native = layers()
+    assert all(np.asarray(lay.read(slice(0, 9), slice(0, 9))).dtype == np.uint8 for lay in native)
+
+    def files(root):
+        return {p.relative_to(root): p.read_bytes() for p in root.rglob("*") if p.is_file()}
+
+    build_pyramids(tmp_path / "u8", native, gray.shape, tile_size=32, block=64)
+    build_pyramids(tmp_path / "f32", [as_float(lay) for lay in layers()], gray.shape,
+                   tile_size=32, block=64)
+    a, b = files(tmp_path / "u8"), files(tmp_path / "f32")
+    assert len(a) > 4 * 20 and a == b
+
+
 def test_pyramid_levels_are_block_means_of_the_full_size(tmp_path):
     rng = np.random.default_rng(0)
     img = textured(rng, 200, 300)  # uint8: displayed as it is

@@ -90,7 +90,7 @@ def sample_stretch(array: Any, dtype: np.dtype, *, n: int = 8, side: int = 128) 
 
 
 def _encode_image(tile: np.ndarray) -> np.ndarray:
-    u8 = np.rint(tile).astype(np.uint8)
+    u8 = tile if tile.dtype == np.uint8 else np.rint(tile).astype(np.uint8)
     return u8[:, :, 0] if u8.shape[2] == 1 else u8
 
 
@@ -105,8 +105,8 @@ def image_layer(name: str, array: Any, stretch: Stretch, *, scale: float = 1.0,
 
     def read(ys: slice, xs: slice) -> np.ndarray:
         a = _display_bands(np.asarray(array[ys, xs]))
-        if as_is:
-            return a.astype(np.float32)
+        if as_is:  # display values already: uint8, encoded as they are
+            return a
         a = a.astype(np.float32) * np.float32(scale) if scale != 1.0 else a
         return stretch.apply(a)  # no data (NaN): black
 
@@ -123,16 +123,21 @@ def mask_layer(name: str, mask: Any, rgb: tuple[int, int, int], *, alpha: float,
     """
     colour = np.asarray(rgb, np.uint8)
 
+    full = np.uint8(np.rint(np.float32(255.0) * np.float32(alpha)))  # a masked pixel's
+
     def read(ys: slice, xs: slice) -> np.ndarray:
         m = np.asarray(mask[ys, xs], dtype=bool)
         if exclude is not None:
             m = m & ~np.asarray(exclude[ys, xs], dtype=bool)
-        return m[:, :, None].astype(np.float32) * np.float32(255.0)
+        return m[:, :, None].view(np.uint8) * np.uint8(255)  # 0 or 255, uint8
 
     def encode(tile: np.ndarray) -> np.ndarray:
         out = np.empty(tile.shape[:2] + (4,), np.uint8)
         out[:, :, :3] = colour
-        out[:, :, 3] = np.rint(tile[:, :, 0] * np.float32(alpha)).astype(np.uint8)
+        if tile.dtype == np.uint8:  # full size: 0 or 255
+            np.multiply(tile[:, :, 0] != 0, full, out=out[:, :, 3])
+        else:
+            out[:, :, 3] = np.rint(tile[:, :, 0] * np.float32(alpha)).astype(np.uint8)
         return out
 
     return Layer(name, read, encode, fmt="png", reduce=reduce, flat=True)

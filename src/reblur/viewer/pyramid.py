@@ -94,11 +94,13 @@ class Layer:
     name : str
         File stem: ``NAME.dzi`` and ``NAME_files/``.
     read : callable
-        ``read(rows, cols) -> (h, w, C) float32`` display values in [0, 255] of a full-size
-        window (``rows``, ``cols`` are slices).
+        ``read(rows, cols) -> (h, w, C)`` display values in [0, 255] of a full-size window
+        (``rows``, ``cols`` are slices): float32, or uint8 where they are whole (an 8-bit
+        image, a mask), which the full-size tiles are encoded from without a float copy.
     encode : callable
-        ``encode(tile) -> uint8 (h, w), (h, w, 3) RGB or (h, w, 4) RGBA``: a float tile of
-        ``read``'s values (halved for the coarser levels) as the image to store.
+        ``encode(tile) -> uint8 (h, w), (h, w, 3) RGB or (h, w, 4) RGBA``: a tile of
+        ``read``'s values as the image to store; ``read``'s own type at full size, float32
+        (halved) on the coarser levels, the same image for the same values.
     fmt : {"jpg", "png"}
         Tile format.
     reduce : {"mean", "max"}
@@ -129,10 +131,11 @@ class Layer:
 
 
 def halve(a: np.ndarray, how: str = "mean") -> np.ndarray:
-    """Shrink ``(h, w, C)`` by 2 on each axis to ``(ceil(h/2), ceil(w/2), C)``.
+    """Shrink ``(h, w, C)`` by 2 on each axis to ``(ceil(h/2), ceil(w/2), C)``, float32.
 
     Each output pixel is the mean (or maximum) of the full-size pixels of its 2x2 block that
-    exist (the last row or column of an odd side has only one or two).
+    exist (the last row or column of an odd side has only one or two).  Integer input
+    gives the values of its float32 copy's.
     """
     h, w = a.shape[:2]
     if (h, w) == (1, 1):
@@ -142,7 +145,8 @@ def halve(a: np.ndarray, how: str = "mean") -> np.ndarray:
         a = np.pad(a, ((0, odd_h), (0, odd_w), (0, 0)), mode="edge")
     q = (a[0::2, 0::2], a[1::2, 0::2], a[0::2, 1::2], a[1::2, 1::2])
     if how == "max":
-        return np.maximum(np.maximum(q[0], q[1]), np.maximum(q[2], q[3]))
+        return np.maximum(np.maximum(q[0], q[1]), np.maximum(q[2], q[3])).astype(
+            np.float32, copy=False)
     out = q[0].astype(np.float32)
     out += q[1]
     out += q[2]
@@ -216,12 +220,15 @@ class _Writer:
 
 def _leaf(w: _Writer, level: int, row: int, col: int) -> list[np.ndarray]:
     """Read a leaf's full-size window from every layer; write its tiles from full size up to
-    ``level``; return its tile at ``level`` per layer."""
+    ``level``; return its tile at ``level`` per layer (float32 once halved; a uint8 window
+    stays uint8 at full size, a quarter of the bytes to encode and halve)."""
     lay = w.layout
     ys, xs = lay.footprint(level, row, col)
     out = []
     for k, layer in enumerate(w.layers):
-        a = np.asarray(layer.read(ys, xs), dtype=np.float32)
+        a = np.asarray(layer.read(ys, xs))
+        if a.dtype != np.uint8:
+            a = a.astype(np.float32, copy=False)
         if a.ndim == 2:
             a = a[:, :, None]
         if a.shape[:2] != (ys.stop - ys.start, xs.stop - xs.start):
