@@ -121,14 +121,16 @@ def test_pyramids_built_by_threads_equal_the_serial_build(tmp_path):
 def test_uint8_windows_give_the_tiles_of_their_float32_copies(tmp_path):
     """8-bit images and masks are read, encoded and halved in uint8 at full size: every
     tile file equals the one made from float32 copies of the same windows (the reference),
-    at odd sizes, gray and RGB, masks with partial opacity and both reductions."""
+    gray and RGB, masks with partial opacity and both reductions; each side one more than
+    a multiple of the block, so the corner leaf is a single pixel."""
     from dataclasses import replace
 
     rng = np.random.default_rng(11)
-    rgb = textured(rng, 203, 331)
-    gray = textured(rng, 203, 331)[:, :, 0]
+    rgb = textured(rng, 193, 321)
+    gray = textured(rng, 193, 321)[:, :, 0]
     m = rng.random(gray.shape) < 0.02
     m[50:120, 90:200] = True
+    m[-1, -1] = True
 
     def layers():
         st = Stretch(0.0, 255.0)

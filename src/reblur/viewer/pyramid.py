@@ -139,7 +139,7 @@ def halve(a: np.ndarray, how: str = "mean") -> np.ndarray:
     """
     h, w = a.shape[:2]
     if (h, w) == (1, 1):
-        return a
+        return a.astype(np.float32, copy=False)
     odd_h, odd_w = h % 2, w % 2
     if odd_h or odd_w:  # repeat the last row / column: the mean then needs no recount
         a = np.pad(a, ((0, odd_h), (0, odd_w), (0, 0)), mode="edge")
