@@ -35,8 +35,10 @@ def median(x: np.ndarray) -> float:
     that the bracket holds the middle ranks; when it does not (a sample that misses them,
     NaN), ``np.median`` decides.  The two middle values of an even count are averaged as
     ``np.median`` averages them.  From twice the sample's size on it is the faster one
-    (``python -m timeit``: 0.10 against 0.20 ms at 2 x 10^4 values, 0.26 against 0.55 ms
-    at 5.4 x 10^4); below that the sample would be the whole array.
+    (``python -m timeit -s "import numpy as np; from reblur.robust import median;
+    x = np.random.default_rng(0).standard_normal(N)" "median(x)"``, against
+    ``np.median(x)``: 0.12 against 0.23 ms at N = 2 x 10^4, 0.27 against 0.53 ms at
+    5.4 x 10^4); below that the sample would be the whole array.
     """
     x = np.asarray(x).reshape(-1)
     n = x.size
