@@ -15,6 +15,10 @@ development images (``../shared/data``).  Contents, same camera path per size:
 * ``unrelated``: LEVIR test_7 against WHU 000213 (to be refused quickly);
 * ``5% rgb16``: the ``5%`` pair written as three 16-bit bands (the 8-bit values x 257,
   a darker copy, their negative): what bands and bit depth cost, the content the same.
+* ``defocus``: the ``unchanged`` scene, blurred by a lens out of focus instead of a
+  shake (:func:`reblur.testbed.defocus_path`: a pillbox of :data:`DEFOCUS_PX`, 256
+  sub-poses filling the disk): a dense blur, whose weights fill an area of the pose grid
+  where a shake's follow a path.
 
 Each case runs ``python -m reblur detect REF OBS --out DIR -q`` in a fresh process, as a
 user does (the package's bytecode written first, as an install leaves it); stage times
@@ -57,7 +61,10 @@ import tifffile
 from benchmarks.common import REPO
 
 SIZES = {1: 1, 25: 5, 100: 10}  # MP -> upsampling factor of the 1024 px scenes
-CONTENTS = ["unchanged", "5%", "45%", "years-whu", "years-levir", "unrelated", "5% rgb16"]
+CONTENTS = ["unchanged", "5%", "45%", "years-whu", "years-levir", "unrelated", "5% rgb16",
+            "defocus"]
+#: Radius (px) of the ``defocus`` content's pillbox blur.
+DEFOCUS_PX = 10.0
 #: Suffix of a content written as three 16-bit bands (:func:`_rgb16`).
 RGB16 = " rgb16"
 RUNS = REPO / "docs" / "cost_runs.json"
@@ -110,7 +117,7 @@ def _scenes(mp: int, content: str):
 
     levir_a = up(levir_image("test_7", gray=True))
     whu_curr = up(whu_image("000213", "curr", gray=True))
-    if content == "unchanged":
+    if content in ("unchanged", "defocus"):
         return levir_a, levir_a
     if content == "5%":
         return levir_a, _Blocks(levir_a, whu_curr, _lattice(levir_a.shape, 0.05, 4))
@@ -153,7 +160,7 @@ def _write(path: Path, shape, tile_fn, rgb16: bool = False) -> None:
 
 def make_case(mp: int, content: str, cache: Path) -> Path:
     """Write (or reuse) ``ref.tif`` and ``obs.tif`` of a case."""
-    from reblur.testbed import ChangedScene, plan_pair, shake_for
+    from reblur.testbed import ChangedScene, compose, defocus_path, plan_pair, shake_for
 
     d = cache / f"{mp}mp_{content.replace('%', 'pc').replace(' ', '_')}"
     if (d / "obs.tif").exists():
@@ -164,6 +171,10 @@ def make_case(mp: int, content: str, cache: Path) -> Path:
     plan = plan_pair(ref_scene, bits=8, noise_dn=0.5, n_changes=0, seed=0,
                      motion=shake_for(ref_scene.shape), viewpoint={"shift_px": 20.0})
     plan = dataclasses.replace(plan, changed=ChangedScene(obs_scene, ()))
+    if content == "defocus":
+        path = defocus_path(plan.shape, DEFOCUS_PX, focal=plan.path.focal)
+        plan = dataclasses.replace(plan, path=path,
+                                   homographies=compose(plan.view, path.homographies()))
     _write(d / "ref.tif", plan.shape, plan.reference_tile, rgb16)
     _write(d / "obs.tif", plan.shape, plan.observed_tile, rgb16)
     return d

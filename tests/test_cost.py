@@ -121,3 +121,33 @@ def test_rtol_stops_a_stalled_solve():
     # it stopped at the first iteration that gained less than rtol, and not before
     dec = -np.diff(h) / h[1:]
     assert dec[-1] < 1e-3 and np.all(dec[:-1] >= 1e-3)
+
+
+def test_a_dense_blur_is_estimated_within_the_pose_bound_and_noted(monkeypatch):
+    """A defocus blur (a pillbox of 6 px: weights filling an area of the pose grid, not a
+    shake's path) under a bound of 120 poses: no solve of the selection's estimate holds
+    more, the estimate counts the solves that reached it (counted here from each solve's
+    own record), and the report says so."""
+    records = []
+
+    def spying(*args, **kwargs):
+        w, info = active_set(*args, **kwargs)
+        records.append((kwargs.get("max_active"), int(np.count_nonzero(w)),
+                        bool(info["capped"])))
+        return w, info
+
+    monkeypatch.setattr(estimate_mod, "active_set", spying)
+    n = 500
+    ref = _gray(LEVIR / "A" / "test_7.png", n)
+    disk = np.zeros((13, 13), np.float32)
+    cv2.circle(disk, (6, 6), 6, 1.0, -1)
+    obs = cv2.filter2D(ref, -1, disk / disk.sum(), borderType=cv2.BORDER_REFLECT)
+    crop, est = _select(ref, obs, max_active=120)
+    assert records and all(m == 120 and n_w <= 120 for m, n_w, _ in records)
+    n_capped = sum(c for *_, c in records)
+    assert n_capped >= 1 and est.info["capped"] == n_capped
+    assert est.info["max_active"] == 120
+    notes = model_notes(SimpleNamespace(motion=est, decision={}))
+    assert any("more camera poses than an estimate holds (120 per solve" in s for s in notes)
+    with pytest.raises(ValueError, match="max_active"):
+        SelectParams(max_active=0)

@@ -942,3 +942,84 @@ def test_row_step_solves_the_sampled_rows_with_the_l1_term_scaled(one_sided):
     assert mass_near_truth(w, w_true) > 0.9
     with pytest.raises(ValueError, match="row_step"):
         active_set(ops, gs, lam=lam, row_step=0)
+
+
+def _dense_blur_problem():
+    """A window blurred by a dense kernel: every one of the 13 x 13 translations carries
+    weight (a disk-like blob), as a defocus blur does, instead of a shake's path."""
+    import cv2
+
+    rng = np.random.default_rng(21)
+    f = cv2.GaussianBlur(rng.random((150, 150)), (0, 0), 1.0)
+    grid = PoseGrid((150, 150), tx=np.arange(-6, 7), ty=np.arange(-6, 7))
+    op = BlurOperator(f, grid, (20, 20, 110, 110))
+    yy, xx = np.mgrid[-6:7, -6:7]
+    w_true = np.exp(-(xx**2 + yy**2) / (2 * 3.0**2))[None]
+    w_true /= w_true.sum()
+    g = op.matvec(w_true) + rng.normal(0, 1e-3, op.dimsd)
+    return op, grid, g
+
+
+def test_max_active_bounds_the_active_set_and_stops_at_the_optimum_over_it(monkeypatch):
+    """A solve bounded by ``max_active`` holds at most that many poses, stops once it has
+    filled them (at the next outer iteration, where the unbounded solve goes on growing),
+    and its weights are the optimum over the poses it holds: the KKT conditions of eq. 3
+    restricted to them, from the explicit matrix (fails if the bound leaves the last
+    Newton step out, or stops before optimising the poses it added)."""
+    import reblur.solve as solve_mod
+
+    op, grid, g = _dense_blur_problem()
+    lam = 1e-6
+    w_free, free = active_set([op], [g], lam=lam, occlusion=False, batch=8)
+    assert free["n_active"] > 60 and not free["capped"]
+    growths = []  # (poses held, poses added) of each outer iteration's Gram growth
+    gram_add = solve_mod._gram_add
+
+    def spy(ws, active, new, G, b, d):
+        growths.append((len(active), len(new)))
+        return gram_add(ws, active, new, G, b, d)
+
+    monkeypatch.setattr(solve_mod, "_gram_add", spy)
+    w, info = active_set([op], [g], lam=lam, occlusion=False, batch=16, max_active=30)
+    assert info["capped"] and not info["converged"]
+    held = [k + n for k, n in growths]
+    assert held[-1] == 30 and max(held[:-1]) < 30  # the last growth filled the bound
+    # its Newton steps dropped some poses again, yet the next outer iteration stopped:
+    # a solve that kept refilling the room would run on at the bound's cost
+    assert info["n_active"] < 30
+    assert info["n_outer"] == len(growths) + 1 < free["n_outer"]
+    A = np.stack([op.column(k)[:, :, 0].ravel() for k in range(grid.size)], axis=1)
+    m = op.valid.ravel()
+    A, gv = A[m].astype(float), g[:, :, 0].ravel()[m]
+    grad = lam - A.T @ (2 * (gv - A @ w.ravel()))
+    scale = np.abs(A.T @ (2 * gv)).max()
+    on = w.ravel() > 0
+    assert np.all(np.abs(grad[on]) <= 1e-6 * scale)
+    # the poses left out would still lower it (the solver converges at -1e-6 of the scale)
+    assert grad[~on].min() < -1e-5 * scale
+    # the bounded fit is worse than the free one, but a fair approximation of the blob
+    res = np.linalg.norm(op.matvec(w) - g) / np.linalg.norm(g)
+    res_free = np.linalg.norm(op.matvec(w_free) - g) / np.linalg.norm(g)
+    assert res_free < res < 0.05
+
+
+def test_max_active_above_the_active_set_changes_nothing():
+    """A bound the solve never reaches gives the unbounded solve bit for bit; a warm start
+    holding more poses than the bound keeps them and adds none."""
+    op, grid, g = _dense_blur_problem()
+    w_free, free = active_set([op], [g], lam=1e-6, occlusion=False, batch=8)
+    w_big, big = active_set([op], [g], lam=1e-6, occlusion=False, batch=8,
+                            max_active=free["n_active"] + 50)
+    assert np.array_equal(w_free, w_big) and not big["capped"]
+    w0 = np.where(w_free > 0, w_free, 0.0)
+    n0 = int(np.count_nonzero(w0))
+    w_ws, ws = active_set([op], [g], lam=1e-6, occlusion=False, w0=w0, max_active=n0 // 2)
+    assert ws["n_active"] <= n0 and ws["warm_start"]["poses"] == n0
+    assert set(np.flatnonzero(w_ws)) <= set(np.flatnonzero(w0))
+
+
+@pytest.mark.parametrize("bad", [0, -3, 2.5, True, "10"])
+def test_max_active_is_checked(bad):
+    op, _, g = _dense_blur_problem()
+    with pytest.raises(ValueError, match="max_active"):
+        active_set([op], [g], lam=1e-6, occlusion=False, max_active=bad)

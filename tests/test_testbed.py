@@ -473,3 +473,24 @@ def test_truth_window_share_gives_the_half_maximum_footprint_and_the_whole_reach
     for bad in (0.0, 1.5):
         with pytest.raises(ValueError, match="share"):
             truth_window(scene, hs, box, share=bad)
+
+
+def test_defocus_path_fills_the_disk_evenly():
+    """A pillbox: every sub-pose within the radius, translation only, centred, with the
+    uniform disk's moments (E r^2 = R^2 / 2, half the sub-poses inside R / sqrt(2)); bad
+    radii and too few sub-poses refused."""
+    from reblur.testbed import defocus_path
+
+    R = 10.0
+    p = defocus_path((600, 800), R, n_sub=400).poses
+    assert p.shape == (400, 6) and not p[:, 2:].any()
+    r2 = p[:, 0] ** 2 + p[:, 1] ** 2
+    assert r2.max() <= R * R
+    assert np.mean(r2) == pytest.approx(R * R / 2, rel=0.01)
+    assert np.count_nonzero(r2 < R * R / 2) == 200
+    assert np.abs(p[:, :2].mean(axis=0)).max() < 0.05 * R
+    for bad in (0.0, -1.0, np.inf, np.nan):
+        with pytest.raises(ValueError, match="radius_px"):
+            defocus_path((64, 64), bad)
+    with pytest.raises(ValueError, match="n_sub"):
+        defocus_path((64, 64), 3.0, n_sub=32)

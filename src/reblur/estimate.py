@@ -68,6 +68,16 @@ RTOL = 1e-4
 #: level ends on the KKT test: ``python -m benchmarks.large_motion --case 32000``).
 FINE_RTOL = 1e-3
 
+#: Poses a solve's active set may hold (``estimate_motion(max_active=)``).  A camera
+#: shake's weights lie along a path through the pose grid: at most 294 poses in a level
+#: for the test bed's 35 px shake (``python -m benchmarks.shake_extent``), 122 for GoPro
+#: 0477 against 16 frames, 456 for the out-of-plane tilt pair (a blur the grid cannot
+#: follow; ``motion.info.levels`` of ``report.json``).  A dense blur fills an area
+#: instead: ``benchmarks.cost``'s ``defocus`` pair (a 10 px pillbox, 1 MP) held 449-815,
+#: and its Gram products (square of the poses) and NNLS (cube) took its estimate to
+#: 17.6-17.8 s, 9.0-9.9 s under this bound, the fits 0.03-0.05 dB lower.
+MAX_ACTIVE = 640
+
 
 def estimate_motion(
     reference,
@@ -95,6 +105,7 @@ def estimate_motion(
     bands: str = "all",
     t_grow: int = 1,
     blur_reach: float = 0.0,
+    max_active: int | None = MAX_ACTIVE,
 ) -> MotionEstimate:
     """Estimate pose weights ``w >= 0`` and the change term ``chi`` (eq. 5, or eq. 3).
 
@@ -225,6 +236,11 @@ def estimate_motion(
         masks; ``python -m benchmarks.shake_extent``).  Each doubling is a check of
         outcome ``"reach"``.  0 (default): start from the grid given.  Not with
         ``resume``.
+    max_active : int, optional
+        Poses each solve's active set may hold (:func:`reblur.solve.active_set`'s
+        ``max_active``; default :data:`MAX_ACTIVE`; None: no bound).  A solve that fills
+        it stops there; ``info["capped"]`` counts such solves (each level's record says
+        whether it was one).
 
     Returns
     -------
@@ -292,6 +308,10 @@ def estimate_motion(
     if isinstance(blur_reach, bool) or not (
             isinstance(blur_reach, (int, float, np.number)) and 0 <= blur_reach < np.inf):
         raise ValueError(f"blur_reach must be a finite number >= 0, got {blur_reach!r}")
+    if max_active is not None and (isinstance(max_active, bool)
+                                   or not isinstance(max_active, (int, np.integer))
+                                   or max_active < 1):
+        raise ValueError(f"max_active must be an integer >= 1 or None, got {max_active!r}")
     start, log = grid, []
     if t_grow > 1 and blur_reach > 0 and solver == "active-set" and resume is None:
         grid, t_grow = _widen_to_reach(grid, boxes, int(t_grow), float(blur_reach), log)
@@ -301,20 +321,22 @@ def estimate_motion(
                 reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, occlusion,
                 max_outer, time_limit, max_bases, levels, scratch, threads=int(threads),
                 rtol=rtol, fine_rtol=max(rtol, fine_rtol), stop_occluded=stop_occluded,
-                resume=resume, t_grow=int(t_grow), log=log,
+                resume=resume, t_grow=int(t_grow), log=log, max_active=max_active,
             )
         else:
             def solve(sub, w0):
                 out = _solve(reference, observed, sub, boxes, base, engine, s_ref, s_obs,
                              lam, occlusion, solver, max_outer, time_limit, fista_iter, w0,
-                             scratch=scratch, threads=int(threads), rtol=rtol)
+                             scratch=scratch, threads=int(threads), rtol=rtol,
+                             max_active=max_active)
                 if solver == "active-set":  # the history over every solve (FISTA: one)
                     spent["objective"] += list(out[1]["objective"])
                     spent["n_outer"] += int(out[1]["n_outer"])
                     spent["time_s"] += float(out[1]["time_s"])
+                    spent["capped"] += int(bool(out[1].get("capped")))
                 return out
 
-            spent = dict(objective=[], n_outer=0, time_s=0.0)
+            spent = dict(objective=[], n_outer=0, time_s=0.0, capped=0)
             w, info, ops, gs = solve(grid, None)
             if t_grow > 1 and solver == "active-set":
                 grid, (_, w, info, ops, gs) = _widen_first(
@@ -325,7 +347,8 @@ def estimate_motion(
         stopped = bool(info.get("stopped_early", False))
         if refit_photometry and not stopped:
             w, info, gs = _refit_photometry(ops, gs, w, info, lam, occlusion, max_outer,
-                                            time_limit, scratch=scratch, rtol=rtol)
+                                            time_limit, scratch=scratch, rtol=rtol,
+                                            max_active=max_active)
         if on_mean:
             resid = _band_residuals(ref_bands, obs_bands, ops, w, grid_used, base, s_ref,
                                     s_obs, info, threads=int(threads))
@@ -350,6 +373,8 @@ def estimate_motion(
         if grid_used is not grid:
             w = carry_weights(w, grid_used, grid)
     info = dict(info)
+    info["capped"] = int(info.get("capped", 0))  # solves stopped by max_active
+    info["max_active"] = max_active
     info["translations"] = _widening_info(start, grid, log, w)
     if blur_reach > 0:
         info["translations"]["blur_reach"] = float(blur_reach)
@@ -629,7 +654,7 @@ def row_step(ops) -> int:
 
 def _solve(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, occlusion,
            solver, max_outer, time_limit, fista_iter, w0, gs=None, scratch=None, threads=None,
-           rtol=0.0):
+           rtol=0.0, max_active=None):
     ops = _build_operators(reference, grid, boxes, base, engine, s_ref, threads)
     if gs is None:
         gs = [read_window(observed, b, np.float64) / s_obs for b in boxes]
@@ -643,7 +668,7 @@ def _solve(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, oc
         w, info = active_set(
             ops, gs, lam=lam, occlusion=occlusion, max_outer=max_outer, time_limit=time_limit,
             w0=w0, scratch=scratch, workers=1 if threads is None else threads, rtol=rtol,
-            row_step=row_step(ops),
+            row_step=row_step(ops), max_active=max_active,
         )
     elif solver == "fista":
         if len(ops) != 1:
@@ -739,7 +764,8 @@ REFIT_RTOL = 1e-3
 
 
 def _refit_photometry(ops, gs, w, info, lam, occlusion, max_outer, time_limit,
-                      max_rounds: int = 4, tol: float = 1e-4, scratch=None, rtol=0.0):
+                      max_rounds: int = 4, tol: float = 1e-4, scratch=None, rtol=0.0,
+                      max_active=None):
     """Find the offset ``B`` (per band) with which eq. 5 on ``g - B`` leaves no offset.
 
     The weights represent a gain (their sum) but not an offset, so a solve against an
@@ -786,14 +812,16 @@ def _refit_photometry(ops, gs, w, info, lam, occlusion, max_outer, time_limit,
                                  max_outer=max_outer, time_limit=time_limit, w0=w,
                                  scratch=scratch, workers=ops[0].threads,
                                  rtol=max(rtol, REFIT_RTOL),
-                                 row_step=row_step(ops))
+                                 row_step=row_step(ops), max_active=max_active)
         info["n_outer"] = int(info.get("n_outer", 0)) + int(more["n_outer"])
+        info["capped"] = int(info.get("capped", 0)) + int(bool(more.get("capped")))
         info["time_s"] = float(info.get("time_s", 0.0)) + float(more["time_s"])
         obj = float(more["objective"][-1])
         if not obj < best_obj:
             break
         info["objective"] = list(info.get("objective", [])) + list(more["objective"])
-        info.update({k: v for k, v in more.items() if k not in ("objective", "n_outer", "time_s")})
+        info.update({k: v for k, v in more.items()
+                     if k not in ("objective", "n_outer", "time_s", "capped")})
         prev = (B, b)
         best, best_obj = (w_new, B_new, gs_new), obj
         kept += 1
@@ -883,7 +911,7 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
                        occlusion, max_outer, time_limit, max_bases, levels, scratch=None,
                        t_margin: int = 3, threads=None, rtol=0.0, fine_rtol=None,
                        stop_occluded=None, resume=None, t_grow: int = 1,
-                       log: list | None = None):
+                       log: list | None = None, max_active=None):
     """Coarse-to-fine over the roll angles of ``grid`` (see :func:`estimate_motion`).
 
     Coarse levels solve on the central :func:`coarse_side` pixels of each window (the
@@ -950,7 +978,7 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
     centres_first = _FINE_ON_CENTRES and (
         2 * sum(b.h * b.w for b in small) <= sum(b.h * b.w for b in boxes))
     w_prev = None
-    total = dict(objective=[], n_outer=0, time_s=0.0)
+    total = dict(objective=[], n_outer=0, time_s=0.0, capped=0)
     on_centres = True  # the level about to run solves on the central parts
     if resume is not None:
         w_prev = np.asarray(resume["weights"], float)
@@ -978,19 +1006,20 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
             lv_rtol = fine_rtol if last else rtol
             out = _solve(reference, observed, part, bx, base, engine, s_ref, s_obs, lam,
                          occlusion, "active-set", max_outer, time_limit, 0, w0, gs=gs,
-                         scratch=scratch, threads=threads, rtol=lv_rtol)
+                         scratch=scratch, threads=threads, rtol=lv_rtol, max_active=max_active)
             info = out[1]
             rec = dict(stride=stride, t_stride=ts, n_angles=len(part.rz),
                        n_t=len(part.tx) * len(part.ty), side=int(max(bx[0].h, bx[0].w)),
                        t_max=_t_max(part), n_outer=info["n_outer"], time_s=info["time_s"],
                        n_active=info["n_active"], rtol=lv_rtol,
-                       row_step=int(info.get("row_step", 1)))
+                       row_step=int(info.get("row_step", 1)), capped=bool(info["capped"]))
             if "warm_start" in info:
                 rec["warm_start"] = info["warm_start"]
             levels.append(rec)
             total["objective"] += info["objective"]
             total["n_outer"] += info["n_outer"]
             total["time_s"] += info["time_s"]
+            total["capped"] += int(bool(info["capped"]))
             return out
 
         w, info, ops, gs = solve(sub, w0)

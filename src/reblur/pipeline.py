@@ -814,7 +814,7 @@ def _estimate_stage(
         motion = estimate_motion(reference, obs_view, grid, boxes=boxes, base=H0, lam=lam,
                                  scale=None, refit_photometry=sp.refit_photometry,
                                  bands=sp.bands, t_grow=sp.t_grow,
-                                 blur_reach=blur_reach(align_info))
+                                 blur_reach=blur_reach(align_info), max_active=sp.max_active)
         crop = CropChoice(boxes=[tuple(b) for b in motion.boxes], size=int(boxes[0][2]))
     else:
         crop, motion = select_windows(

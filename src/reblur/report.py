@@ -767,8 +767,8 @@ FIT_SPREAD_DB = 6.0
 def model_notes(result) -> list[str]:
     """What an analyst should know about how well the model fits: estimation windows whose
     fits disagree, no window that fits (the estimate decided from the best one), a blur
-    beyond the pose grid's translations, and a model error the decision's tolerance could
-    not absorb."""
+    spread over more poses than a solve holds, a blur beyond the pose grid's translations,
+    and a model error the decision's tolerance could not absorb."""
     notes = []
     info = result.motion.info
     fits = [f for f in (info.get("psnr_inliers") or info.get("psnr") or [])
@@ -787,6 +787,14 @@ def model_notes(result) -> list[str]:
             f"{sel.get('max_occluded', 2 / 3):.0%} is rejected) in each of the "
             f"{sel.get('estimates', 1)} estimates tried; the motion comes from the best one, "
             "so the reblurred reference and the changes are less reliable than usual")
+    if info.get("capped"):
+        notes.append(
+            f"the blur spreads over more camera poses than an estimate holds "
+            f"({info.get('max_active')} per solve; {info['capped']} solve(s) reached it): "
+            "a dense blur such as defocus rather than camera shake; the weights are the "
+            "best over the poses held, so the reblurred reference may miss part of the "
+            "blur ([select] max_active in a --config file raises the bound, at a cost "
+            "growing as its cube)")
     tr = info.get("translations") or {}
     checks = tr.get("checks") or [{}]
     # on the edge with no wider grid tried (a grid given, a growth the start used up) or

@@ -32,7 +32,7 @@ import numpy as np
 import scipy.fft as sfft
 from threadpoolctl import threadpool_limits
 
-from .estimate import check_bands, estimate_motion
+from .estimate import MAX_ACTIVE, check_bands, estimate_motion
 from .grid import PoseGrid, map_points
 from .result import CropChoice, MotionEstimate
 from .warp import Box
@@ -82,13 +82,17 @@ class SelectParams:
     #: how far the estimate may widen the pose grid's translations when its weights pile
     #: on their edge (a factor of the grid's; ``estimate_motion(t_grow=)``; 1: never)
     t_grow: int = 4
+    #: poses each of the estimate's solves may hold (``estimate_motion(max_active=)``): a
+    #: camera shake's path holds a few hundred at most, a dense blur (defocus) thousands,
+    #: at a cost growing as their square and cube
+    max_active: int = MAX_ACTIVE
     overview_side: int = 1024  #: resolution of the region-score map
     extra: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         for name in ("beta", "gamma", "patch", "unit", "s_start", "s_max", "alpha",
                      "max_tries", "unfit_outer", "windows", "spread_size", "spread_pixels",
-                     "overview_side", "t_grow"):
+                     "overview_side", "t_grow", "max_active"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, Integral) or v < 1:
                 raise ValueError(f"SelectParams.{name} must be an integer >= 1, got {v!r}")
@@ -633,7 +637,8 @@ class _Runs:
         est = estimate_motion(*self.args, boxes=[c.as_tuple() for c in chosen],
                               base=self.base, lam=p.lam, refit_photometry=p.refit_photometry,
                               stop_occluded=p.max_occluded if stop else None, bands=p.bands,
-                              t_grow=p.t_grow, blur_reach=self.blur_reach, **kw)
+                              t_grow=p.t_grow, blur_reach=self.blur_reach,
+                              max_active=p.max_active, **kw)
         self.n_outer += int(est.info["n_outer"])
         self.runs.append((list(chosen), est))
         return est
@@ -662,10 +667,11 @@ class _Runs:
                                   base=self.base, lam=p.lam,
                                   refit_photometry=p.refit_photometry,
                                   resume=est.info["resume"], max_outer=p.unfit_outer,
-                                  rtol=p.unfit_rtol, bands=p.bands)
+                                  rtol=p.unfit_rtol, bands=p.bands, max_active=p.max_active)
             self.n_outer += int(est.info["n_outer"])
             est.info["translations"] = dict(first["translations"],
                                             edge_share=est.info["translations"]["edge_share"])
+            est.info["capped"] = int(first.get("capped", 0)) + int(est.info.get("capped", 0))
         est.info.pop("resume", None)
         est.info["selection"] = dict(estimates=len(self.runs), n_outer=self.n_outer,
                                      fits=bool(fits), occluded=list(est.info["occluded"]),

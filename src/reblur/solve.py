@@ -415,6 +415,7 @@ def active_set(
     scratch: Scratch | None = None,
     workers: int = 1,
     row_step: int = 1,
+    max_active: int | None = None,
 ) -> tuple[np.ndarray, dict]:
     """Solve eq. 5 (or eq. 3) over one or more windows sharing one set of pose weights.
 
@@ -479,13 +480,22 @@ def active_set(
         minimised estimates eq. 5's at ``1 / row_step`` of the products' cost.  The
         objective is reported in the whole window's units (times ``row_step``).  1
         (default): every row.
+    max_active : int, optional
+        Poses the active set may hold, at most (None, the default: no bound).  An outer
+        iteration adds no more poses than leave room under it; once it has filled the
+        bound, the loop stops at the next outer iteration that does not meet the KKT test
+        (``info["capped"]``), with the weights optimal over the poses it holds.  The Gram
+        products grow as the square of the active poses and the Newton steps' NNLS as
+        their cube, so the bound caps a solve's cost whatever the blur; a warm start
+        holding more poses keeps them (the bound limits growth only).
 
     Returns
     -------
     w : ndarray, shape ``grid.shape``
     info : dict
         ``objective`` (per outer iteration), ``n_outer``, ``n_active``, ``converged``,
-        ``stalled`` (stopped by ``rtol``), ``time_s``, ``kkt`` (most negative inactive
+        ``stalled`` (stopped by ``rtol``), ``capped`` (stopped by ``max_active``),
+        ``time_s``, ``kkt`` (most negative inactive
         gradient, relative to ``kkt_scale``:
         the largest gradient of the data term at ``w = 0``, the same whether the solve
         starts cold or from ``w0``); from ``w0``, ``warm_start``: its non-zero poses
@@ -499,6 +509,10 @@ def active_set(
     step = int(row_step)
     if step < 1:
         raise ValueError(f"row_step must be at least 1, got {row_step}")
+    if max_active is not None and (isinstance(max_active, bool)
+                                   or not isinstance(max_active, (int, np.integer))
+                                   or max_active < 1):
+        raise ValueError(f"max_active must be an integer >= 1 or None, got {max_active!r}")
     if step > 1:
         gs = [np.ascontiguousarray(np.asarray(g, dtype=float).reshape(op.dimsd)[::step])
               for op, g in zip(ops, gs, strict=True)]
@@ -518,7 +532,7 @@ def active_set(
         # the l1 term over the sampled data term: lam / step (the Huber threshold, a
         # property of each pixel, stays lam / 2)
         w, info = _active_set(ws, grid, lam / step, batch, max_outer, max_irls, tol, w0,
-                              time_limit, callback, t_start, rtol)
+                              time_limit, callback, t_start, rtol, max_active)
     if step > 1:
         info["objective"] = [step * v for v in info["objective"]]
         info["row_step"] = step
@@ -526,7 +540,7 @@ def active_set(
 
 
 def _active_set(ws, grid, lam, batch, max_outer, max_irls, tol, w0, time_limit, callback,
-                t_start, rtol=0.0):
+                t_start, rtol=0.0, max_active=None):
     """The loop of :func:`active_set` over the windows ``ws`` (a :class:`_Windows`);
     ``lam`` is the weights' l1 coefficient (the windows hold the Huber threshold)."""
     P = grid.size
@@ -560,6 +574,8 @@ def _active_set(ws, grid, lam, batch, max_outer, max_irls, tol, w0, time_limit, 
     history: list[float] = []
     converged = False
     stalled = False
+    capped = False  # stopped by max_active
+    full = False  # an outer iteration filled max_active: no pose may enter after it
     kkt = np.nan
     n_outer = 0
     n_newton = 0
@@ -610,8 +626,17 @@ def _active_set(ws, grid, lam, batch, max_outer, max_irls, tol, w0, time_limit, 
             break
         if time_limit is not None and time.perf_counter() - t_start > time_limit:
             break
+        if full:
+            capped = True
+            break
         order = np.argsort(cand)[: max(batch, len(active) // 4)]
         new = [int(k) for k in order if cand[k] < 0]
+        if max_active is not None and len(active) + len(new) >= max_active:
+            new = new[: max(0, max_active - len(active))]
+            full = True
+            if not new:
+                capped = True
+                break
         G, b, d = _gram_add(ws, active, new, G, b, d)
         active = active + new
         # new columns enter at weight zero: the residuals are unchanged
@@ -634,6 +659,7 @@ def _active_set(ws, grid, lam, batch, max_outer, max_irls, tol, w0, time_limit, 
         n_newton=n_newton,
         converged=converged,
         stalled=stalled,
+        capped=capped,
         kkt=kkt,
         kkt_scale=grad_scale,
         time_s=time.perf_counter() - t_start,

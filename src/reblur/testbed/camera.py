@@ -36,6 +36,7 @@ __all__ = [
     "CameraPath",
     "compose",
     "default_focal",
+    "defocus_path",
     "intrinsics",
     "pose_homography",
     "random_camera_path",
@@ -274,6 +275,45 @@ def random_camera_path(
     poses = np.stack([
         lim * rng.uniform(0.5, 1.0) * _smooth_component(rng, t, int(n_modes)) for lim in limits
     ], axis=1)
+    f = default_focal((h, w)) if focal is None else float(focal)
+    return CameraPath(poses=poses, shape=(h, w), focal=f)
+
+
+def defocus_path(shape: tuple[int, ...], radius_px: float, *, n_sub: int = 256,
+                 focal: float | None = None) -> CameraPath:
+    """A defocus blur as a :class:`CameraPath`: equal-weight sub-poses whose translations
+    fill a disk of ``radius_px`` (a pillbox kernel), with no rotation or depth.
+
+    The translations lie on a sunflower (Fibonacci) spiral, ``r_k = R sqrt((k + 1/2) /
+    n)`` at the golden angle: equal areas of the disk per sub-pose, off any pixel lattice.
+    An out-of-focus lens blurs a fronto-parallel plane with this kernel everywhere; a
+    camera shake's sub-poses trace a path instead.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        Observation shape ``(H, W[, C])``.
+    radius_px : float
+        Radius of the disk (pixels), > 0.
+    n_sub : int
+        Number of sub-poses, at least 64.
+    focal : float, optional
+        Focal length in pixels; default :func:`default_focal`.
+
+    Returns
+    -------
+    CameraPath
+    """
+    h, w = _check_shape(shape)
+    if not (np.isfinite(radius_px) and radius_px > 0):
+        raise ValueError(f"radius_px must be a finite number > 0, got {radius_px!r}")
+    if int(n_sub) < 64:
+        raise ValueError(f"n_sub must be >= 64 for a continuous-looking blur, got {n_sub}")
+    k = np.arange(int(n_sub)) + 0.5
+    r = float(radius_px) * np.sqrt(k / int(n_sub))
+    theta = k * np.pi * (3.0 - np.sqrt(5.0))  # the golden angle
+    poses = np.zeros((int(n_sub), 6))
+    poses[:, 0], poses[:, 1] = r * np.cos(theta), r * np.sin(theta)
     f = default_focal((h, w)) if focal is None else float(focal)
     return CameraPath(poses=poses, shape=(h, w), focal=f)
 
