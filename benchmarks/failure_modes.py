@@ -33,7 +33,7 @@ import numpy as np
 from benchmarks.common import REPO
 
 CASES = ("hole25", "hole50", "occluder25", "occluder45", "occluder60", "plain", "ramp",
-         "vignette", "thin", "identical", "nodata")
+         "vignette", "ramp_strong", "thin", "identical", "nodata")
 RUNS = REPO / "docs" / "failure_modes_runs.json"
 BEFORE = REPO / "docs" / "failure_modes_before.json"
 BOUNDARY = 3
@@ -125,6 +125,9 @@ def run_reblur(d: Path, t: dict, src: Path | None) -> dict:
     il = rep["decision"]["photometry"]["info"].get("illumination")
     if il:
         res["illumination"] = il["model"]
+    pre = rep["decision"].get("prefit_illumination")
+    if pre:  # the pre-fit's choice for the estimate, and its residual ratio per band
+        res["prefit"] = {"model": pre["model"], "ratio": pre["ratio"]}
     return res
 
 
@@ -196,7 +199,8 @@ def section(after: list[dict]) -> str:
         "`reblur.testbed.cases`, run with `reblur detect`; \"before\" is reblur at "
         f"{label} on the same files, `--src OLD/src --label COMMIT`).  FAR: flagged share of "
         "unchanged known pixels more than 3 px from a change; recall and JC of the changes; "
-        "`plain` is the 8 pasted changes of `ramp` and `vignette` without the illumination."
+        "`plain` is the 8 pasted changes of `ramp`, `vignette` and `ramp_strong` without the "
+        "illumination; `ramp_strong` has no \"before\" row (added later)."
         "\n\n" + table(after, before["rows"] if before else None))
 
 

@@ -459,6 +459,68 @@ def test_prefit_on_a_sample_agrees_with_the_fit_on_every_pixel():
     assert np.mean(pre.agreement[300:480, 300:480] == 1) > 0.95
 
 
+def test_prefit_takes_an_illumination_ramp_into_a_field_and_keeps_the_line_without_one():
+    """An observation whose light ramps across it (gain 0.55 -> 1.0, offset -0.05 ->
+    +0.05): the prefit chooses its quadratic field, whose gain and offset at every pixel
+    are within 0.01 of the ramp's (computed here), and the agreement map holds the whole
+    view (the ramp is no change).  The same pair without the ramp keeps the global line,
+    and its record says why (ratios above PREFIT_FIELD_GAIN)."""
+    from reblur.pipeline import PREFIT_FIELD_GAIN, photometric_prefit
+
+    rng = np.random.default_rng(5)
+    H, W = 480, 640
+    ref = (255 * np.clip(_texture((H, W), 1, rng)[:, :, 0], 0, 1)).astype(np.uint8)
+    xx = np.broadcast_to(np.arange(W, dtype=float), (H, W))
+    gain = 0.55 + 0.45 * xx / (W - 1)
+    offset = -0.05 + 0.1 * xx / (W - 1)
+    noise = rng.normal(0, 1.0, ref.shape)
+    lit = np.clip(ref * gain + 255 * offset + noise, 0, 255).astype(np.uint8)
+    pre = photometric_prefit(ref, lit, np.eye(3), 255.0, 255.0)
+    assert pre.illumination is not None
+    assert pre.illumination_info["model"] == "field"
+    assert min(pre.illumination_info["ratio"]) <= PREFIT_FIELD_GAIN
+    G, Z = pre.illumination.at(np.arange(20, H - 20, 10), np.arange(20, W - 20, 10))
+    assert np.abs(G[:, :, 0] - gain[20:H - 20:10, 20:W - 20:10]).max() < 0.01
+    assert np.abs(Z[:, :, 0] - offset[20:H - 20:10, 20:W - 20:10]).max() < 0.01
+    assert np.mean(pre.agreement[5:-5, 5:-5] == 1) > 0.99
+    flat = np.clip(ref * 0.8 + 255 * 0.02 + noise, 0, 255).astype(np.uint8)
+    plain = photometric_prefit(ref, flat, np.eye(3), 255.0, 255.0)
+    assert plain.illumination is None and plain.illumination_info["model"] == "global"
+    assert min(plain.illumination_info["ratio"]) > PREFIT_FIELD_GAIN
+
+
+def test_scaled_view_flattens_by_the_illumination_field():
+    """ScaledView with an illumination field: every window read, with or without a band
+    index, is ``(a / scale - O) / G`` of the field's quadratic polynomials evaluated here
+    pixel by pixel; its block means are those of the flattened image within the field's
+    variation over a block."""
+    from reblur.decide.photometry import IlluminationField
+    from reblur.pipeline import ScaledView
+
+    rng = np.random.default_rng(3)
+    a = rng.integers(0, 256, (60, 80, 2)).astype(np.uint8)
+    g = np.array([[0.9, 0.1, -0.05, 0.02, 0.01, -0.03], [1.1, -0.1, 0.04, 0.0, 0.02, 0.01]])
+    o = np.array([[0.01, 0.02, 0.0, -0.01, 0.0, 0.005], [-0.02, 0.0, 0.03, 0.0, 0.0, 0.0]])
+    view = ScaledView(a, 255.0, illumination=IlluminationField(g, o, (60, 80)))
+
+    def explicit(r, c, b):
+        u, v = 2 * (c + 0.5) / 80 - 1, 2 * (r + 0.5) / 60 - 1
+        t = np.array([1, u, v, u * u, u * v, v * v])
+        return (a[r, c, b] / 255.0 - t @ o[b]) / (t @ g[b])
+
+    win = view[10:25, 30:52]
+    assert win.shape == (15, 22, 2) and win.dtype == np.float32
+    for r, c, b in [(10, 30, 0), (24, 51, 1), (17, 40, 0), (12, 45, 1)]:
+        assert win[r - 10, c - 30, b] == pytest.approx(explicit(r, c, b), rel=1e-5)
+    one = view[5:9, 70:80, 1]
+    assert one.shape == (4, 10)
+    assert one[2, 3] == pytest.approx(explicit(7, 73, 1), rel=1e-5)
+    _, means = view.block_means(4)
+    full = view[:, :]
+    blocks = full.reshape(15, 4, 20, 4, 2).mean(axis=(1, 3))
+    assert np.abs(means - blocks).max() < 2e-3
+
+
 def test_photometry_from_tiles_and_downsampled(colour):
     obs, reb, _, unknown = colour
     whole = fit_photometry(obs, reb, ~unknown, field_block=96)
@@ -656,7 +718,7 @@ def test_poly_field_fit_recovers_a_quadratic_gain_and_offset():
     """The illumination field's IRLS on more samples than it fits on (an even subset of
     those near the start model's band): a known quadratic gain and offset over the image,
     10 % of the samples changed by +0.5, comes back to within the noise's reach."""
-    from reblur.decide.photometry import FIELD_FIT_SAMPLES, _fit_poly_field
+    from reblur.decide.photometry import FIELD_FIT_SAMPLES, fit_poly_field
 
     rng = np.random.default_rng(3)
     shape = (400, 500)
@@ -673,6 +735,6 @@ def test_poly_field_fit_recovers_a_quadratic_gain_and_offset():
     y[rng.random(n) < 0.1] += 0.5
     # the start (a global model) leaves the ramp in its residuals: their inlier scale,
     # 0.03, keeps the whole ramp within its 8-scale band and the changes out of it
-    a, b = _fit_poly_field(ys, xs, x, y, shape, (1.1, 0.01), 0.03)
+    a, b = fit_poly_field(ys, xs, x, y, shape, (1.1, 0.01), 0.03)
     np.testing.assert_allclose(a, a_true, atol=3e-3)
     np.testing.assert_allclose(b, b_true, atol=2e-3)

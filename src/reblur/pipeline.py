@@ -33,7 +33,13 @@ from .decide import (
 )
 from .decide._common import FIT_BLAS_THREADS, band_map
 from .decide.calibrate import calibrate_tolerance, marked_pixels, unchanged_pixels
-from .decide.photometry import FIT_SAMPLES, with_model_error
+from .decide.photometry import (
+    _SCALE_FLOOR,
+    FIT_SAMPLES,
+    IlluminationField,
+    fit_poly_field,
+    with_model_error,
+)
 from .estimate import estimate_motion, intensity_scale
 from .grid import GridParams, PoseGrid
 from .io import chunk_cached
@@ -53,11 +59,16 @@ class ScaledView:
 
     Lets the estimation read observation windows on the reference's photometric scale
     without a full-size copy of a (possibly on-disk) image.  ``exclude(box)`` (optional)
-    gives the window's pixels the estimate leaves out (:meth:`Prefit.exclusion`).
+    gives the window's pixels the estimate leaves out (:meth:`Prefit.exclusion`).  With an
+    ``illumination`` field (:class:`~reblur.decide.photometry.IlluminationField`, from
+    :func:`photometric_prefit`) its gain and offset at each pixel replace ``gain`` and
+    ``offset``: ``(a / scale - O(r, c)) / G(r, c)``.
     """
 
-    def __init__(self, array, scale: float, gain=None, offset=None, exclude=None):
+    def __init__(self, array, scale: float, gain=None, offset=None, exclude=None,
+                 illumination: IlluminationField | None = None):
         self.array = array
+        self.illumination = illumination
         #: pixels the estimate leaves out of its data term (see :func:`estimate_motion`)
         self.exclude = exclude
         self.shape = tuple(array.shape)
@@ -69,9 +80,23 @@ class ScaledView:
 
     def __getitem__(self, key):
         a = np.asarray(self.array[key], dtype=np.float32) / self.scale
+        if self.illumination is not None:
+            return self._flattened(a, key)
         if a.ndim == 3:
             return (a - self.offset) / self.gain
         return (a - self.offset[0]) / self.gain[0]
+
+    def _flattened(self, a: np.ndarray, key) -> np.ndarray:
+        """``(a - O) / G`` of the illumination field at the pixels ``key`` selected."""
+        k = key if isinstance(key, tuple) else (key,)
+        rows = np.arange(self.shape[0])[k[0] if k else slice(None)]
+        cols = np.arange(self.shape[1])[k[1] if len(k) > 1 else slice(None)]
+        G, Z = self.illumination.at(np.atleast_1d(rows), np.atleast_1d(cols))
+        if len(k) > 2:  # a band index too: the field's bands alike
+            G, Z = G[:, :, k[2]], Z[:, :, k[2]]
+        if G.size != a.size:
+            raise ValueError(f"ScaledView cannot index the illumination field by {key!r}")
+        return (a - Z.reshape(a.shape)) / G.reshape(a.shape)
 
     def block_means(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """:func:`reblur.align.block_means` of the view, from those of the array (the
@@ -80,7 +105,15 @@ class ScaledView:
         _, bands = block_means(self.array, k)
         # block_means divides integers by the dtype's maximum, which is ``scale`` here
         raw = intensity_scale(np.dtype(self.array.dtype)) / self.scale
-        v = (bands * np.float32(raw) - self.offset) / self.gain
+        if self.illumination is not None:
+            # the field at the blocks' centres: smooth over a block, so the block means of
+            # the flattened image within a fraction of its curvature over a block
+            rows = (np.arange(bands.shape[0]) + 0.5) * k - 0.5
+            cols = (np.arange(bands.shape[1]) + 0.5) * k - 0.5
+            G, Z = self.illumination.at(rows, cols)
+            v = (bands * np.float32(raw) - Z) / G
+        else:
+            v = (bands * np.float32(raw) - self.offset) / self.gain
         grey = v[:, :, 0] if v.shape[2] == 1 else mean_bands(v)
         return grey, v
 
@@ -108,6 +141,16 @@ def _check_inputs(reference, observed) -> None:
 #: Smallest low-resolution difference (a fraction of the reference's 2-98 % range) that
 #: counts as a disagreement of the pre-fit (:func:`photometric_prefit`).
 _MIN_DISAGREEMENT = 0.05
+#: The pre-fit's illumination field wins when it lowers the inliers' residual scale of the
+#: low-resolution images to at most this fraction of the global lines' in some band.
+#: There the residual is the scene's (the blur's remnant, motion in the scene, changes)
+#: more than the sensor's, and a quadratic field takes up part of it whatever the light:
+#: pairs without an illumination change measured 0.64-1.1 (``report.json``'s
+#: ``decision.prefit_illumination``: the failure modes' black hole, occluders and nodata
+#: wedge 0.64-0.69, GoPro and LEVIR pairs 0.74-1.1), the test bed's ramps and vignetting
+#: 0.03-0.09 (``python -m benchmarks.failure_modes``).  A field weak enough to stay above
+#: the bound is one the global line and the estimate's offset absorb.
+PREFIT_FIELD_GAIN = 0.4
 
 
 @dataclass
@@ -127,6 +170,12 @@ class Prefit:
         Observation pixels per map pixel (per side).
     info : dict
         The fit of each band (:func:`reblur.robust.robust_line`).
+    illumination : IlluminationField or None
+        A smooth gain and offset over the image, where it explains the low-resolution
+        images markedly better than ``gain`` and ``offset`` (a ramp, vignetting, haze):
+        the estimate then reads the observation flattened by it (:class:`ScaledView`).
+    illumination_info : dict
+        The choice between the field and the global model (residual scales, ratio).
     """
 
     gain: np.ndarray
@@ -134,6 +183,8 @@ class Prefit:
     agreement: np.ndarray | None = None
     factor: int = 1
     info: list[dict] = field(default_factory=list)
+    illumination: IlluminationField | None = None
+    illumination_info: dict = field(default_factory=dict)
 
     def exclusion(self, margin: float) -> Callable[[Any], np.ndarray] | None:
         """``exclude(box) -> (h, w) bool``: the observation pixels of a window inside a large
@@ -225,31 +276,81 @@ def photometric_prefit(
         low_passed.append((cv2.GaussianBlur(r, (0, 0), sigma),
                            cv2.GaussianBlur(np.ascontiguousarray(obs[:, :, c]), (0, 0), sigma)))
 
-    def fit_band(c: int) -> tuple[float, float, dict, np.ndarray | None]:
+    def fit_band(c: int) -> tuple[float, float, dict, np.ndarray | None, float]:
         r, o = low_passed[c]
         g, b, fit = robust_line(r.ravel()[fit_pix].astype(float), o.ravel()[fit_pix].astype(float))
         if not g > 0.05:  # not a sane gain: keep the identity
             g, b = 1.0, 0.0
         scale = fit.get("scale")
         if scale is None or not scale > 0:
-            return g, b, fit, None
+            return g, b, fit, None, np.nan
         res = o.astype(np.float64) - (np.float64(g) * r + np.float64(b))
         centre, scale, _ = inlier_scale(res[cover], scale)
+        return g, b, fit, _agrees(res, centre, scale, r, g), scale
+
+    def _agrees(res, centre, scale, r, g) -> np.ndarray:
         # a disagreement is also a visible one: at least 5 % of the scene's range (on
         # noise-free data the inliers' scale is the blur's residual, near zero)
         lo, hi = np.percentile(r[cover], [2, 98])
         band = max(3.5 * scale, _MIN_DISAGREEMENT * float(hi - lo) * abs(g))
-        return g, b, fit, np.abs(res - centre) < band
+        return np.abs(res - centre) < band
 
-    agree = cover.copy()
-    infos = []
-    for c, (g, b, fit, ok) in enumerate(band_map(fit_band, C)):
+    fits = band_map(fit_band, C)
+    for c, (g, b, _, _, _) in enumerate(fits):
         gain[c], offset[c] = g, b
-        infos.append(fit)
+    illum, illum_info, field_ok = _prefit_illumination(
+        low_passed, cover, fit_pix, fits, int(ko), tuple(observed.shape[:2]), _agrees)
+    agree = cover.copy()
+    for ok in (field_ok if illum is not None else [f[3] for f in fits]):
         if ok is not None:
             agree &= ok
     agreement = np.where(cover, agree.astype(np.float32), np.float32(np.nan))
-    return Prefit(gain, offset, agreement, int(ko), infos)
+    return Prefit(gain, offset, agreement, int(ko), [f[2] for f in fits], illum, illum_info)
+
+
+def _prefit_illumination(low_passed, cover, fit_pix, fits, k: int, shape, agrees):
+    """The smooth illumination field of :func:`photometric_prefit` and the choice between
+    it and the global lines ``fits`` (the decision's photometry fits the same field,
+    :func:`~reblur.decide.photometry.fit_poly_field`): the field when it lowers the inliers'
+    residual scale of the low-resolution images to at most :data:`PREFIT_FIELD_GAIN` of the
+    lines' in some band.  ``low_passed`` holds each band's (reference, observation) maps of
+    ``k`` observation pixels per map pixel, ``fit_pix`` the flat indices of the sample the
+    lines were fitted on.  Returns the field (None: the global lines stay), its record,
+    and each band's agreement under it (``agrees(res, centre, scale, r, g)``)."""
+    C = len(low_passed)
+    h, w = low_passed[0][1].shape
+    iy, ix = np.divmod(fit_pix, w)
+    ys, xs = (iy + 0.5) * k - 0.5, (ix + 0.5) * k - 0.5  # observation pixels
+    rows, cols = (np.arange(h) + 0.5) * k - 0.5, (np.arange(w) + 0.5) * k - 0.5
+    coef_g, coef_o = np.zeros((C, 6)), np.zeros((C, 6))
+    s_global, s_field = np.full(C, np.nan), np.full(C, np.nan)
+    residuals: list = [None] * C
+    for c, (g, b, _, _, scale) in enumerate(fits):
+        coef_g[c, 0], coef_o[c, 0] = g, b
+        if not scale > 0:
+            continue
+        r, o = low_passed[c]
+        a, bb = fit_poly_field(ys, xs, r.ravel()[fit_pix].astype(float),
+                               o.ravel()[fit_pix].astype(float), shape, (g, b), scale)
+        coef_g[c], coef_o[c] = a, bb
+        G, Z = IlluminationField(a[None], bb[None], shape).at(rows, cols)
+        res = o.astype(np.float64) - (G[:, :, 0] * r.astype(np.float64) + Z[:, :, 0])
+        centre, s_f, _ = inlier_scale(res[cover], scale)
+        s_global[c], s_field[c] = scale, s_f
+        residuals[c] = (res, centre, s_f, r, g)
+    ratio = (s_field + _SCALE_FLOOR) / (s_global + _SCALE_FLOOR)
+    use = bool(np.any(ratio <= PREFIT_FIELD_GAIN))
+    info = {"model": "field" if use else "global",
+            "criterion": f"field if its inlier residual scale is <= {PREFIT_FIELD_GAIN} of "
+                         "the global line's in some band (low-resolution images)",
+            "sigma_global": [float(v) for v in s_global],
+            "sigma_field": [float(v) for v in s_field],
+            "ratio": [round(float(v), 4) for v in ratio]}
+    if not use:
+        return None, info, None
+    field_ = IlluminationField(coef_g, coef_o, tuple(int(v) for v in shape))
+    info["field"] = field_.to_dict()
+    return field_, info, [None if rr is None else agrees(*rr) for rr in residuals]
 
 
 @dataclass
@@ -719,6 +820,11 @@ class Estimated:
     timings: dict[str, float]
     field: Any = None
     field_info: dict[str, Any] = dataclasses.field(default_factory=dict)
+    #: the observation's illumination field when the pre-fit chose one (``gain`` and
+    #: ``offset`` then hold its global line; :func:`photometric_prefit`), composed with the
+    #: estimate's gain and offset as they are, and the record of that choice
+    illumination: IlluminationField | None = None
+    illumination_info: dict[str, Any] = dataclasses.field(default_factory=dict)
 
 
 def _estimate_stage(
@@ -785,7 +891,8 @@ def _estimate_stage(
     prefit = photometric_prefit(reference, observed, H0, s_ref, s_obs, sigma_px=reach / 2.0)
     gain, offset = prefit.gain, prefit.offset
     obs_view = ScaledView(observed, s_obs, gain / 1.0, offset,
-                          exclude=prefit.exclusion(margin=reach / 2.0))
+                          exclude=prefit.exclusion(margin=reach / 2.0),
+                          illumination=prefit.illumination)
     # the reference is read in its own units, scaled by s_ref inside the operator
     timings["photometry"] = time.perf_counter() - t
 
@@ -826,15 +933,19 @@ def _estimate_stage(
         raise ValueError("motion cannot be estimated: every pose weight came out zero")
     grid = motion.grid  # its translations widened where the blur reached beyond them
     photo = motion.info.get("photometry")
-    if photo is not None:
-        # the estimate found view ~ F w + b on its windows, with view = (obs - offset) / gain
-        offset = offset + gain * np.asarray(photo["offset"], float)
+    b_fit = np.zeros(len(gain)) if photo is None else np.asarray(photo["offset"], float)
+    # the estimate found view ~ F w + b on its windows, with view = (obs - offset) / gain
+    offset = offset + gain * b_fit
     # one home for the photometric gain: the weights are the fractions of the exposure
     # spent in each pose (sum 1); what they sum to beyond that is a gain of the observation
     weight_sum = float(motion.weights.sum())
     motion.weights = motion.weights / weight_sum
     gain = gain * weight_sum
     motion.info["weight_sum"] = weight_sum
+    illum = prefit.illumination
+    if illum is not None:  # the same composition with the field: obs ~ G S F w + O + G b
+        illum = IlluminationField(illum.gain * weight_sum,
+                                  illum.offset + illum.gain * b_fit[:, None], illum.shape)
     timings["estimate"] = time.perf_counter() - t
     report("estimate", 1.0)
 
@@ -863,7 +974,8 @@ def _estimate_stage(
 
     return Estimated(base=H0, gain=gain, offset=offset, grid=grid, motion=motion, crop=crop,
                      align_info=align_info, refine_info=refine_info, timings=timings,
-                     field=fld, field_info=field_info)
+                     field=fld, field_info=field_info, illumination=illum,
+                     illumination_info=prefit.illumination_info)
 
 
 def _decision_params(decision: DecisionParams | None, illumination: str | None,
@@ -1166,7 +1278,8 @@ def detect_changes(
     if shutter != "global":
         t_sh = time.perf_counter()
         poses, calibration, shutter_info = _shutter_stage(
-            reference, ScaledView(observed, s_obs, gain, offset), grid, H0, motion.weights,
+            reference, ScaledView(observed, s_obs, gain, offset, illumination=est.illumination),
+            grid, H0, motion.weights,
             shutter, rolling, lam, poses, calibration, local_field,
             bands=(select or SelectParams()).bands)
         timings["shutter"] = time.perf_counter() - t_sh
@@ -1186,6 +1299,7 @@ def detect_changes(
     timings["total"] = time.perf_counter() - t_all
     dec.info["prefit_gain"] = gain.tolist()
     dec.info["prefit_offset"] = offset.tolist()
+    dec.info["prefit_illumination"] = est.illumination_info
     dec.info["shutter"] = shutter_info
     if cache_info is not None:
         dec.info["reference_cache"] = cache_info

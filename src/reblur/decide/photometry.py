@@ -378,7 +378,7 @@ def _poly_terms(ys: np.ndarray, xs: np.ndarray, shape: tuple[int, int]) -> np.nd
 FIELD_FIT_SAMPLES = 50_000
 
 
-def _fit_poly_field(ys, xs, x, y, shape, start, scale, n_iter: int = 15
+def fit_poly_field(ys, xs, x, y, shape, start, scale, n_iter: int = 15
                     ) -> tuple[np.ndarray, np.ndarray]:
     """Huber IRLS of ``y ~ (T a) x + (T b)`` with ``T`` the quadratic terms: a smooth gain
     and offset over the image (ramps, vignetting, haze and cloud-shadow gradients).  Samples
@@ -411,6 +411,40 @@ def _fit_poly_field(ys, xs, x, y, shape, start, scale, n_iter: int = 15
         if done:
             break
     return p[:6], p[6:]
+
+
+@dataclass(frozen=True)
+class IlluminationField:
+    """A smooth illumination field over an image: ``y ~ G(r, c) x + O(r, c)`` per band,
+    ``G`` and ``O`` quadratic in the normalised image coordinates (the six monomials of
+    :func:`_poly_terms`), as :func:`fit_poly_field` fits them.
+
+    Attributes
+    ----------
+    gain, offset : (C, 6) ndarray
+        The coefficients of ``G`` and ``O`` per band.
+    shape : (int, int)
+        The image's ``(height, width)`` the coordinates are normalised by.
+    """
+
+    gain: np.ndarray
+    offset: np.ndarray
+    shape: tuple[int, int]
+
+    def at(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``G`` and ``O`` at every pixel of the rows ``rows`` and columns ``cols`` (image
+        pixel indices): two ``(len(rows), len(cols), C)`` float32 arrays."""
+        yy, xx = np.meshgrid(np.asarray(rows, np.float64), np.asarray(cols, np.float64),
+                             indexing="ij")
+        T = _poly_terms(yy, xx, self.shape)
+        return ((T @ np.asarray(self.gain).T).astype(np.float32),
+                (T @ np.asarray(self.offset).T).astype(np.float32))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"gain": np.asarray(self.gain).tolist(),
+                "offset": np.asarray(self.offset).tolist(),
+                "shape": [int(v) for v in self.shape],
+                "terms": "1, u, v, u^2, uv, v^2 of u, v in [-1, 1] across the columns, rows"}
 
 
 def _weighted_lstsq(A: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -448,7 +482,7 @@ def _illumination(ys, xs, obs, reb, shape, gain, offset, sigma, fits, mode):
     def fit_band(c: int) -> None:  # each band writes its own rows
         r0 = obs[:, c] - gain[c] * reb[:, c] - offset[c]
         s_global[c] = inlier_scale(r0, sigma[c], median(r0))[1]
-        a, b = _fit_poly_field(ys, xs, reb[:, c], obs[:, c], shape, (gain[c], offset[c]),
+        a, b = fit_poly_field(ys, xs, reb[:, c], obs[:, c], shape, (gain[c], offset[c]),
                                float(fits[c].get("scale", sigma[c])))
         fg[c] = _poly_grid(a, shape, block)
         fo[c] = _poly_grid(b, shape, block)

@@ -58,6 +58,11 @@ def shake_for(shape: tuple[int, ...]) -> dict:
             "max_tilt_deg": float(np.degrees(3.0 / (1.2 * side)))}
 
 
+def _check_n_sub(n_sub: int) -> None:
+    if int(n_sub) < 64:
+        raise ValueError(f"n_sub must be >= 64 for a continuous-looking blur, got {n_sub}")
+
+
 def _check_shape(shape: tuple[int, ...]) -> tuple[int, int]:
     if len(shape) < 2 or int(shape[0]) < 2 or int(shape[1]) < 2:
         raise ValueError(f"shape must be (rows, cols[, ...]) with both >= 2, got {shape!r}")
@@ -263,8 +268,7 @@ def random_camera_path(
     CameraPath
     """
     h, w = _check_shape(shape)
-    if int(n_sub) < 64:
-        raise ValueError(f"n_sub must be >= 64 for a continuous-looking blur, got {n_sub}")
+    _check_n_sub(n_sub)
     limits = np.array([max_shift_px, max_shift_px, max_depth, max_tilt_deg, max_tilt_deg,
                        max_roll_deg], dtype=np.float64)
     if np.any(limits < 0) or not np.all(np.isfinite(limits)):
@@ -298,7 +302,8 @@ def defocus_path(shape: tuple[int, ...], radius_px: float, *, n_sub: int = 256,
     n_sub : int
         Number of sub-poses, at least 64.
     focal : float, optional
-        Focal length in pixels; default :func:`default_focal`.
+        Focal length in pixels (the path's record: translations do not depend on it);
+        default :func:`default_focal`.
 
     Returns
     -------
@@ -307,8 +312,7 @@ def defocus_path(shape: tuple[int, ...], radius_px: float, *, n_sub: int = 256,
     h, w = _check_shape(shape)
     if not (np.isfinite(radius_px) and radius_px > 0):
         raise ValueError(f"radius_px must be a finite number > 0, got {radius_px!r}")
-    if int(n_sub) < 64:
-        raise ValueError(f"n_sub must be >= 64 for a continuous-looking blur, got {n_sub}")
+    _check_n_sub(n_sub)
     k = np.arange(int(n_sub)) + 0.5
     r = float(radius_px) * np.sqrt(k / int(n_sub))
     theta = k * np.pi * (3.0 - np.sqrt(5.0))  # the golden angle

@@ -13,6 +13,8 @@ change and sensor, edited by :mod:`reblur.testbed.edits`:
 ``ramp``            an illumination ramp 0.65 -> 1.0 across a 1024 x 1024 observation, 8 pasted
                     changes (false alarms and recall)
 ``vignette``        radial vignetting (35 % at the corners), 8 pasted changes
+``ramp_strong``     an illumination ramp 0.45 -> 1.0 (the light of a low sun across the
+                    frame), 8 pasted changes
 ``thin``            four thin long changes (10-14 px wide, 250-400 px long, straight and L)
 ``identical``       observation = reference, byte for byte
 ``lens3``           barrel lens distortion of the observation camera moving the corners by
@@ -43,8 +45,8 @@ __all__ = ["CASES", "GEOMETRY_CASES", "failure_pair", "wedge_mask"]
 
 #: Case names, in the order of the issue's table.
 CASES = ("hole25", "hole50", "occluder25", "occluder45", "occluder60", "plain", "ramp",
-         "vignette", "thin", "identical", "lens3", "pincushion3", "lens3_changes", "parallax",
-         "parallax_changes")
+         "vignette", "ramp_strong", "thin", "identical", "lens3", "pincushion3",
+         "lens3_changes", "parallax", "parallax_changes")
 
 #: The geometry cases: ``plan_pair`` keywords and number of pasted changes.
 GEOMETRY_CASES = {
@@ -113,10 +115,10 @@ def failure_pair(name: str, *, scene: str = "test_7", seed: int = 0, bits: int =
             occ = _square_occluder(side, frac, 0.12, 0.08, seed)
         return make_pair(sc, n_changes=0, motion=shake_for(sc.shape), objects=(occ,),
                          **common)
-    if name in ("plain", "ramp", "vignette"):
+    if name in ("plain", "ramp", "vignette", "ramp_strong"):
         shape = base.shape[:2]
         light = {"plain": None, "ramp": Ramp(shape, 0.65, 1.0),
-                 "vignette": Vignette(shape, 0.35)}[name]
+                 "vignette": Vignette(shape, 0.35), "ramp_strong": Ramp(shape, 0.45, 1.0)}[name]
         return make_pair(base, n_changes=8, motion=shake_for(base.shape), illumination=light,
                          **common)
     if name in GEOMETRY_CASES:
