@@ -364,10 +364,17 @@ _SCALE_FLOOR = 1.0 / 65535.0
 FIT_SAMPLES = 100_000
 
 
-def _poly_terms(ys: np.ndarray, xs: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """The six quadratic monomials of normalised image coordinates (``[-1, 1]``)."""
+def _normalised(ys, xs, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Image coordinates normalised to ``[-1, 1]``: ``u`` across the columns, ``v`` down
+    the rows."""
     u = 2.0 * (np.asarray(xs, np.float64) + 0.5) / shape[1] - 1.0
     v = 2.0 * (np.asarray(ys, np.float64) + 0.5) / shape[0] - 1.0
+    return u, v
+
+
+def _poly_terms(ys: np.ndarray, xs: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """The six quadratic monomials of normalised image coordinates (``[-1, 1]``)."""
+    u, v = _normalised(ys, xs, shape)
     return np.stack([np.ones_like(u), u, v, u * u, u * v, v * v], axis=-1)
 
 
@@ -378,12 +385,13 @@ def _poly_terms(ys: np.ndarray, xs: np.ndarray, shape: tuple[int, int]) -> np.nd
 FIELD_FIT_SAMPLES = 50_000
 
 
-def fit_poly_field(ys, xs, x, y, shape, start, scale, n_iter: int = 15
-                    ) -> tuple[np.ndarray, np.ndarray]:
+def fit_poly_field(ys, xs, x, y, shape, start, scale, n_iter: int = 15,
+                   max_samples: int = FIELD_FIT_SAMPLES) -> tuple[np.ndarray, np.ndarray]:
     """Huber IRLS of ``y ~ (T a) x + (T b)`` with ``T`` the quadratic terms: a smooth gain
     and offset over the image (ramps, vignetting, haze and cloud-shadow gradients).  Samples
     farther than 8 inlier ``scale`` s from the ``start`` model's band get no say, then the
-    Huber weights use the residuals' MAD.  Returns the coefficients ``a``, ``b``."""
+    Huber weights use the residuals' MAD; at most ``max_samples`` of the others, evenly
+    spaced, are fitted.  Returns the coefficients ``a``, ``b``."""
     p = np.zeros(12)
     p[0], p[6] = start
     # the start model's residuals (its design row is x, 0, .., 0, 1, 0, ..: the product
@@ -394,8 +402,8 @@ def fit_poly_field(ys, xs, x, y, shape, start, scale, n_iter: int = 15
     if np.count_nonzero(use) < 100:
         use = np.ones(r.size, bool)
     idx = np.flatnonzero(use)
-    if idx.size > FIELD_FIT_SAMPLES:  # an even subset (the samples are in image order)
-        idx = idx[::-(-idx.size // FIELD_FIT_SAMPLES)]
+    if idx.size > max_samples:  # an even subset (the samples are in image order)
+        idx = idx[::-(-idx.size // max_samples)]
     T = _poly_terms(np.asarray(ys)[idx], np.asarray(xs)[idx], shape)
     A = np.concatenate([T * x[idx, None], T], axis=1)
     yy = y[idx]
@@ -434,11 +442,18 @@ class IlluminationField:
     def at(self, rows: np.ndarray, cols: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``G`` and ``O`` at every pixel of the rows ``rows`` and columns ``cols`` (image
         pixel indices): two ``(len(rows), len(cols), C)`` float32 arrays."""
-        yy, xx = np.meshgrid(np.asarray(rows, np.float64), np.asarray(cols, np.float64),
-                             indexing="ij")
-        T = _poly_terms(yy, xx, self.shape)
-        return ((T @ np.asarray(self.gain).T).astype(np.float32),
-                (T @ np.asarray(self.offset).T).astype(np.float32))
+        # the monomials of _poly_terms, broadcast: u along a row, v down a column
+        u, v = _normalised(np.asarray(rows, np.float64)[:, None],
+                           np.asarray(cols, np.float64)[None, :], self.shape)
+        uu, uv, vv = u * u, u * v, v * v
+
+        def field(coef: np.ndarray) -> np.ndarray:
+            out = np.empty((uv.shape[0], uv.shape[1], coef.shape[0]), np.float32)
+            for c, k in enumerate(np.asarray(coef, np.float64)):
+                out[:, :, c] = k[0] + k[1] * u + k[2] * v + k[3] * uu + k[4] * uv + k[5] * vv
+            return out
+
+        return field(self.gain), field(self.offset)
 
     def to_dict(self) -> dict[str, Any]:
         return {"gain": np.asarray(self.gain).tolist(),
