@@ -151,3 +151,35 @@ def test_a_dense_blur_is_estimated_within_the_pose_bound_and_noted(monkeypatch):
     assert any("more camera poses than an estimate holds (120 per solve" in s for s in notes)
     with pytest.raises(ValueError, match="max_active"):
         SelectParams(max_active=0)
+
+
+def test_a_shutter_model_is_not_fitted_on_a_blur_that_filled_the_pose_bound(monkeypatch):
+    """``--shutter auto`` on a dense blur whose estimate filled the pose bound: the band
+    model would start from the global support in each of its row bands (the defocus pair
+    of benchmarks.cost did not finish in 10 min); it is not fitted (the choice is never
+    called), the global model decides, and the report says why.  Without the bound reached
+    the choice runs as before."""
+    import reblur.pipeline as pl
+    from reblur import detect_changes
+
+    calls = []
+
+    def choose(*args, **kwargs):
+        calls.append(1)
+        raise AssertionError("the shutter choice ran on a capped estimate")
+
+    monkeypatch.setattr(pl, "choose_shutter", choose)
+    n = 500
+    ref = (_gray(LEVIR / "A" / "test_7.png", n) * 255).astype(np.uint8)
+    disk = np.zeros((13, 13), np.float32)
+    cv2.circle(disk, (6, 6), 6, 1.0, -1)
+    obs = cv2.filter2D(ref, -1, disk / disk.sum(), borderType=cv2.BORDER_REFLECT)
+    res = detect_changes(ref, obs, shutter="auto", select=SelectParams(max_active=120))
+    assert res.motion.info["capped"] >= 1 and not calls
+    shutter = res.decision["shutter"]
+    assert shutter["model"] == "global" and "pose bound" in shutter["skipped"]
+    notes = model_notes(res)
+    assert any(s.startswith("--shutter auto was not applied") for s in notes), notes
+    with pytest.raises(AssertionError, match="shutter choice ran"):  # a plain blur: it runs
+        detect_changes(ref, cv2.GaussianBlur(ref, (0, 0), 1.0), shutter="auto",
+                       select=SelectParams(max_active=120))

@@ -1285,7 +1285,15 @@ def detect_changes(
     poses = SparsePoses(motion.weights, grid, H0, field=est.field)
     calibration = _windows_of(motion)
     shutter_info: dict[str, Any] = {"asked": shutter, "model": "global"}
-    if shutter != "global":
+    if shutter != "global" and motion.info.get("capped"):
+        # the band model holds the global support in each of its bands, from a warm start
+        # of them all: a support that filled the estimate's pose bound made it grind
+        shutter_info["skipped"] = (
+            f"the blur filled the estimate's pose bound ({motion.info.get('max_active')} "
+            "poses) in a solve: a dense blur such as defocus, not a rolling shutter's "
+            "drift; the band model, which would hold that support in each row band, was "
+            "not fitted")
+    elif shutter != "global":
         t_sh = time.perf_counter()
         poses, calibration, shutter_info = _shutter_stage(
             reference, ScaledView(observed, s_obs, gain, offset, illumination=est.illumination),

@@ -767,8 +767,9 @@ FIT_SPREAD_DB = 6.0
 def model_notes(result) -> list[str]:
     """What an analyst should know about how well the model fits: estimation windows whose
     fits disagree, no window that fits (the estimate decided from the best one), a blur
-    spread over more poses than a solve holds, a blur beyond the pose grid's translations,
-    and a model error the decision's tolerance could not absorb."""
+    spread over more poses than a solve holds (and a shutter model left unfitted for it), a
+    blur beyond the pose grid's translations, and a model error the decision's tolerance
+    could not absorb."""
     notes = []
     info = result.motion.info
     fits = [f for f in (info.get("psnr_inliers") or info.get("psnr") or [])
@@ -795,6 +796,10 @@ def model_notes(result) -> list[str]:
             "best over the poses held, so the reblurred reference may miss part of the "
             "blur ([select] max_active in a --config file raises the bound, at a cost "
             "growing as its cube)")
+    skipped = (result.decision.get("shutter") or {}).get("skipped")
+    if skipped:
+        notes.append(f"--shutter {result.decision['shutter']['asked']} was not applied: "
+                     f"{skipped}")
     tr = info.get("translations") or {}
     checks = tr.get("checks") or [{}]
     # on the edge with no wider grid tried (a grid given, a growth the start used up) or
