@@ -16,7 +16,7 @@ from .io import ChunkCache, tile_chunks
 from .operator import BlurOperator
 from .result import MotionEstimate
 from .robust import huber_line, mad
-from .solve import Scratch, active_set, fista
+from .solve import Scratch, active_set, check_max_active, fista
 from .tiled import SparsePoses, reblur_tile
 from .warp import as_box, read_window
 
@@ -308,10 +308,7 @@ def estimate_motion(
     if isinstance(blur_reach, bool) or not (
             isinstance(blur_reach, (int, float, np.number)) and 0 <= blur_reach < np.inf):
         raise ValueError(f"blur_reach must be a finite number >= 0, got {blur_reach!r}")
-    if max_active is not None and (isinstance(max_active, bool)
-                                   or not isinstance(max_active, (int, np.integer))
-                                   or max_active < 1):
-        raise ValueError(f"max_active must be an integer >= 1 or None, got {max_active!r}")
+    check_max_active(max_active)
     start, log = grid, []
     if t_grow > 1 and blur_reach > 0 and solver == "active-set" and resume is None:
         grid, t_grow = _widen_to_reach(grid, boxes, int(t_grow), float(blur_reach), log)

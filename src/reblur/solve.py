@@ -396,6 +396,14 @@ def _restore_threads(wins, saved) -> None:
         w.op.threads = t
 
 
+def check_max_active(max_active) -> None:
+    """Raise ``ValueError`` unless ``max_active`` is None or an integer >= 1."""
+    if max_active is not None and (isinstance(max_active, bool)
+                                   or not isinstance(max_active, (int, np.integer))
+                                   or max_active < 1):
+        raise ValueError(f"max_active must be an integer >= 1 or None, got {max_active!r}")
+
+
 def active_set(
     ops: Sequence[BlurOperator],
     gs: Sequence[np.ndarray],
@@ -509,10 +517,7 @@ def active_set(
     step = int(row_step)
     if step < 1:
         raise ValueError(f"row_step must be at least 1, got {row_step}")
-    if max_active is not None and (isinstance(max_active, bool)
-                                   or not isinstance(max_active, (int, np.integer))
-                                   or max_active < 1):
-        raise ValueError(f"max_active must be an integer >= 1 or None, got {max_active!r}")
+    check_max_active(max_active)
     if step > 1:
         gs = [np.ascontiguousarray(np.asarray(g, dtype=float).reshape(op.dimsd)[::step])
               for op, g in zip(ops, gs, strict=True)]
