@@ -53,6 +53,8 @@ BENCHES = {
     "gram_work": ("benchmarks.gram_work", "main"),
     # the 1 MP pairs on one core and on all: the same bytes out (#28)
     "cores": ("benchmarks.cores", "main"),
+    # thin strips: the estimation windows and the decision, 130-400 px across
+    "strips": ("benchmarks.strips", "main"),
 }
 
 

@@ -1,6 +1,8 @@
 """Sub-image selection (Algorithm 1): good-region scores, kernel similarity, the crop it picks,
 and the placement of spread windows."""
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -10,6 +12,7 @@ from reblur import PoseGrid, estimate_motion
 from reblur.metrics import psnr
 from reblur.select import (
     SelectParams,
+    _Lattice,
     _spread_partners,
     _texture_term,
     kernel_similarity,
@@ -127,15 +130,17 @@ def test_spread_partner_goes_far_when_textured_enough():
     for right, expect_right in ((0.3, True), (0.002, False)):
         cells = np.ones((10, 20))
         cells[:, 10:] = right
-        (b,) = _spread_partners(cells, cover, 3, 100, first, 1, (1000, 2000), floor=0.2)
+        (b,) = _spread_partners(cells, cover, 3, _Lattice(100), first, 1, (1000, 2000),
+                                  floor=0.2)
         assert (b.x0 >= 1000) == expect_right, (right, b)
 
 
-def _coverage_slow(ref_shape, obs_shape, base, grid, unit):
+def _coverage_slow(ref_shape, obs_shape, base, grid, unit, origin=(0, 0)):
     """Every base pose, every cell corner (the definition, no shortcut)."""
     from reblur.grid import map_points
 
-    ny, nx = obs_shape[0] // unit, obs_shape[1] // unit
+    oy, ox = origin
+    ny, nx = (obs_shape[0] - oy) // unit, (obs_shape[1] - ox) // unit
     margin = max(max(abs(v) for v in grid.tx), max(abs(v) for v in grid.ty)) + 2
     ys, xs = np.mgrid[0:ny, 0:nx]
     cover = np.ones((ny, nx), bool)
@@ -143,7 +148,7 @@ def _coverage_slow(ref_shape, obs_shape, base, grid, unit):
         Hi = np.linalg.inv(grid.base_homography(b) @ base)
         for dy in (0, unit - 1):
             for dx in (0, unit - 1):
-                pts = np.stack([xs.ravel() * unit + dx, ys.ravel() * unit + dy], 1)
+                pts = np.stack([ox + xs.ravel() * unit + dx, oy + ys.ravel() * unit + dy], 1)
                 q = map_points(Hi, pts.astype(float))
                 ok = ((q[:, 0] >= margin) & (q[:, 0] <= ref_shape[1] - 1 - margin)
                       & (q[:, 1] >= margin) & (q[:, 1] <= ref_shape[0] - 1 - margin))
@@ -166,6 +171,139 @@ def test_coverage_cells_match_the_definition_on_a_fine_grid():
         slow = _coverage_slow(shape, shape, base, grid, 100)
         assert 0.3 < slow.mean() < 0.99
         assert np.array_equal(fast, slow)
+
+
+def test_a_strip_gets_a_centred_lattice_covered_by_every_pose():
+    """A 200 px high strip: the edge-aligned lattice's two rows of cells each reach an edge
+    the translation margin excludes, so none is covered; the centred lattice's single row
+    (50 px from each edge) is, by the definition's every-pose check."""
+    from reblur.select import _coverage_cells, centred_lattice
+
+    shape = (200, 3000)
+    grid = PoseGrid.from_ranges(shape, t_max=12, rz_max=0.2)
+    base = np.eye(3)
+    assert not _coverage_cells(shape, shape, base, grid, 100).any()
+    lat = centred_lattice(*shape, 100)
+    assert (lat.oy, lat.ox) == (50, 50)  # one fewer cell along each axis, centred
+    for origin in ((lat.oy, lat.ox), (37, 11)):
+        fast = _coverage_cells(shape, shape, base, grid, 100, origin)
+        slow = _coverage_slow(shape, shape, base, grid, 100, origin)
+        assert fast.shape == slow.shape == ((200 - origin[0]) // 100, (3000 - origin[1]) // 100)
+        assert np.array_equal(fast, slow)
+    assert _coverage_cells(shape, shape, base, grid, 100, (lat.oy, lat.ox)).any()
+    # one cell across: centred in the spare pixels; an exact fit of two cells: one, centred
+    assert (centred_lattice(150, 1000, 100).oy, centred_lattice(250, 1000, 100).oy) == (25, 75)
+
+
+def test_agreeing_cells_at_an_origin_count_the_map_pixels_of_each_cell():
+    """The cells' agreement against an explicit count over each cell's map pixels."""
+    from reblur.select import MAX_DISAGREEING, agreeing_cells
+
+    rng = np.random.default_rng(4)
+    factor, unit, origin = 4, 100, (50, 25)
+    agree = (rng.random((100, 200)) < 0.55).astype(float)
+    agree[rng.random(agree.shape) < 0.05] = np.nan
+    got = agreeing_cells(agree, factor, (1, 7), unit, origin)
+    for ix in range(7):
+        y0, x0 = origin[0] + 0, origin[1] + ix * unit
+        cell = agree[round(y0 / factor):round((y0 + unit) / factor),
+                     round(x0 / factor):round((x0 + unit) / factor)]
+        share = np.nansum(cell) / cell.size
+        assert got[0, ix] == (share >= 1 - MAX_DISAGREEING), ix
+
+
+def test_elongated_windows_grow_in_turns_over_covered_free_cells():
+    """Two one-cell windows in a strip of 20 covered cells grow along it until they meet
+    (every covered cell taken, none twice); a lone one in open ground grows to a 3 x 3
+    square; an uncovered cell stops the growth."""
+    from reblur.select import _elongate
+
+    lat = _Lattice(100, 50, 50)
+    cover = np.ones((1, 20), bool)
+    out = _elongate([lat.box(0, 3, 1), lat.box(0, 12, 1)], cover, lat, 25)
+    taken = np.zeros(20, int)
+    for b in out:
+        assert (b.y0, b.h) == (50, 100)
+        ix0, ix1 = lat.cell(b.y0, b.x0)[1], lat.cell(b.y0, b.x0 + b.w - 1)[1]
+        taken[ix0 : ix1 + 1] += 1
+    assert (taken == 1).all()
+    assert out[0].x0 < out[1].x0  # the windows keep their order along the strip
+    (sq,) = _elongate([lat.box(4, 4, 1)], np.ones((10, 10), bool), lat, 9)
+    assert (sq.y0, sq.x0, sq.h, sq.w) == (50 + 300, 50 + 300, 300, 300)
+    cover = np.ones((1, 20), bool)
+    cover[0, 6] = False
+    (b,) = _elongate([lat.box(0, 3, 1)], cover, lat, 25)
+    assert (b.x0, b.w) == (50, 600)  # cells 0-5: cell 6 is not covered
+
+
+@pytest.mark.parametrize("height", [150, 200])
+def test_a_strip_is_decided_from_windows_along_it(height):
+    """Strips of a LEVIR scene 1024 px long through the test bed's shake, view change and
+    sensor, three pasted changes.  At 200 px across the edge-aligned lattice left no covered
+    cell (refused before); its windows of one cell (100 px) then gave 2.6 % false alarms.
+    At 150 px the paper's 3 degree roll covered one central cell only: from one window the
+    roll is unobservable and 4.3 % of the far end came out as change.  With the roll range
+    narrowed to the strip and the windows lengthened along it, they span at least half the
+    strip and the false alarms fall to the level of a full frame's."""
+    import cv2
+
+    from reblur import detect_changes
+    from reblur.report import model_notes
+    from reblur.testbed.camera import shake_for
+    from reblur.testbed.pairs import make_pair
+    from reblur.testbed.scenes import levir_image
+
+    scene = levir_image("test_7")
+    y0 = (scene.shape[0] - height) // 2
+    scene = scene[y0 : y0 + height]
+    pair = make_pair(scene, n_changes=3, motion=shake_for(scene.shape),
+                     viewpoint={"shift_px": 6.0}, seed=3)
+    res = detect_changes(pair.reference, pair.observed)
+    boxes = res.crop.boxes
+    assert len(boxes) == 2
+    for by, _, h, w in boxes:
+        assert h == 100 and w >= 200 and by == (height - 100) // 2, boxes
+    ends = [(x0, x0 + w) for _, x0, _, w in boxes]
+    # at least half the lattice's 9 cells along the strip (rounded up)
+    assert max(e for _, e in ends) - min(s for s, _ in ends) >= 500, boxes
+    near = cv2.dilate(pair.truth.astype(np.uint8), np.ones((7, 7), np.uint8)).astype(bool)
+    quiet = pair.valid & ~near
+    far = (res.change & quiet).sum() / quiet.sum()
+    recall = (res.change & pair.truth).sum() / pair.truth.sum()
+    assert far < 0.003 and recall > 0.9, (far, recall)
+    narrowed = res.motion.info["selection"].get("strip_roll_deg")
+    if height == 150:
+        assert narrowed is not None and narrowed[1] < narrowed[0]
+        assert max(abs(r) for r in res.motion.grid.rz) == pytest.approx(narrowed[1])
+        assert any("thin strip" in n for n in model_notes(res))
+    else:
+        assert narrowed is None
+
+
+def test_strip_roll_is_halved_until_the_covered_cells_span_half_the_strip():
+    """The roll range narrowed by halving, checked on the coverage definition (every pose,
+    every cell corner): the range it keeps covers cells over at least half the strip, the
+    next wider one (twice it) did not."""
+    from reblur.select import _coverage_cells, _strip_roll, centred_lattice
+
+    shape = (150, 1024)
+    grid = PoseGrid.from_ranges(shape, t_max=12, rz_max=3.0)
+    lat = centred_lattice(*shape, 100)
+    base = np.eye(3)
+    cover = _coverage_cells(shape, shape, base, grid, 100, (lat.oy, lat.ox))
+
+    def span(c):
+        idx = np.flatnonzero(c.any(axis=0))
+        return 0 if idx.size == 0 else idx[-1] - idx[0] + 1
+
+    assert 2 * span(cover) < cover.shape[1]
+    g2, c2 = _strip_roll(shape, shape, base, grid, lat, cover)
+    r2 = max(abs(r) for r in g2.rz)
+    assert r2 < 3.0 and set(g2.rz) <= set(grid.rz) and 0.0 in g2.rz
+    assert np.array_equal(c2, _coverage_slow(shape, shape, base, g2, 100, (lat.oy, lat.ox)))
+    assert 2 * span(c2) >= c2.shape[1]
+    wider = dataclasses.replace(grid, rz=tuple(r for r in grid.rz if abs(r) <= 2 * r2 + 1e-12))
+    assert 2 * span(_coverage_slow(shape, shape, base, wider, 100, (lat.oy, lat.ox))) < 9
 
 
 def test_kernel_similarity_against_direct_correlation():

@@ -768,8 +768,8 @@ def model_notes(result) -> list[str]:
     """What an analyst should know about how well the model fits: estimation windows whose
     fits disagree, no window that fits (the estimate decided from the best one), a blur
     spread over more poses than a solve holds (and a shutter model left unfitted for it), a
-    blur beyond the pose grid's translations, and a model error the decision's tolerance
-    could not absorb."""
+    roll range narrowed to a thin strip, a blur beyond the pose grid's translations, and a
+    model error the decision's tolerance could not absorb."""
     notes = []
     info = result.motion.info
     fits = [f for f in (info.get("psnr_inliers") or info.get("psnr") or [])
@@ -788,6 +788,13 @@ def model_notes(result) -> list[str]:
             f"{sel.get('max_occluded', 2 / 3):.0%} is rejected) in each of the "
             f"{sel.get('estimates', 1)} estimates tried; the motion comes from the best one, "
             "so the reblurred reference and the changes are less reliable than usual")
+    if sel.get("strip_roll_deg"):
+        r0, r1 = sel["strip_roll_deg"]
+        notes.append(
+            f"the observation is a thin strip: the pose grid's roll range was narrowed from "
+            f"+-{r0:.2f} to +-{r1:.2f} degrees so that estimation windows far apart along it see "
+            "data for every pose (a larger roll would move the strip's ends across it); a "
+            "roll beyond that range is not modelled")
     if info.get("capped"):
         notes.append(
             f"the blur spreads over more camera poses than an estimate holds "

@@ -23,6 +23,7 @@ of the energy of its strong gradients: it is high only when every orientation is
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 from dataclasses import dataclass, field
 from numbers import Integral, Real
@@ -145,6 +146,20 @@ def region_scores(gray: np.ndarray, cell: int) -> np.ndarray:
     return np.exp(np.log(e + 1e-12).mean(axis=0))
 
 
+def _lattice_scores(gray: np.ndarray, s: float, lat: _Lattice,
+                    shape: tuple[int, int]) -> np.ndarray:
+    """:func:`region_scores` of ``lat``'s cells in an observation of ``shape``, from its
+    overview ``gray`` (``s`` overview pixels per observation pixel); 0 where the overview
+    has no whole cell."""
+    cell_small = max(int(round(lat.unit * s)), 2)
+    y0, x0 = int(round(lat.oy * s)), int(round(lat.ox * s))
+    small = region_scores(gray[y0:, x0:], cell_small)
+    cells = np.zeros(lat.shape(*shape))
+    cy, cx = min(cells.shape[0], small.shape[0]), min(cells.shape[1], small.shape[1])
+    cells[:cy, :cx] = small[:cy, :cx]
+    return cells
+
+
 def _window_scores(cells: np.ndarray, n: int) -> np.ndarray:
     """Mean cell score of every ``n x n`` block of cells (summed-area table)."""
     ny, nx = cells.shape
@@ -230,17 +245,64 @@ def kernel_similarity(
 MAX_DISAGREEING = 0.5
 
 
+@dataclass(frozen=True)
+class _Lattice:
+    """Cells of ``unit`` x ``unit`` observation pixels, the first one's corner at ``(oy,
+    ox)``: the positions the windows are chosen from."""
+
+    unit: int
+    oy: int = 0
+    ox: int = 0
+
+    def shape(self, H: int, W: int) -> tuple[int, int]:
+        """Cells in an ``H x W`` observation."""
+        return max((H - self.oy) // self.unit, 0), max((W - self.ox) // self.unit, 0)
+
+    def box(self, iy, ix, n: int) -> Box:
+        """The ``n x n``-cell window whose first cell is ``(iy, ix)``."""
+        u = self.unit
+        return Box(self.oy + int(iy) * u, self.ox + int(ix) * u, n * u, n * u)
+
+    def centres(self, shape: tuple[int, int], n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Centres (y, x; pixels) of the ``n x n``-cell windows starting at each of
+        ``shape`` cells."""
+        ys, xs = np.mgrid[0 : shape[0], 0 : shape[1]]
+        return self.oy + (ys + n / 2) * self.unit, self.ox + (xs + n / 2) * self.unit
+
+    def cell(self, y: int, x: int) -> tuple[int, int]:
+        """The cell holding pixel ``(y, x)``."""
+        return (y - self.oy) // self.unit, (x - self.ox) // self.unit
+
+
+def centred_lattice(H: int, W: int, unit: int) -> _Lattice:
+    """The lattice one cell shorter along each axis that has two or more, centred.
+
+    The edge-aligned lattice's outer cells reach the image's edges, where the pose grid's
+    translation margin leaves no pixel for every pose; when the image is one or two cells
+    across (a strip), no cell of it is covered (:func:`_coverage_cells`), while a centred
+    cell keeps half the spare pixels on each side.
+    """
+    def origin(n: int) -> int:
+        k = n // unit
+        return (n - max(k - 1, 1) * unit) // 2 if k >= 1 else 0
+
+    return _Lattice(unit, origin(H), origin(W))
+
+
 def agreeing_cells(agreement: np.ndarray, factor: int, shape: tuple[int, int],
-                   unit: int) -> np.ndarray:
-    """Cells of ``unit`` pixels (``shape`` of them) where at most :data:`MAX_DISAGREEING` of
-    the low-resolution ``agreement`` map (``factor`` observation pixels per map pixel; NaN:
-    no data, counted as disagreeing) says the images disagree."""
+                   unit: int, origin: tuple[int, int] = (0, 0)) -> np.ndarray:
+    """Cells of ``unit`` pixels (``shape`` of them, the first at ``origin``) where at most
+    :data:`MAX_DISAGREEING` of the low-resolution ``agreement`` map (``factor`` observation
+    pixels per map pixel; NaN: no data, counted as disagreeing) says the images disagree."""
     a = np.nan_to_num(np.asarray(agreement, np.float64), nan=0.0)
     ny, nx = shape
     ii = np.zeros((a.shape[0] + 1, a.shape[1] + 1))
     ii[1:, 1:] = a.cumsum(0).cumsum(1)
-    ys = np.clip(np.round(np.arange(ny + 1) * unit / factor).astype(int), 0, a.shape[0])
-    xs = np.clip(np.round(np.arange(nx + 1) * unit / factor).astype(int), 0, a.shape[1])
+    oy, ox = origin
+    ys = np.clip(np.round((oy + np.arange(ny + 1) * unit) / factor).astype(int), 0,
+                 a.shape[0])
+    xs = np.clip(np.round((ox + np.arange(nx + 1) * unit) / factor).astype(int), 0,
+                 a.shape[1])
     s = ii[ys[1:, None], xs[None, 1:]] - ii[ys[:-1, None], xs[None, 1:]] \
         - ii[ys[1:, None], xs[None, :-1]] + ii[ys[:-1, None], xs[None, :-1]]
     n = (ys[1:] - ys[:-1])[:, None] * (xs[1:] - xs[:-1])[None, :]
@@ -248,7 +310,8 @@ def agreeing_cells(agreement: np.ndarray, factor: int, shape: tuple[int, int],
     return frac >= 1.0 - MAX_DISAGREEING
 
 
-def _candidates(cells: np.ndarray, cover: np.ndarray, n: int, k: int, unit: int) -> list[Box]:
+def _candidates(cells: np.ndarray, cover: np.ndarray, n: int, k: int,
+                lat: _Lattice) -> list[Box]:
     """Up to ``k`` best ``n x n``-cell windows, fully covered, not overlapping each other."""
     sc = _window_scores(cells, n)
     cv = _window_scores(cover.astype(float), n)
@@ -262,14 +325,15 @@ def _candidates(cells: np.ndarray, cover: np.ndarray, n: int, k: int, unit: int)
         iy, ix = np.unravel_index(flat, sc.shape)
         if not np.isfinite(sc[iy, ix]) or taken[iy, ix]:
             continue
-        out.append(Box(int(iy * unit), int(ix * unit), n * unit, n * unit))
+        out.append(lat.box(iy, ix, n))
         taken[max(iy - n + 1, 0) : iy + n, max(ix - n + 1, 0) : ix + n] = True
         if len(out) >= k:
             break
     return out
 
 
-def _coverage_cells(ref_shape, obs_shape, base, grid: PoseGrid, unit: int) -> np.ndarray:
+def _coverage_cells(ref_shape, obs_shape, base, grid: PoseGrid, unit: int,
+                    origin: tuple[int, int] = (0, 0)) -> np.ndarray:
     """Cells of the observation that every base pose maps inside the reference.
 
     The reference must also hold the translation margin (the largest |t| plus 2 px), so that
@@ -283,15 +347,18 @@ def _coverage_cells(ref_shape, obs_shape, base, grid: PoseGrid, unit: int) -> np
     the farthest points of a near-affine displacement, grown by a quarter and a pixel) is
     covered, a cell that one of them maps outside is not, and only the cells left in
     between, a band along the limit, are mapped by every base.  The result is the
-    definition's, without mapping every cell by each of the thousands of angles.
+    definition's, without mapping every cell by each of the thousands of angles.  The
+    cells are ``unit`` pixels, the first one's corner at ``origin`` (y, x).
     """
-    ny, nx = obs_shape[0] // unit, obs_shape[1] // unit
+    oy, ox = origin
+    ny, nx = _Lattice(unit, oy, ox).shape(*obs_shape[:2])
     Hr, Wr = ref_shape[:2]
     B0 = np.eye(3) if base is None else np.asarray(base, float)
     margin = max(max(abs(v) for v in grid.tx), max(abs(v) for v in grid.ty)) + 2
     inv = [np.linalg.inv(grid.base_homography(b) @ B0) for b in range(grid.n_bases)]
     ys, xs = np.mgrid[0:ny, 0:nx]
-    corners = [np.stack([xs.ravel() * unit + dx, ys.ravel() * unit + dy], axis=1).astype(float)
+    corners = [np.stack([ox + xs.ravel() * unit + dx, oy + ys.ravel() * unit + dy],
+                        axis=1).astype(float)
                for dy, dx in itertools.product((0, unit - 1), (0, unit - 1))]
 
     def inside(bases, cells: np.ndarray, lim: float) -> np.ndarray:
@@ -392,18 +459,30 @@ def select_windows(
     if min(H, W) < unit:
         raise ValueError(f"the observation ({H}x{W}) is smaller than one {unit}-px crop")
     gray, s = _gray_overview(observed, p.overview_side)
-    # cells of `unit` full-resolution pixels on the overview
-    cell_small = max(int(round(unit * s)), 2)
-    cells_small = region_scores(gray, cell_small)
-    ny, nx = H // unit, W // unit
-    cells = np.zeros((ny, nx))
-    cy, cx = min(ny, cells_small.shape[0]), min(nx, cells_small.shape[1])
-    cells[:cy, :cx] = cells_small[:cy, :cx]
+    lat = _Lattice(unit)
+    cells = _lattice_scores(gray, s, lat, (H, W))
     if not np.any(cells > 1e-9):
         raise ValueError("motion cannot be estimated: the observation is textureless")
     cover = _coverage_cells(reference.shape, (H, W), base, grid, unit)
+    centred = centred_lattice(H, W, unit)
+    if not cover.any() and centred != lat:
+        # a strip one or two cells across: the margin leaves no edge-aligned cell
+        lat = centred
+        cells = _lattice_scores(gray, s, lat, (H, W))
+        cover = _coverage_cells(reference.shape, (H, W), base, grid, unit, (lat.oy, lat.ox))
+    # a strip: at least twice as long as it is across, and the pose grid's margin leaves
+    # at most one line of covered cells across it
+    strip = (max(cover.shape) >= 2 * min(cover.shape)
+             and min(cover.any(axis=1).sum(), cover.any(axis=0).sum()) <= 1)
+    extra: dict = {}
+    if strip:
+        roll = max(abs(r) for r in grid.rz)
+        grid, cover = _strip_roll(reference.shape, (H, W), base, grid, lat, cover)
+        if max(abs(r) for r in grid.rz) < roll:
+            extra["strip_roll_deg"] = [roll, max(abs(r) for r in grid.rz)]
     if agreement is not None and agreement[0] is not None:
-        agreeing = agreeing_cells(agreement[0], agreement[1], cover.shape, unit)
+        agreeing = agreeing_cells(agreement[0], agreement[1], cover.shape, unit,
+                                  (lat.oy, lat.ox))
         if (cover & agreeing).any():
             cover = cover & agreeing
     if not cover.any():
@@ -413,10 +492,10 @@ def select_windows(
         )
     tried: list[dict] = []
     if p.windows >= 2:
-        return _select_spread(reference, observed, grid, base, p, cells, cover, (H, W), progress,
-                              blur_reach)
+        return _select_spread(reference, observed, grid, base, p, cells, cover, (H, W),
+                              progress, blur_reach, lat, strip, extra)
 
-    runs = _Runs(reference, observed, grid, base, p, blur_reach)
+    runs = _Runs(reference, observed, grid, base, p, blur_reach, extra)
 
     def measure(b: Box) -> float:
         m, _ = kernel_similarity(
@@ -426,7 +505,7 @@ def select_windows(
         return m
 
     with threadpool_limits(1, user_api="blas"):
-        init = _candidates(cells, cover, 1, p.beta, unit)
+        init = _candidates(cells, cover, 1, p.beta, lat)
         if not init:
             raise ValueError("motion cannot be estimated: no textured, covered region found")
         m_init = []
@@ -439,9 +518,9 @@ def select_windows(
         if progress:
             progress(f"m_1 = {m1:.3f}, T_m = {thr:.3f}")
         for S in range(p.s_start, p.s_max + 1):
-            if S > min(ny, nx) or len(runs) >= max(1, p.max_tries):
+            if S > min(cells.shape) or len(runs) >= max(1, p.max_tries):
                 break
-            boxes = _candidates(cells, cover, S, p.alpha, unit)
+            boxes = _candidates(cells, cover, S, p.alpha, lat)
             for b in boxes:
                 m = measure(b)
                 rec = dict(box=b.as_tuple(), size=S, m=m, accepted=False, reason="")
@@ -451,7 +530,7 @@ def select_windows(
                 if m >= thr:
                     rec["reason"] = "m >= T_m (looks space-invariant)"
                     continue
-                chosen = [b] + _spread_partners(cells, cover, S, unit, b, p.windows - 1, (H, W),
+                chosen = [b] + _spread_partners(cells, cover, S, lat, b, p.windows - 1, (H, W),
                                                p.texture_floor)
                 est = runs.estimate(chosen)
                 occ = _occluded_fraction(est)
@@ -488,7 +567,7 @@ def select_windows(
         rec = min((r for r in grown if r["size"] == largest), key=lambda r: r["m"])
         invariant = all(r["m"] >= p.invariant_ratio * m1 for r in grown)
         b = Box(*rec["box"])
-        chosen = [b] + _spread_partners(cells, cover, rec["size"], unit, b, p.windows - 1,
+        chosen = [b] + _spread_partners(cells, cover, rec["size"], lat, b, p.windows - 1,
                                        (H, W), p.texture_floor)
         est = runs.estimate(chosen, stop=False)
         rec["accepted"] = True
@@ -512,7 +591,9 @@ def spread_side(p: SelectParams) -> int:
 
 
 def _select_spread(reference, observed, grid, base, p: SelectParams, cells, cover, shape,
-                   progress, blur_reach: float = 0.0) -> tuple[CropChoice, MotionEstimate]:
+                   progress, blur_reach: float = 0.0, lat: _Lattice | None = None,
+                   strip: bool = False,
+                   extra: dict | None = None) -> tuple[CropChoice, MotionEstimate]:
     """``p.windows`` windows of :func:`spread_side` units, good regions spread far apart.
 
     Seen from one window, a small roll about a distant principal point is nearly a pure
@@ -520,12 +601,15 @@ def _select_spread(reference, observed, grid, base, p: SelectParams, cells, cove
     maximises (texture x distance from the principal point), each next one (texture x
     distance to the nearest chosen window); all are estimated jointly (eq. 5 stacked, one
     set of weights).  A window more than ``max_occluded`` occluded is replaced by the next
-    best one.
+    best one.  On a ``strip`` (one line of covered cells across), windows of one cell are
+    lengthened along it (:func:`_elongate`); elsewhere a window is as large as the covered,
+    agreeing cells around it allow, and square.
     """
     unit = p.unit
-    H, W = shape
+    lat = lat or _Lattice(unit)
     pcx, pcy = grid.center
     tried: list[dict] = []
+    target = spread_side(p)
 
     def place(S: int, excluded: np.ndarray | None) -> list[Box]:
         """Greedy placement of up to ``p.windows`` non-overlapping S x S windows."""
@@ -536,8 +620,7 @@ def _select_spread(reference, observed, grid, base, p: SelectParams, cells, cove
             ok &= ~excluded
         if not ok.any():
             return []
-        ys, xs = np.mgrid[0 : sc.shape[0], 0 : sc.shape[1]]
-        cyy, cxx = (ys + S / 2) * unit, (xs + S / 2) * unit
+        cyy, cxx = lat.centres(sc.shape, S)
         smax = sc[ok].max()
         chosen: list[Box] = []
         for _ in range(p.windows):
@@ -552,12 +635,14 @@ def _select_spread(reference, observed, grid, base, p: SelectParams, cells, cove
                 break
             obj = np.where(allowed, _texture_term(sc, smax, p.texture_floor) * d, -np.inf)
             iy, ix = np.unravel_index(int(np.argmax(obj)), obj.shape)
-            chosen.append(Box(int(iy * unit), int(ix * unit), S * unit, S * unit))
+            chosen.append(lat.box(iy, ix, S))
+        if strip and S == 1 < target:
+            chosen = _elongate(chosen, cover, lat, target * target)
         return chosen
 
     # the largest side up to spread_size at which all the windows fit
     best: tuple[int, list[Box]] = (0, [])
-    for S in range(int(min(spread_side(p), cells.shape[0], cells.shape[1])), 0, -1):
+    for S in range(int(min(target, cells.shape[0], cells.shape[1])), 0, -1):
         chosen = place(S, None)
         if len(chosen) > len(best[1]):
             best = (S, chosen)
@@ -566,7 +651,7 @@ def _select_spread(reference, observed, grid, base, p: SelectParams, cells, cove
     S, chosen = best
     if not chosen:
         raise ValueError("motion cannot be estimated: no textured, covered window found")
-    runs = _Runs(reference, observed, grid, base, p, blur_reach)
+    runs = _Runs(reference, observed, grid, base, p, blur_reach, extra)
     excluded = np.zeros(_window_scores(cells, S).shape, bool)
     run_recs: list[list[dict]] = []
     while True:
@@ -588,7 +673,7 @@ def _select_spread(reference, observed, grid, base, p: SelectParams, cells, cove
             # unrelated, or years apart), or the tries are spent
             break
         for i in bad:
-            excluded |= _overlapping(excluded.shape, chosen[i], S, unit)
+            excluded |= _overlapping(excluded.shape, chosen[i], S, lat)
         nxt = place(S, excluded)
         if len(nxt) < len(chosen) or {c.as_tuple() for c in nxt} == {
                 c.as_tuple() for c in chosen}:
@@ -599,15 +684,95 @@ def _select_spread(reference, observed, grid, base, p: SelectParams, cells, cove
         chosen, est = runs.runs[k]
         for r in run_recs[k]:
             r["accepted"] = True
-    crop = CropChoice(boxes=[c.as_tuple() for c in chosen], size=S * unit, tried=tried)
+    crop = CropChoice(boxes=[c.as_tuple() for c in chosen],
+                      size=max(max(c.h, c.w) for c in chosen), tried=tried)
     return crop, runs.finish(est, fits=not bad)
 
 
-def _overlapping(shape: tuple[int, int], box: Box, S: int, unit: int) -> np.ndarray:
-    """Positions (in units) of the ``S x S``-unit windows that overlap ``box``."""
+def _strip_roll(ref_shape, obs_shape, base, grid: PoseGrid, lat: _Lattice,
+                cover: np.ndarray) -> tuple[PoseGrid, np.ndarray]:
+    """On a strip, ``grid`` with its roll range halved while the covered cells span less
+    than half the strip's length, and the cells it covers.
+
+    A roll about the strip's centre moves its ends across it: the paper's 3 degrees move
+    the ends of a 1024 px strip by 27 px, more than a strip 150 px across leaves beside a
+    row of cells, so only its central cells are covered for every pose.  From one window
+    there the roll is not observable, and the false alarms gather at the ends (4.3 % of a
+    150 x 1024 test-bed strip, ``python -m benchmarks.strips``).  Windows far apart along
+    the strip observe it; the roll range the strip can hold is the model, and
+    ``info["selection"]["strip_roll_deg"]`` records it (the report notes it).
+    """
+    along = 1 if cover.shape[1] >= cover.shape[0] else 0
+
+    def span(c: np.ndarray) -> int:
+        idx = np.flatnonzero(c.any(axis=1 - along))
+        return 0 if idx.size == 0 else int(idx[-1] - idx[0] + 1)
+
+    while 2 * span(cover) < cover.shape[along]:
+        lim = max(abs(r) for r in grid.rz) / 2.0
+        rz = tuple(r for r in grid.rz if abs(r) <= lim + 1e-12)
+        if len(rz) == len(grid.rz) or not rz:
+            break
+        grid = dataclasses.replace(grid, rz=rz)
+        cover = _coverage_cells(ref_shape, obs_shape, base, grid, lat.unit, (lat.oy, lat.ox))
+    return grid, cover
+
+
+def _elongate(chosen: list[Box], cover: np.ndarray, lat: _Lattice, cells: int) -> list[Box]:
+    """``chosen`` windows grown a covered row or column of cells at a time, up to ``cells``
+    cells each.
+
+    Where the covered cells leave room for windows of one cell only (a strip one or two
+    cells across), the estimate would rest on a fraction of the pixels the spread windows
+    are meant to hold: from two 100 px windows the roll and the kernels' change across the
+    image are poorly constrained.  The windows take turns, each
+    adding one line of cells on the next of its four sides that is covered and not another
+    window's, so a strip's windows grow along it and none takes the room of another.
+    """
+    spans = []  # per window: [y0, y1, x0, x1) in cells
+    for b in chosen:
+        y0, x0 = lat.cell(b.y0, b.x0)
+        y1, x1 = lat.cell(b.y0 + b.h - 1, b.x0 + b.w - 1)
+        spans.append([y0, y1 + 1, x0, x1 + 1])
+
+    def grown(sp: list[int], side: int) -> list[int] | None:
+        """``sp`` with one more line on ``side`` (0 right, 1 left, 2 down, 3 up), if free."""
+        y0, y1, x0, x1 = sp
+        new = [[y0, y1, x0, x1 + 1], [y0, y1, x0 - 1, x1],
+               [y0, y1 + 1, x0, x1], [y0 - 1, y1, x0, x1]][side]
+        if new[0] < 0 or new[2] < 0 or new[1] > cover.shape[0] or new[3] > cover.shape[1]:
+            return None
+        if not cover[new[0]:new[1], new[2]:new[3]].all():
+            return None
+        for other in spans:
+            if other is not sp and (new[0] < other[1] and other[0] < new[1]
+                                    and new[2] < other[3] and other[2] < new[3]):
+                return None
+        return new
+
+    turn, grew = 0, True
+    while grew:
+        grew = False
+        for sp in spans:
+            if (sp[1] - sp[0]) * (sp[3] - sp[2]) >= cells:
+                continue
+            for k in range(4):
+                new = grown(sp, (turn + k) % 4)
+                if new is not None:
+                    sp[:] = new
+                    grew = True
+                    break
+        turn += 1
+    u = lat.unit
+    return [Box(lat.oy + y0 * u, lat.ox + x0 * u, (y1 - y0) * u, (x1 - x0) * u)
+            for y0, y1, x0, x1 in spans]
+
+
+def _overlapping(shape: tuple[int, int], box: Box, S: int, lat: _Lattice) -> np.ndarray:
+    """Positions (cells of ``lat``) of the ``S x S``-cell windows that overlap ``box``."""
     out = np.zeros(shape, bool)
-    y0, x0 = box.y0 // unit, box.x0 // unit
-    y1, x1 = (box.y0 + box.h - 1) // unit, (box.x0 + box.w - 1) // unit
+    y0, x0 = lat.cell(box.y0, box.x0)
+    y1, x1 = lat.cell(box.y0 + box.h - 1, box.x0 + box.w - 1)
     out[max(y0 - S + 1, 0) : y1 + 1, max(x0 - S + 1, 0) : x1 + 1] = True
     return out
 
@@ -619,13 +784,15 @@ class _Runs:
 
     ``info["selection"]`` of the returned estimate holds ``estimates`` (how many were
     run), ``n_outer`` (the outer solver iterations of all of them together: the cost
-    bound a pathological pair cannot exceed), ``fits`` and ``occluded`` (per window).
+    bound a pathological pair cannot exceed), ``fits`` and ``occluded`` (per window), and
+    ``extra`` (``strip_roll_deg``: the roll range narrowed to a strip, from and to).
     """
 
     def __init__(self, reference, observed, grid, base, p: SelectParams,
-                 blur_reach: float = 0.0):
+                 blur_reach: float = 0.0, extra: dict | None = None):
         self.args = (reference, observed, grid)
         self.base, self.p, self.blur_reach = base, p, blur_reach
+        self.extra = dict(extra or {})
         self.runs: list[tuple[list[Box], MotionEstimate]] = []
         self.n_outer = 0
 
@@ -675,7 +842,7 @@ class _Runs:
         est.info.pop("resume", None)
         est.info["selection"] = dict(estimates=len(self.runs), n_outer=self.n_outer,
                                      fits=bool(fits), occluded=list(est.info["occluded"]),
-                                     max_occluded=p.max_occluded)
+                                     max_occluded=p.max_occluded, **self.extra)
         return est
 
 
@@ -700,7 +867,7 @@ def _texture_term(sc: np.ndarray, smax: float, floor: float) -> np.ndarray:
     return np.sqrt(np.clip(sc / ref, 0.0, 1.0))
 
 
-def _spread_partners(cells, cover, S, unit, first: Box, k: int, shape,
+def _spread_partners(cells, cover, S, lat: _Lattice, first: Box, k: int, shape,
                      floor: float = 0.2) -> list[Box]:
     """``k`` more windows of the same size, far from ``first`` and from each other.
 
@@ -718,9 +885,7 @@ def _spread_partners(cells, cover, S, unit, first: Box, k: int, shape,
     chosen = [first]
     out = []
     diag = float(np.hypot(*shape))
-    ys, xs = np.mgrid[0 : sc.shape[0], 0 : sc.shape[1]]
-    cyy = (ys + S / 2) * unit
-    cxx = (xs + S / 2) * unit
+    cyy, cxx = lat.centres(sc.shape, S)
     smax = sc[valid].max() if valid.any() else 1.0
     for _ in range(k):
         dmin = np.full(sc.shape, np.inf)
@@ -728,12 +893,12 @@ def _spread_partners(cells, cover, S, unit, first: Box, k: int, shape,
             d = np.hypot(cyy - (c.y0 + c.h / 2), cxx - (c.x0 + c.w / 2))
             dmin = np.minimum(dmin, d)
         # windows may not overlap the chosen ones
-        ok = valid & (dmin >= S * unit * 1.0)
+        ok = valid & (dmin >= S * lat.unit * 1.0)
         if not ok.any():
             break
         obj = np.where(ok, _texture_term(sc, smax, floor) * (dmin / diag), -np.inf)
         iy, ix = np.unravel_index(int(np.argmax(obj)), obj.shape)
-        b = Box(int(iy * unit), int(ix * unit), S * unit, S * unit)
+        b = lat.box(iy, ix, S)
         chosen.append(b)
         out.append(b)
     return out
