@@ -125,6 +125,28 @@ def test_auto_illumination_keeps_the_global_model_without_a_field():
     _check_detection(change, truth, unknown)
 
 
+def test_auto_illumination_refuses_a_field_that_fits_a_black_fill():
+    """The left 55 % of the view is exactly 0 (a fill without a nodata tag): a quadratic
+    field fits it perfectly with a gain through 0, and beats the global model's residual
+    scale by far.  It is no light: the global model stays, the record says why, and the
+    fill (where the reference is not itself near black) is change; the lit part is not."""
+    from reblur.decide.photometry import MIN_FIELD_GAIN
+
+    obs, reb, truth, unknown = make_pair(bands=1, seed=4, ramp=False, squares=())
+    h, w = SHAPE
+    fill = np.zeros(SHAPE, bool)
+    fill[:, : int(0.55 * w)] = True
+    obs = obs.copy()
+    obs[fill] = 0.0
+    change, info = decide(obs, reb, unknown)
+    chosen = info["photometry"]["info"]["illumination"]
+    assert chosen["model"] == "global" and min(chosen["ratio"]) <= 0.85, chosen
+    assert "rejected" in chosen and str(MIN_FIELD_GAIN) in chosen["rejected"]
+    visible = fill & ~unknown & (reb > 0.15)
+    assert change[visible].mean() > 0.9
+    assert change[~fill & ~unknown].mean() < 0.01
+
+
 def test_unknown_never_change(colour, colour_result):
     obs, reb, truth, unknown = colour
     change, info = colour_result
@@ -487,6 +509,82 @@ def test_prefit_takes_an_illumination_ramp_into_a_field_and_keeps_the_line_witho
     plain = photometric_prefit(ref, flat, np.eye(3), 255.0, 255.0)
     assert plain.illumination is None and plain.illumination_info["model"] == "global"
     assert min(plain.illumination_info["ratio"]) > PREFIT_FIELD_GAIN
+
+
+def _half_black_pair():
+    """LEVIR test_7 (8 bit) and its observation under a 19 px line blur at 30 degrees with
+    2 DN of noise, the left 600 of 1024 columns then set to 0 (a fill without a nodata
+    tag)."""
+    from reblur.testbed.scenes import levir_image
+
+    ref = np.clip(np.rint(levir_image("test_7") * 255), 0, 255).astype(np.uint8)
+    k = np.zeros((19, 19), np.float32)
+    for t in np.linspace(-9, 9, 37):
+        k[int(round(9 + t * np.sin(np.pi / 6))), int(round(9 + t * np.cos(np.pi / 6)))] += 1
+    blurred = cv2.filter2D(ref.astype(np.float32), -1, k / k.sum(),
+                           borderType=cv2.BORDER_REFLECT)
+    noise = np.random.default_rng(7).normal(0, 2, ref.shape)
+    obs = np.clip(np.rint(blurred + noise), 0, 255).astype(np.uint8)
+    obs[:, :600] = 0
+    return ref, obs
+
+
+def _agreement_by_side(pre):
+    a, k = pre.agreement, pre.factor
+    return (float(np.nanmean(a[5:-5, int(np.ceil(620 / k)) : -5])),
+            float(np.nanmean(a[5:-5, 5 : int(580 / k)])))
+
+
+def test_prefit_fits_no_line_or_field_through_a_black_fill():
+    """A quadratic field fitted through the fill has its gain pass through 0 and leaves a
+    residual scale 0.0013 of the line's, so the pre-fit took it and its agreement map --
+    which steers the estimation windows -- held the fill and not the lit part (0.0 / 1.0
+    at 2ad958e).  The fill, one clipped level over half the map, now stays out of the
+    fits: the line is kept, the lit part agrees and the fill does not."""
+    import reblur.pipeline as pl
+
+    ref, obs = _half_black_pair()
+    pre = pl.photometric_prefit(ref, obs, np.eye(3), 255.0, 255.0)
+    assert pre.illumination is None and pre.illumination_info["model"] == "global"
+    assert abs(pre.gain[0] - 1.0) < 0.1
+    lit, black = _agreement_by_side(pre)
+    assert lit > 0.95 and black < 0.05, (lit, black)
+
+
+def test_prefit_refuses_a_field_whose_gain_falls_to_zero(monkeypatch):
+    """The same pair with the clipped level left in the fits (CLIPPED_SHARE above 1): the
+    field wins on its residual scale, and is refused because its gain is not above
+    MIN_FIELD_GAIN everywhere; the record says so, and the agreement is the line's."""
+    import reblur.pipeline as pl
+
+    monkeypatch.setattr(pl, "CLIPPED_SHARE", 2.0)
+    ref, obs = _half_black_pair()
+    pre = pl.photometric_prefit(ref, obs, np.eye(3), 255.0, 255.0)
+    info = pre.illumination_info
+    assert min(info["ratio"]) <= pl.PREFIT_FIELD_GAIN
+    assert pre.illumination is None and info["model"] == "global" and "rejected" in info
+    lit, black = _agreement_by_side(pre)
+    assert lit > 0.95 and black < 0.05, (lit, black)
+
+
+def test_clipped_marks_a_level_held_by_a_share_of_the_map():
+    """Exact extremes held by >= CLIPPED_SHARE of the covered map are marked; an extreme at
+    a few pixels is not (an explicit count)."""
+    from reblur.pipeline import CLIPPED_SHARE, _clipped
+
+    rng = np.random.default_rng(8)
+    cover = np.ones((100, 100), bool)
+    o = rng.random((100, 100)).astype(np.float32) * 0.8 + 0.1
+    o[:3, :3] = 0.95  # a new maximum at 9 pixels (< 1 %)
+    o[50:, :] = 0.0  # a fill over half the map
+    got = _clipped(o, cover)
+    want = np.zeros_like(cover)
+    for v in (o.min(), o.max()):
+        if (o == v).sum() >= CLIPPED_SHARE * cover.sum():
+            want |= o == v
+    assert np.array_equal(got, want)
+    assert got[50:].all() and not got[:50].any()
+    assert not _clipped(o, cover & (np.arange(100) < 50)[:, None]).any()  # fill uncovered
 
 
 def test_scaled_view_flattens_by_the_illumination_field():

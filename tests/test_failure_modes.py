@@ -128,6 +128,24 @@ def test_illumination_fields_keep_false_alarms_low_and_recall(results, name):
     assert res_plain.decision["prefit_illumination"]["model"] == "global"
 
 
+def test_a_black_fill_is_change_not_light(results):
+    """The observation's left 55 % exactly 0 (a fill without a nodata tag) beside the
+    pasted changes of ``plain``.  A quadratic field through the fill fits it with a gain
+    through 0 and won the illumination criterion in the decision: nothing was flagged, the
+    fill and every pasted change missed (recall 0.000 at 2ad958e, ``python -m
+    benchmarks.failure_modes``).  Fields whose gain falls to MIN_FIELD_GAIN are no light:
+    the global model stays, the fill and the changes are found, the rest is quiet."""
+    pair, res = results("fill55")
+    s = _scores(pair, res)
+    assert s["far"] <= 0.003 and s["recall"] >= 0.8, s
+    cut = pair.info["fill_columns"]
+    known = pair.valid & ~res.unknown
+    assert res.change[:, :cut][known[:, :cut]].mean() >= 0.8
+    chosen = res.decision["photometry"]["info"]["illumination"]
+    assert chosen["model"] == "global", chosen
+    assert res.decision["prefit_illumination"]["model"] == "global"
+
+
 # ---------------------------------------------------------------- thin changes
 def test_thin_changes_are_kept(results):
     pair, res = results("thin")

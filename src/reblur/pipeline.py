@@ -36,6 +36,7 @@ from .decide.calibrate import calibrate_tolerance, marked_pixels, unchanged_pixe
 from .decide.photometry import (
     _SCALE_FLOOR,
     FIT_SAMPLES,
+    MIN_FIELD_GAIN,
     IlluminationField,
     fit_poly_field,
     with_model_error,
@@ -266,13 +267,6 @@ def photometric_prefit(
         return Prefit(gain, offset)
     sigma = max(2.0, float(sigma_px) / ko)
 
-    # the map pixels the line is fitted on (flat indices): a seeded sample of the covered
-    # ones, the same in every band
-    fit_pix = np.flatnonzero(cover)
-    if fit_pix.size > FIT_SAMPLES:
-        pick = np.random.default_rng(0).choice(fit_pix.size, FIT_SAMPLES, replace=False)
-        fit_pix = fit_pix[np.sort(pick)]
-
     # the images in this thread (OpenCV), the fits on the bands' threads (numpy only)
     low_passed = []
     for c in range(C):
@@ -281,9 +275,21 @@ def photometric_prefit(
         low_passed.append((cv2.GaussianBlur(r, (0, 0), sigma),
                            cv2.GaussianBlur(np.ascontiguousarray(obs[:, :, c]), (0, 0), sigma)))
 
+    # the map pixels each band's line is fitted on (flat indices): a seeded sample of the
+    # covered ones, without a clipped level of the band
+    def sample(c: int) -> np.ndarray:
+        pix = np.flatnonzero(cover & ~_clipped(low_passed[c][1], cover))
+        if pix.size > FIT_SAMPLES:
+            pick = np.random.default_rng(0).choice(pix.size, FIT_SAMPLES, replace=False)
+            pix = pix[np.sort(pick)]
+        return pix
+
+    fit_pix = [sample(c) for c in range(C)]
+
     def fit_band(c: int) -> tuple[float, float, dict, np.ndarray | None, float]:
         r, o = low_passed[c]
-        g, b, fit = robust_line(r.ravel()[fit_pix].astype(float), o.ravel()[fit_pix].astype(float))
+        pix = fit_pix[c]
+        g, b, fit = robust_line(r.ravel()[pix].astype(float), o.ravel()[pix].astype(float))
         if not g > 0.05:  # not a sane gain: keep the identity
             g, b = 1.0, 0.0
         scale = fit.get("scale")
@@ -313,22 +319,48 @@ def photometric_prefit(
     return Prefit(gain, offset, agreement, int(ko), [f[2] for f in fits], illum, illum_info)
 
 
+#: Share of the covered low-resolution map one extreme level of the observation must hold
+#: to count as clipped (:func:`_clipped`).
+CLIPPED_SHARE = 0.01
+
+
+def _clipped(o: np.ndarray, cover: np.ndarray) -> np.ndarray:
+    """Map pixels where a band ``o`` of the low-passed observation sits exactly at its
+    lowest or highest covered value, when that level holds at least :data:`CLIPPED_SHARE`
+    of the covered map: a fill (0 where a mosaic has no data and no nodata tag),
+    saturation, a flat new surface.  Their value does not follow the reference, and a
+    field fitted through them has a gain of 0 there and a residual near 0: a LEVIR scene
+    with its left 600 of 1024 columns at 0 took that field (0.0013 of the line's residual
+    scale), whose agreement map held the fill and not the lit part, where the windows
+    belong (``tests/test_decide.py``).  Low-passed, an ordinary image reaches its
+    extremes at a pixel or two: nothing is left out."""
+    out = np.zeros(cover.shape, bool)
+    n = max(int(cover.sum()), 1)
+    vals = o[cover]
+    for v in (vals.min(), vals.max()):
+        at = o == v
+        if np.count_nonzero(at & cover) >= CLIPPED_SHARE * n:
+            out |= at
+    return out
+
+
 def _prefit_illumination(low_passed, cover, fit_pix, fits, k: int, shape, agrees):
     """The smooth illumination field of :func:`photometric_prefit` and the choice between
     it and the global lines ``fits`` (the decision's photometry fits the same field,
     :func:`~reblur.decide.photometry.fit_poly_field`): the field when it lowers the inliers'
     residual scale of the low-resolution images to at most :data:`PREFIT_FIELD_GAIN` of the
     lines' in some band.  ``low_passed`` holds each band's (reference, observation) maps of
-    ``k`` observation pixels per map pixel, ``fit_pix`` the flat indices of the sample the
-    lines were fitted on.  Returns the field (None: the global lines stay), its record,
-    and each band's agreement under it (``agrees(res, centre, scale, r, g)``)."""
+    ``k`` observation pixels per map pixel, ``fit_pix`` each band's flat indices of the
+    sample its line was fitted on.  The field must also keep its gain above
+    :data:`~reblur.decide.photometry.MIN_FIELD_GAIN` everywhere.  Returns the field (None:
+    the global lines stay), its record, and each band's agreement under it (``agrees(res,
+    centre, scale, r, g)``)."""
     C = len(low_passed)
     h, w = low_passed[0][1].shape
-    iy, ix = np.divmod(fit_pix, w)
-    ys, xs = (iy + 0.5) * k - 0.5, (ix + 0.5) * k - 0.5  # observation pixels
     rows, cols = (np.arange(h) + 0.5) * k - 0.5, (np.arange(w) + 0.5) * k - 0.5
     coef_g, coef_o = np.zeros((C, 6)), np.zeros((C, 6))
     s_global, s_field = np.full(C, np.nan), np.full(C, np.nan)
+    g_min = np.full(C, np.inf)
     residuals: list = [None] * C
 
     def fit_band(c: int) -> None:  # each band writes its own rows (numpy only: band_map)
@@ -337,11 +369,15 @@ def _prefit_illumination(low_passed, cover, fit_pix, fits, k: int, shape, agrees
         if not scale > 0:
             return
         r, o = low_passed[c]
-        a, bb = fit_poly_field(ys, xs, r.ravel()[fit_pix].astype(float),
-                               o.ravel()[fit_pix].astype(float), shape, (g, b), scale,
+        pix = fit_pix[c]
+        iy, ix = np.divmod(pix, w)
+        ys, xs = (iy + 0.5) * k - 0.5, (ix + 0.5) * k - 0.5  # observation pixels
+        a, bb = fit_poly_field(ys, xs, r.ravel()[pix].astype(float),
+                               o.ravel()[pix].astype(float), shape, (g, b), scale,
                                max_samples=PREFIT_FIELD_SAMPLES)
         coef_g[c], coef_o[c] = a, bb
         G, Z = IlluminationField(a[None], bb[None], shape).at(rows, cols)
+        g_min[c] = float(G.min())
         res = o.astype(np.float64) - (G[:, :, 0] * r.astype(np.float64) + Z[:, :, 0])
         centre, s_f, _ = inlier_scale(res[cover], scale)
         s_global[c], s_field[c] = scale, s_f
@@ -349,13 +385,18 @@ def _prefit_illumination(low_passed, cover, fit_pix, fits, k: int, shape, agrees
 
     band_map(fit_band, C)
     ratio = (s_field + _SCALE_FLOOR) / (s_global + _SCALE_FLOOR)
-    use = bool(np.any(ratio <= PREFIT_FIELD_GAIN))
+    wins = bool(np.any(ratio <= PREFIT_FIELD_GAIN))
+    use = wins and bool(np.min(g_min) > MIN_FIELD_GAIN)
     info = {"model": "field" if use else "global",
             "criterion": f"field if its inlier residual scale is <= {PREFIT_FIELD_GAIN} of "
-                         "the global line's in some band (low-resolution images)",
+                         f"the global line's in some band and its gain above "
+                         f"{MIN_FIELD_GAIN} everywhere (low-resolution images)",
             "sigma_global": [float(v) for v in s_global],
             "sigma_field": [float(v) for v in s_field],
             "ratio": [round(float(v), 4) for v in ratio]}
+    if wins and not use:
+        info["rejected"] = (f"its gain falls to {float(np.min(g_min)):.3g}: not light but a "
+                            "region the observation does not follow")
     if not use:
         return None, info, None
     field_ = IlluminationField(coef_g, coef_o, tuple(int(v) for v in shape))

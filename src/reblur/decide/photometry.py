@@ -352,6 +352,14 @@ _POLY_NODES = 32
 #: comparison): a ramp of 0.65 -> 1.0 brings it to ~0.2-0.5, no illumination leaves it at
 #: ~0.97-1.0.
 FIELD_GAIN = 0.85
+#: Under ``illumination="auto"`` a field is light only if its gain stays above this
+#: everywhere in the image (intensities in full-scale units, the floor the pre-fit's global
+#: line keeps): a field falling to it fits a region whose observation does not follow the
+#: reference -- a black or saturated fill, a new surface -- so well that it wins the
+#: criterion (the failure mode ``fill55``, the left 55 % of the view at 0: the field took
+#: the fill and the changes as light, nothing was flagged; ``python -m
+#: benchmarks.failure_modes``).
+MIN_FIELD_GAIN = 0.05
 ILLUMINATIONS = ("auto", "global", "field")
 #: Added to both residual scales of the illumination criterion (a 16-bit quantum).
 _SCALE_FLOOR = 1.0 / 65535.0
@@ -509,7 +517,8 @@ def _illumination(ys, xs, obs, reb, shape, gain, offset, sigma, fits, mode):
     # the same estimator of the inliers' scale for both models; a floor of a 16-bit
     # quantum keeps noise-free data (both scales near 0) from a meaningless ratio
     ratio = (s_field + _SCALE_FLOOR) / (s_global + _SCALE_FLOOR)
-    use = mode == "field" or bool(np.min(ratio) <= FIELD_GAIN)
+    floor = float(fg.min())
+    use = mode == "field" or bool(np.min(ratio) <= FIELD_GAIN and floor > MIN_FIELD_GAIN)
     record = {
         "model": "field" if use else "global",
         "mode": mode,
@@ -520,6 +529,9 @@ def _illumination(ys, xs, obs, reb, shape, gain, offset, sigma, fits, mode):
         "ratio": [round(float(v), 4) for v in ratio],
         "field": "gain and offset quadratic in the image coordinates",
     }
+    if mode == "auto" and np.min(ratio) <= FIELD_GAIN and not use:
+        record["rejected"] = (f"its gain falls to {floor:.3g} (<= {MIN_FIELD_GAIN}): not "
+                              "light but a region the observation does not follow")
     if not use:
         return None, None, None, record
     record["gain_range"] = [float(fg.min()), float(fg.max())]

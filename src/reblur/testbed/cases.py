@@ -15,6 +15,8 @@ change and sensor, edited by :mod:`reblur.testbed.edits`:
 ``vignette``        radial vignetting (35 % at the corners), 8 pasted changes
 ``ramp_strong``     an illumination ramp 0.45 -> 1.0 (the light of a low sun across the
                     frame), 8 pasted changes
+``fill55``          ``plain`` with the observation's left 55 % set to exactly 0 after the
+                    sensor (a mosaic's fill without a nodata tag); the fill is change
 ``thin``            four thin long changes (10-14 px wide, 250-400 px long, straight and L)
 ``identical``       observation = reference, byte for byte
 ``lens3``           barrel lens distortion of the observation camera moving the corners by
@@ -32,6 +34,7 @@ Nodata (a reference GeoTIFF with ``nodata=0`` and a missing wedge) is a file-for
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -45,7 +48,7 @@ __all__ = ["CASES", "GEOMETRY_CASES", "failure_pair", "wedge_mask"]
 
 #: Case names, in the order of the issue's table.
 CASES = ("hole25", "hole50", "occluder25", "occluder45", "occluder60", "plain", "ramp",
-         "vignette", "ramp_strong", "thin", "identical", "lens3", "pincushion3",
+         "vignette", "ramp_strong", "fill55", "thin", "identical", "lens3", "pincushion3",
          "lens3_changes", "parallax", "parallax_changes")
 
 #: The geometry cases: ``plan_pair`` keywords and number of pasted changes.
@@ -121,6 +124,14 @@ def failure_pair(name: str, *, scene: str = "test_7", seed: int = 0, bits: int =
                  "vignette": Vignette(shape, 0.35), "ramp_strong": Ramp(shape, 0.45, 1.0)}[name]
         return make_pair(base, n_changes=8, motion=shake_for(base.shape), illumination=light,
                          **common)
+    if name == "fill55":
+        pair = failure_pair("plain", scene=scene, seed=seed, bits=bits, noise_dn=noise_dn)
+        cut = int(0.55 * pair.observed.shape[1])
+        observed, truth = pair.observed.copy(), pair.truth.copy()
+        observed[:, :cut] = 0
+        truth[:, :cut] = True
+        return dataclasses.replace(pair, observed=observed, truth=truth,
+                                   info={**pair.info, "case": name, "fill_columns": cut})
     if name in GEOMETRY_CASES:
         extra, n = GEOMETRY_CASES[name]
         return make_pair(base, n_changes=n, motion=shake_for(base.shape), **extra, **common)
