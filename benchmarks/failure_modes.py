@@ -33,7 +33,7 @@ import numpy as np
 from benchmarks.common import REPO
 
 CASES = ("hole25", "hole50", "occluder25", "occluder45", "occluder60", "plain", "ramp",
-         "vignette", "ramp_strong", "fill55", "thin", "identical", "nodata")
+         "vignette", "ramp_strong", "saturated", "fill55", "thin", "identical", "nodata")
 RUNS = REPO / "docs" / "failure_modes_runs.json"
 BEFORE = REPO / "docs" / "failure_modes_before.json"
 BOUNDARY = 3
@@ -201,8 +201,9 @@ def section(after: list[dict]) -> str:
         "unchanged known pixels more than 3 px from a change; recall and JC of the changes; "
         "`plain` is the 8 pasted changes of `ramp`, `vignette` and `ramp_strong` without the "
         "illumination; `fill55` is `plain` with the observation's left 55 % set to 0 (a "
-        "fill without a nodata tag; the fill counts as change); `ramp_strong` and `fill55` "
-        "have no \"before\" row (added later)."
+        "fill without a nodata tag; the fill counts as change); `saturated` is `plain` "
+        "exposed 1.3x brighter (the test bed's sensor saturates ~8 % of the observation); "
+        "`ramp_strong`, `saturated` and `fill55` have no \"before\" row (added later)."
         "\n\n" + table(after, before["rows"] if before else None))
 
 

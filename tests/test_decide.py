@@ -147,6 +147,54 @@ def test_auto_illumination_refuses_a_field_that_fits_a_black_fill():
     assert change[~fill & ~unknown].mean() < 0.01
 
 
+def test_clip_levels_are_maxima_held_by_a_share_of_the_samples():
+    """Against an explicit count: a band's maximum held by >= CLIP_SHARE of the samples is
+    its saturation level, one held by a few is not; the low end is never clipped."""
+    from reblur.decide.photometry import CLIP_SHARE, clip_levels
+
+    rng = np.random.default_rng(9)
+    obs = rng.uniform(0.1, 0.9, (5000, 3))
+    obs[:40, 0] = 1.0  # 0.8 % saturated in band 0
+    obs[:3, 1] = 0.95  # a maximum at 3 samples in band 1
+    obs[:2000, 2] = 0.0  # a black fill over 40 % of band 2
+    got = clip_levels(obs)
+    for c in range(3):
+        v = obs[:, c].max()
+        held = np.count_nonzero(obs[:, c] == v) >= CLIP_SHARE * obs.shape[0]
+        assert got[c, 1] == (v if held else np.inf), c
+    assert np.isneginf(got[:, 0]).all()
+    assert got[0, 1] == 1.0 and np.isinf(got[1:, 1]).all()
+
+
+def test_a_saturated_observation_is_no_change_and_a_new_bright_object_is():
+    """A brighter exposure (gain 1.3) saturates the observation at 1.0 over part of the
+    view; the reblurred reference does not.  Predicted above the level, 24 % of the
+    saturated pixels were flagged at 2ad958e.  The saturated samples now stay out of the
+    fit, the model's prediction is clipped at the level, and nothing but the pasted
+    squares is flagged, a bright square that saturates included (the model predicts it
+    far below the level)."""
+    rng = np.random.default_rng(10)
+    reb = _texture(SHAPE, 1, rng)[:, :, 0]
+    obs = 1.3 * reb - 0.05
+    truth = np.zeros(SHAPE, bool)
+    for (y, x), size, d in (((40, 40), 40, +0.3), ((300, 300), 40, -0.3)):
+        obs[y : y + size, x : x + size] += d
+        truth[y : y + size, x : x + size] = True
+    obs[40:80, 40:80] = np.maximum(obs[40:80, 40:80], 1.2)  # the bright square saturates
+    truth[40:80, 40:80] = True
+    obs = np.clip(obs + 0.01 * rng.standard_normal(SHAPE), 0.0, 1.0).astype(np.float32)
+    saturated = obs >= 1.0
+    assert 0.02 < saturated.mean() < 0.3
+    change, info = decide(obs, reb, illumination="global")
+    away = ~ndi.binary_dilation(truth, iterations=4)
+    assert change[saturated & away].mean() < 0.002
+    assert change[away].mean() < 0.002
+    assert change[40:80, 40:80].mean() > 0.9 and change[300:340, 300:340].mean() > 0.9
+    ph = info["photometry"]
+    assert abs(ph["gain"][0] - 1.3) < 0.01, ph["gain"]
+    assert ph["info"]["clip"]["levels"][0][1] == 1.0
+
+
 def test_unknown_never_change(colour, colour_result):
     obs, reb, truth, unknown = colour
     change, info = colour_result

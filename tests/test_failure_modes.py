@@ -128,6 +128,20 @@ def test_illumination_fields_keep_false_alarms_low_and_recall(results, name):
     assert res_plain.decision["prefit_illumination"]["model"] == "global"
 
 
+def test_a_saturated_observation_flags_only_the_changes(results):
+    """``plain`` exposed 1.3x brighter: the test bed's sensor saturates ~8 % of the
+    observation (not the reference).  The saturated samples stay out of the photometric
+    fit and the model's prediction is clipped at the level: few false alarms and the
+    recall of the same changes without the exposure."""
+    plain, res_plain = results("plain")
+    pair, res = results("saturated")
+    assert 0.03 < np.mean(pair.observed == pair.observed.max()) < 0.2
+    s, s0 = _scores(pair, res), _scores(plain, res_plain)
+    assert s["far"] <= 0.003 and s["recall"] >= s0["recall"] - 0.05, (s, s0)
+    clip = res.decision["photometry"]["info"]["clip"]["levels"]
+    assert clip[0][0] is None and clip[0][1] is not None
+
+
 def test_a_black_fill_is_change_not_light(results):
     """The observation's left 55 % exactly 0 (a fill without a nodata tag) beside the
     pasted changes of ``plain``.  A quadratic field through the fill fits it with a gain

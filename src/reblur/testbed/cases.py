@@ -15,6 +15,8 @@ change and sensor, edited by :mod:`reblur.testbed.edits`:
 ``vignette``        radial vignetting (35 % at the corners), 8 pasted changes
 ``ramp_strong``     an illumination ramp 0.45 -> 1.0 (the light of a low sun across the
                     frame), 8 pasted changes
+``saturated``       ``plain`` exposed 1.3x brighter: the sensor saturates ~8 % of the
+                    observation (bright roofs), no other change
 ``fill55``          ``plain`` with the observation's left 55 % set to exactly 0 after the
                     sensor (a mosaic's fill without a nodata tag); the fill is change
 ``thin``            four thin long changes (10-14 px wide, 250-400 px long, straight and L)
@@ -48,8 +50,8 @@ __all__ = ["CASES", "GEOMETRY_CASES", "failure_pair", "wedge_mask"]
 
 #: Case names, in the order of the issue's table.
 CASES = ("hole25", "hole50", "occluder25", "occluder45", "occluder60", "plain", "ramp",
-         "vignette", "ramp_strong", "fill55", "thin", "identical", "lens3", "pincushion3",
-         "lens3_changes", "parallax", "parallax_changes")
+         "vignette", "ramp_strong", "saturated", "fill55", "thin", "identical", "lens3",
+         "pincushion3", "lens3_changes", "parallax", "parallax_changes")
 
 #: The geometry cases: ``plan_pair`` keywords and number of pasted changes.
 GEOMETRY_CASES = {
@@ -118,10 +120,11 @@ def failure_pair(name: str, *, scene: str = "test_7", seed: int = 0, bits: int =
             occ = _square_occluder(side, frac, 0.12, 0.08, seed)
         return make_pair(sc, n_changes=0, motion=shake_for(sc.shape), objects=(occ,),
                          **common)
-    if name in ("plain", "ramp", "vignette", "ramp_strong"):
+    if name in ("plain", "ramp", "vignette", "ramp_strong", "saturated"):
         shape = base.shape[:2]
         light = {"plain": None, "ramp": Ramp(shape, 0.65, 1.0),
-                 "vignette": Vignette(shape, 0.35), "ramp_strong": Ramp(shape, 0.45, 1.0)}[name]
+                 "vignette": Vignette(shape, 0.35), "ramp_strong": Ramp(shape, 0.45, 1.0),
+                 "saturated": Ramp(shape, 1.3, 1.3)}[name]
         return make_pair(base, n_changes=8, motion=shake_for(base.shape), illumination=light,
                          **common)
     if name == "fill55":
