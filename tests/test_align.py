@@ -584,6 +584,20 @@ def test_implausible_homographies_are_refused(H, reason):
         )
 
 
+def test_a_zoom_just_outside_the_range_is_reported_to_four_digits_with_its_option():
+    """A view a pixel short of half the size maps the reference's corners to a zoom of
+    (S / 2 - 1) / (S - 1), just under 1/2: the message says so (such an estimate read
+    "zoom 0.5 outside [1/2, 2]") and names the option that widens the range."""
+    zoom = (SIZE / 2 - 1) / (SIZE - 1)
+    H = np.diag([zoom, zoom, 1.0])
+    with pytest.raises(AlignmentError) as err:
+        check_plausible(H, (SIZE, SIZE), (SIZE // 2, SIZE // 2), max_zoom=2.0,
+                        max_anisotropy=2.0, min_overlap=0.2)
+    assert f"zoom {zoom:.4g} outside [0.5, 2]" in str(err.value)
+    assert zoom < 0.5 and f"{zoom:.4g}" != "0.5"
+    assert "[align] max_zoom" in str(err.value)
+
+
 # ---------------------------------------------------------------------------- real before/after
 def _later_pair(index: int, after: str):
     """A real "before" image and a later capture (years apart) of the same or another

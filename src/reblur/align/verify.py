@@ -56,7 +56,8 @@ def check_plausible(
     zoom = math.sqrt(_quad_area(q) / _quad_area(rc))
     if not 1.0 / max_zoom <= zoom <= max_zoom:
         raise AlignmentError(
-            f"implausible estimate: zoom {zoom:.3g} outside [1/{max_zoom:g}, {max_zoom:g}]"
+            f"implausible estimate: zoom {zoom:.4g} outside [{1.0 / max_zoom:.4g}, "
+            f"{max_zoom:g}] ([align] max_zoom in a --config file)"
         )
     # local anisotropy at the four corners and the centre (Jacobian singular values)
     pts = np.vstack([rc, rc.mean(axis=0)])
