@@ -251,13 +251,14 @@ def clip_levels(obs: np.ndarray) -> np.ndarray:
     (saturation), else inf; the low level is -inf.
 
     Where the sensor saturated, the observation says only "at least this bright": the
-    photometric line does not hold there (a 1.2x brighter exposure of a LEVIR scene, 3.6 %
-    of it at 255: 1.5 % of the view flagged, every flagged pixel by a saturated one), so
-    such samples stay out of the fit and the model's prediction is clipped to the level
-    (:meth:`Photometry.apply`).  Ordinary data reaches its maximum at a few samples.  A
-    level held at the low end is more often a black hole or fill, which is change: left
-    out of the fit as well, it cost the failure modes' ``fill55`` recall 0.846 -> 0.789
-    and ``hole50`` 0.890 -> 0.882, so the low end is not clipped."""
+    photometric line does not hold there (the failure mode ``saturated``, ``plain``
+    exposed 1.3x brighter, ~8 % at 255: 5.9 % of the unchanged pixels flagged at dae86f8;
+    ``python -m benchmarks.failure_modes``), so such samples stay out of the fit and the
+    model's prediction is clipped to the level (:meth:`Photometry.apply`).  Ordinary data
+    reaches its maximum at a few samples.  A level held at the low end is more often a
+    black hole or fill, which is change: left out of the fit as well, it cost the failure
+    modes' ``fill55`` recall 0.846 -> 0.789 and ``hole50`` 0.890 -> 0.882, so the low end
+    is not clipped."""
     obs = np.asarray(obs, np.float64)
     out = np.tile(np.array([-np.inf, np.inf]), (obs.shape[1], 1))
     need = max(CLIP_SHARE * obs.shape[0], 2)
