@@ -39,6 +39,7 @@ from .decide.photometry import (
     MIN_FIELD_GAIN,
     IlluminationField,
     fit_poly_field,
+    held_levels,
     with_model_error,
 )
 from .estimate import estimate_motion, intensity_scale
@@ -335,12 +336,9 @@ def _clipped(o: np.ndarray, cover: np.ndarray) -> np.ndarray:
     belong (``tests/test_decide.py``).  Low-passed, an ordinary image reaches its
     extremes at a pixel or two: nothing is left out."""
     out = np.zeros(cover.shape, bool)
-    n = max(int(cover.sum()), 1)
-    vals = o[cover]
-    for v in (vals.min(), vals.max()):
-        at = o == v
-        if np.count_nonzero(at & cover) >= CLIPPED_SHARE * n:
-            out |= at
+    for v in held_levels(o[cover], CLIPPED_SHARE * max(int(cover.sum()), 1)):
+        if v is not None:
+            out |= o == v
     return out
 
 

@@ -264,9 +264,18 @@ def clip_levels(obs: np.ndarray) -> np.ndarray:
     need = max(CLIP_SHARE * obs.shape[0], 2)
     for c in range(obs.shape[1]):
         v = obs[:, c][np.isfinite(obs[:, c])]
-        if v.size and v.min() < v.max() and np.count_nonzero(v == v.max()) >= need:
-            out[c, 1] = v.max()
+        if v.size and v.min() < v.max():
+            hi = held_levels(v, need)[1]
+            out[c, 1] = np.inf if hi is None else hi
     return out
+
+
+def held_levels(values: np.ndarray, need: float) -> tuple[float | None, float | None]:
+    """The lowest and the highest of ``values`` (1-D, finite), each only if at least
+    ``need`` of them hold it exactly, else None: a clipped level (saturation, a fill)."""
+    lo, hi = values.min(), values.max()
+    return (lo if np.count_nonzero(values == lo) >= need else None,
+            hi if np.count_nonzero(values == hi) >= need else None)
 
 
 def _collect_samples(observed, reblurred, valid, boxes, scale, rng, max_samples):
