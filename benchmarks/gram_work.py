@@ -19,8 +19,9 @@ fresh ``reblur detect`` process with the defaults:
   products as they are computed now (fewer poses or fewer pixels lower it, a faster
   kernel does not by much).
 
-Pairs: the test bed's 1 MP LEVIR test_7 pairs shaken by 6 and 12 px
-(:func:`benchmarks.shake_extent.make_case`), the cost benchmark's unchanged 1 MP pair, and
+Pairs: the test bed's 1 MP LEVIR test_7 pairs shaken by 6, 12 and 20 px
+(:func:`benchmarks.shake_extent.make_case`), the cost benchmark's unchanged and defocus 1 MP
+pairs (the defocus fills the solver's active bound: the largest Gram products), and
 the shared data's real camera shake (:data:`benchmarks.cost.REAL_PAIRS` GoPro rows and
 :data:`benchmarks.cost.GOPRO_AVERAGES`).  The wrapper only observes: the outputs are those
 of a plain run.
@@ -121,21 +122,19 @@ def counted_blocks():
             counts["adjoint_cpu_s"] += cpu
         return out
 
-    def counted(self, views, n_new, r0, r1, mk, buf, G, b, d, triangular=True):
+    def counted(self, views, n_new, r0, r1, mk, buf, G, b, d):
         c = time.thread_time()
-        block(self, views, n_new, r0, r1, mk, buf, G, b, d, triangular)
+        block(self, views, n_new, r0, r1, mk, buf, G, b, d)
         cpu = time.thread_time() - c
         w, C = self.op.dimsd[1:]
         dense = mk.mean() >= S._DENSE_BLOCK
         n_pix = (r1 - r0) * w * C if dense else int(mk.sum()) * C
         n_all = len(views)
-        if n_new <= 2 * S._TRI_GROUP or not triangular:
+        n_old = n_all - n_new
+        if n_old and n_new < S._SYRK_FROM:  # one GEMM
             macs = n_all * n_new * n_pix
-        else:  # the new-by-new block by groups, its upper triangle
-            n_old = n_all - n_new
-            macs = sum((n_old + min(s0 + S._TRI_GROUP, n_new))
-                       * (min(s0 + S._TRI_GROUP, n_new) - s0)
-                       for s0 in range(0, n_new, S._TRI_GROUP)) * n_pix
+        else:  # old against new (GEMM), new against new (SYRK: its upper triangle)
+            macs = (n_old * n_new + n_new * (n_new + 1) // 2) * n_pix
         with lock:
             counts["macs"] += macs
             counts["copied"] += n_all * n_pix
@@ -178,11 +177,12 @@ def pairs() -> list[tuple[str, Path, Path]]:
     from benchmarks.shake_extent import make_case as shake_case
 
     out = []
-    for name in ("6 px", "12 px"):
+    for name in ("6 px", "12 px", "20 px"):
         d = shake_case(name)
         out.append((f"test bed, shake {name}", d / "ref.tif", d / "obs.tif"))
-    d = make_case(1, "unchanged", CACHE)
-    out.append(("cost pair, unchanged", d / "ref.tif", d / "obs.tif"))
+    for content in ("unchanged", "defocus"):
+        d = make_case(1, content, CACHE)
+        out.append((f"cost pair, {content}", d / "ref.tif", d / "obs.tif"))
     out += [(n, r, o) for n, r, o in real_pairs("GoPro")]
     out += list(gopro_averages(CACHE))
     return out

@@ -157,9 +157,10 @@ def test_window_side_boxes_are_the_windows_central_parts():
 
 def test_gram_work_counts_a_warm_start_as_its_full_product(levir_gray):
     """A warm start on every pose of a small grid grows the Gram once, by all of them:
-    P x P products over every pixel of the window (the dense path, no triangle below
-    2 x 48 columns), over every other row with ``row_step=2``; stopped before any pose is
-    added (``time_limit=0``).  The adjoint products are counted too."""
+    one SYRK (numpy's ``X @ X.T`` of no old columns), P (P + 1) / 2 products over every
+    pixel of the window (the dense path), over every other row with ``row_step=2``;
+    stopped before any pose is added (``time_limit=0``).  The adjoint products are counted
+    too."""
     import reblur.solve as S
     from benchmarks.gram_work import counted_blocks
     from reblur import PoseGrid
@@ -173,7 +174,7 @@ def test_gram_work_counts_a_warm_start_as_its_full_product(levir_gray):
     with counted_blocks() as counts:
         active_set([op], [g], w0=np.full(grid.shape, 1.0 / grid.size), time_limit=0.0)
     P = grid.size
-    assert counts["macs"] == P * P * 96 * 80 * op.dimsd[2]
+    assert counts["macs"] == P * (P + 1) // 2 * 96 * 80 * op.dimsd[2]
     assert counts["copied"] == P * 96 * 80 * op.dimsd[2]
     assert counts["blocks"] >= 1
     # the adjoints: the KKT test's scale at w = 0, then the first outer iteration's
@@ -183,7 +184,7 @@ def test_gram_work_counts_a_warm_start_as_its_full_product(levir_gray):
     with counted_blocks() as half:
         active_set([op], [g], w0=np.full(grid.shape, 1.0 / grid.size), time_limit=0.0,
                    row_step=2)
-    assert half["macs"] == P * P * 48 * 80 * op.dimsd[2]
+    assert half["macs"] == P * (P + 1) // 2 * 48 * 80 * op.dimsd[2]
     assert S._Window._block.__name__ == "_block"  # restored
     assert BlurOperator.rmatvec.__name__ == "rmatvec"
 

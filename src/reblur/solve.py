@@ -53,11 +53,14 @@ _SLOT_CHUNK = 16384
 #: by boolean mask costs ~4x a plain copy per pixel (10 against 2.5-3 ns per column and
 #: pixel on the 1 MP cost pairs, whose windows are a few per cent invalid or excluded).
 _DENSE_BLOCK = 0.3
-#: New columns per GEMM when many enter the Gram at once (a warm start): the products
-#: then skip the lower triangle of the symmetric new-by-new block, all but a group's
-#: diagonal block (a warm start of 260 poses: 60 % of the full product's arithmetic).
-#: OpenBLAS's SYRK did the same job slower than the full GEMM (docs/NOTES.md).
-_TRI_GROUP = 48
+#: New columns from which a Gram growth computes their symmetric new-by-new block by SYRK
+#: (numpy's ``X @ X.T``, half the arithmetic) apart from the old-by-new GEMM.  Single
+#: thread, 16000-pixel blocks, this machine's OpenBLAS (0.3.31, SkylakeX): 126 new
+#: columns against 640 take 54 ms split against 58 ms in one GEMM, 96 against 200 11 / 13
+#: ms; below ~48 new columns the second call costs more than it saves (24 against 164:
+#: 3.6 / 3.4 ms).  A warm start (no old columns) is one SYRK either way: 572 columns
+#: 83 ms, against 150 ms for the GEMMs of 48 new columns each it replaced.
+_SYRK_FROM = 64
 
 __all__ = ["Scratch", "active_set", "fista", "huber_objective", "joint_objective", "power_norm"]
 
@@ -200,11 +203,9 @@ class _Window:
         """``A_all^T D A_new``, ``A_new^T D g`` and ``A_new^T s`` by row blocks.
 
         ``cols_new`` are the last columns of ``cols_all``.  The columns of a block are
-        copied as contiguous rows (``A^T``), so each copy is one contiguous write and the
-        product one GEMM -- or, for many new columns, one GEMM per group of
-        :data:`_TRI_GROUP` of them over the rows up to that group's end: the new-by-new
-        block is symmetric, so only its upper triangle (and the groups' diagonal blocks)
-        is computed, and the rest of it is left zero (:func:`_gram_add` mirrors it).
+        copied as contiguous rows (``A^T``), so each copy is one contiguous write, and the
+        product is one GEMM, or from :data:`_SYRK_FROM` new columns one GEMM of the old
+        columns against the new ones and one SYRK of the new ones against themselves.
 
         An operator whose columns vanish outside row ranges (the band model of
         :class:`reblur.rolling.RollingOperator`) may say so with ``row_breaks`` (rows at
@@ -246,21 +247,18 @@ class _Window:
             if live is None:
                 self._block(views, n_new, r0, r1, mk, buf, G, b, d)
                 continue
-            # the columns that reach the block: a full product on them, added in place
-            # (its new-by-new part is symmetric, so its upper triangle is what
-            # _gram_add keeps of the triangular products)
+            # the columns that reach the block: their products, added in place
             lv_new = live[live >= n_all - n_new]
             Gs = np.zeros((live.size, lv_new.size))
             bs, ds = np.zeros(lv_new.size), np.zeros(lv_new.size)
-            self._block([views[j] for j in live], lv_new.size, r0, r1, mk, buf, Gs, bs, ds,
-                        triangular=False)
+            self._block([views[j] for j in live], lv_new.size, r0, r1, mk, buf, Gs, bs, ds)
             G[np.ix_(live, lv_new - (n_all - n_new))] += Gs
             b[lv_new - (n_all - n_new)] += bs
             d[lv_new - (n_all - n_new)] += ds
         return G, b, d
 
     def _block(self, views, n_new: int, r0: int, r1: int, mk: np.ndarray, buf: np.ndarray,
-               G: np.ndarray, b: np.ndarray, d: np.ndarray, triangular: bool = True) -> None:
+               G: np.ndarray, b: np.ndarray, d: np.ndarray) -> None:
         """Add one row block's products of ``views`` (the last ``n_new`` of them new) to
         ``G``, ``b`` and ``d`` (see :meth:`block_products`)."""
         w, C = self.op.dimsd[1:]
@@ -291,13 +289,13 @@ class _Window:
             # zero the new columns' outlier pixels in place (the block is a fresh copy):
             # D A_new, and D^2 = D makes the new-by-new part A_new^T D A_new as well
             Atn[:, ~ib] = 0.0
-        if n_new <= 2 * _TRI_GROUP or not triangular:
+        n_old = n_all - n_new
+        if n_old and n_new >= _SYRK_FROM:
+            G[:n_old] += At[:n_old] @ Atn.T
+            # a matrix times its own transpose: numpy calls SYRK (the block comes symmetric)
+            G[n_old:] += Atn @ Atn.T
+        else:  # one GEMM (without old columns, At is Atn: numpy calls SYRK)
             G += At @ Atn.T
-        else:
-            n_old = n_all - n_new
-            for s0 in range(0, n_new, _TRI_GROUP):
-                s1 = min(s0 + _TRI_GROUP, n_new)
-                G[: n_old + s1, s0:s1] += At[: n_old + s1] @ Atn[s0:s1].T
         b += Atn @ gb
 
     def repartition(self, r: np.ndarray, active: list[int]):
@@ -703,9 +701,6 @@ def _gram_add(ws, active, new, G, b, d):
         Gn += Gw
         bn += bw
         dn += dw
-    if kn > 2 * _TRI_GROUP:  # the new-by-new block came as its upper triangle
-        N = np.triu(Gn[k:])
-        Gn[k:] = N + np.triu(N, 1).T
     out = np.zeros((k + kn, k + kn))
     out[:k, :k] = G
     out[:, k:] = Gn
