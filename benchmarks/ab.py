@@ -4,14 +4,14 @@ OLD/src [--label COMMIT] [--repeat 2]``; issue #28).
 This host's speed drifts by up to 1.6x between phases (docs/NOTES.md), so a speed-up
 measured by two benchmark runs an hour apart is partly the host's. This benchmark runs
 ``reblur detect`` in a fresh process on every pair of :func:`benchmarks.gram_work.pairs`
-(the test bed's 6 / 12 / 20 px shakes, the cost benchmark's unchanged and defocus pairs,
-the GoPro pairs and the GoPro 0477 averages) with the other checkout's sources (``--src``,
-on ``PYTHONPATH``) and with this checkout's, alternately, ``--repeat`` times each, and
-reports per pair the mean total and estimate times of both, the share flagged and the
-fidelity of each blur model: the PSNR of ``reblurred.tif`` against the observation over the
-pixels every run of the pair left known and unflagged (the same pixels for both;
-:mod:`benchmarks.window_side` scores its sides so); for the test-bed pairs, recall and
-false alarms against their truth.
+(the test bed's 6 / 12 / 20 px shakes and 1.5 degree tilt, the cost benchmark's unchanged
+and defocus pairs, the GoPro pairs and the GoPro 0477 averages) with the other checkout's
+sources (``--src``, on ``PYTHONPATH``) and with this checkout's, alternately, ``--repeat``
+times each, and reports per pair the mean total and estimate times of both, the share
+flagged and the fidelity of each blur model: the PSNR of ``reblurred.tif`` against the
+observation over the pixels every run of the pair left known and unflagged (the same pixels
+for both; :mod:`benchmarks.window_side` scores its sides so); for the test-bed pairs,
+recall and false alarms against their truth.
 """
 
 from __future__ import annotations

@@ -19,8 +19,8 @@ fresh ``reblur detect`` process with the defaults:
   products as they are computed now (fewer poses or fewer pixels lower it, a faster
   kernel does not by much).
 
-Pairs: the test bed's 1 MP LEVIR test_7 pairs shaken by 6, 12 and 20 px
-(:func:`benchmarks.shake_extent.make_case`), the cost benchmark's unchanged and defocus 1 MP
+Pairs: the test bed's 1 MP LEVIR test_7 pairs shaken by 6, 12 and 20 px and tilted by 1.5
+degrees (:func:`benchmarks.shake_extent.make_case`), the cost benchmark's unchanged and defocus 1 MP
 pairs (the defocus fills the solver's active bound: the largest Gram products), and
 the shared data's real camera shake (:data:`benchmarks.cost.REAL_PAIRS` GoPro rows and
 :data:`benchmarks.cost.GOPRO_AVERAGES`).  The wrapper only observes: the outputs are those
@@ -177,7 +177,7 @@ def pairs() -> list[tuple[str, Path, Path]]:
     from benchmarks.shake_extent import make_case as shake_case
 
     out = []
-    for name in ("6 px", "12 px", "20 px"):
+    for name in ("6 px", "12 px", "20 px", "tilt 1.5 deg"):
         d = shake_case(name)
         out.append((f"test bed, shake {name}", d / "ref.tif", d / "obs.tif"))
     for content in ("unchanged", "defocus"):

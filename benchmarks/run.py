@@ -55,6 +55,8 @@ BENCHES = {
     "cores": ("benchmarks.cores", "main"),
     # thin strips: the estimation windows and the decision, 130-400 px across
     "strips": ("benchmarks.strips", "main"),
+    # the solver's NNLS by exchange against scipy's on every Newton step (#28)
+    "nnls_exchange": ("benchmarks.nnls_exchange", "main"),
 }
 
 

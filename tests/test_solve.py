@@ -1023,3 +1023,58 @@ def test_max_active_is_checked(bad):
     op, _, g = _dense_blur_problem()
     with pytest.raises(ValueError, match="max_active"):
         active_set([op], [g], lam=1e-6, occlusion=False, max_active=bad)
+
+
+def _nnls_problem(seed: int, n: int = 60, m: int = 400):
+    """A least-squares problem whose columns are shifted copies of one smooth signal (the
+    pose columns' kind: strongly correlated), its Gram form and scipy's NNLS of it."""
+    from scipy.ndimage import gaussian_filter1d
+    from scipy.optimize import nnls
+
+    rng = np.random.default_rng(seed)
+    f = gaussian_filter1d(rng.standard_normal(m + n), 2.0)
+    A = np.stack([f[k : k + m] for k in range(n)], axis=1) + 0.05 * rng.standard_normal((m, n))
+    w_true = np.where(rng.random(n) < 0.3, rng.random(n), 0.0)
+    y = A @ w_true + 0.05 * rng.standard_normal(m)
+    w_ref, _ = nnls(A, y, maxiter=50 * n)
+    return A.T @ A, A.T @ y, w_ref
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_nnls_by_exchange_from_any_start_equals_scipys_nnls_of_the_pixels(seed):
+    """``solve._nnls_gram`` from a guessed non-zero set (every column, none, a random one,
+    the solution's own) returns scipy's NNLS of the least-squares problem itself (pixel
+    rows, not the Gram form), as it does without a guess; when the exchange answers, its
+    point meets the KKT conditions."""
+    from reblur.solve import _nnls_exchange, _nnls_gram
+
+    G, b, w_ref = _nnls_problem(seed)
+    n = G.shape[0]
+    assert 0 < np.count_nonzero(w_ref) < n
+    rng = np.random.default_rng(seed + 10)
+    starts = [None, np.ones(n, bool), np.zeros(n, bool), rng.random(n) < 0.5, w_ref > 0]
+    scale = np.max(w_ref)
+    for start in starts:
+        w = _nnls_gram(G, b, start)
+        np.testing.assert_allclose(w, w_ref, atol=1e-7 * scale)
+    w = _nnls_exchange(G, b, 0.0, np.ones(n, bool))
+    assert w is not None
+    grad = G @ w - b
+    P = w > 0
+    assert np.all(np.abs(grad[P]) <= 1e-8 * np.abs(b).max())
+    assert np.all(grad[~P] >= 0.0)
+    # from the solution's own set: one Cholesky, the same point
+    np.testing.assert_allclose(_nnls_exchange(G, b, 0.0, w_ref > 0), w_ref, atol=1e-7 * scale)
+
+
+def test_nnls_exchange_gives_up_after_its_bound_and_the_nnls_answers(monkeypatch):
+    """With one set allowed, a wrong guess (every column, where the solution has zeros) is
+    not answered by the exchange; ``_nnls_gram`` then returns scipy's NNLS all the same."""
+    import reblur.solve as S
+
+    G, b, w_ref = _nnls_problem(3)
+    n = G.shape[0]
+    monkeypatch.setattr(S, "_EXCHANGES", 1)
+    assert S._nnls_exchange(G, b, 0.0, np.ones(n, bool)) is None
+    np.testing.assert_allclose(S._nnls_gram(G, b, np.ones(n, bool)), w_ref,
+                               atol=1e-7 * np.max(w_ref))
