@@ -68,6 +68,54 @@ def gemm_rate(shape: tuple[int, int, int], repeat: int = 40) -> float:
     return n_all * n_new * n_pix / best / 1e9
 
 
+#: Gram growths ``(active + new, new)`` over a 16000-pixel block for :func:`split_times`:
+#: a warm start, growths near the active bound, a typical small one.
+SPLIT_SHAPES = ((572, 572), (640, 126), (200, 96), (164, 24))
+
+
+def split_times(repeat: int = 5) -> list[tuple[int, int, float, float, float]]:
+    """Single-thread seconds (best of ``repeat``) of one Gram growth of each
+    :data:`SPLIT_SHAPES` shape computed three ways: one GEMM of every column against the new
+    ones (numpy's SYRK where there are no old ones); the old-by-new GEMM and the new-by-new
+    SYRK (``solve._Window._block`` from ``solve._SYRK_FROM`` new columns); GEMMs of 48 new
+    columns each over the rows up to their group (the upper triangle, as before 5a895c7).
+    Rows ``(n_all, n_new, one, split, groups)``."""
+    from threadpoolctl import threadpool_limits
+
+    rng = np.random.default_rng(0)
+    out = []
+    for n_all, n_new in SPLIT_SHAPES:
+        buf = rng.random((n_all + 8, 16500))
+        at = buf[:n_all, :16000]  # a block of the solver's scratch: rows not contiguous
+        n_old = n_all - n_new
+        atn = at[n_old:]
+
+        def one(at=at, atn=atn):
+            return at @ atn.T
+
+        def split(at=at, atn=atn, n_old=n_old):
+            if n_old:
+                at[:n_old] @ atn.T
+            return atn @ atn.T
+
+        def groups(at=at, atn=atn, n_old=n_old, n_new=n_new):
+            for s0 in range(0, n_new, 48):
+                s1 = min(s0 + 48, n_new)
+                at[: n_old + s1] @ atn[s0:s1].T
+
+        times = []
+        with threadpool_limits(1, user_api="blas"):
+            for fn in (one, split, groups):
+                best = np.inf
+                for _ in range(repeat):
+                    t = time.perf_counter()
+                    fn()
+                    best = min(best, time.perf_counter() - t)
+                times.append(best)
+        out.append((n_all, n_new, *times))
+    return out
+
+
 def copy_and_product(shape: tuple[int, int, int] = TYPICAL_SHAPE, repeat: int = 100
                      ) -> tuple[float, float]:
     """Seconds of one Gram block's column copies and of its product, single thread: the
@@ -192,6 +240,7 @@ def main() -> str:
     """Run every pair in a fresh process; the markdown section."""
     typical, square = gemm_rate(TYPICAL_SHAPE), gemm_rate(SQUARE_SHAPE)
     copy, product = copy_and_product()
+    splits = split_times()
     cores = len(os.sched_getaffinity(0))
     rows = []
     for name, ref, obs in pairs():
@@ -239,6 +288,11 @@ def main() -> str:
         f"adjoints' {100 * adjoint.min():.0f}-{100 * adjoint.max():.0f} %",
         f"- rows' time outside the estimate: {min(outside):.1f}-{max(outside):.1f} s "
         "(in-process: no interpreter start-up)",
+        "- one Gram growth over a 16000-pixel block, single thread (`split_times`; "
+        "active + new against new): one GEMM / old-by-new GEMM + new-by-new SYRK / GEMMs of "
+        "48 new columns (before 5a895c7): "
+        + "; ".join(f"{a - n} + {n} against {n}: {1e3 * t1:.1f} / {1e3 * t2:.1f} / "
+                    f"{1e3 * t3:.1f} ms" for a, n, t1, t2, t3 in splits),
     ]
     return "\n".join(lines)
 

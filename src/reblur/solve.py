@@ -55,11 +55,12 @@ _SLOT_CHUNK = 16384
 _DENSE_BLOCK = 0.3
 #: New columns from which a Gram growth computes their symmetric new-by-new block by SYRK
 #: (numpy's ``X @ X.T``, half the arithmetic) apart from the old-by-new GEMM.  Single
-#: thread, 16000-pixel blocks, this machine's OpenBLAS (0.3.31, SkylakeX): 126 new
-#: columns against 640 take 54 ms split against 58 ms in one GEMM, 96 against 200 11 / 13
-#: ms; below ~48 new columns the second call costs more than it saves (24 against 164:
-#: 3.6 / 3.4 ms).  A warm start (no old columns) is one SYRK either way: 572 columns
-#: 83 ms, against 150 ms for the GEMMs of 48 new columns each it replaced.
+#: thread, 16000-pixel blocks, this machine's OpenBLAS (0.3.31, SkylakeX; ``python -m
+#: benchmarks.gram_work``, ``split_times``): 126 new columns against 640 take 54.5 ms split
+#: against 58.8 ms in one GEMM, 96 against 200 10.8 / 13.0 ms; for few new columns the
+#: second call costs more than it saves (24 against 164: 3.6 / 3.5 ms).  A warm start (no
+#: old columns) is one SYRK either way: 572 columns 83 ms, against 154 ms for the GEMMs of
+#: 48 new columns each it replaced.
 _SYRK_FROM = 64
 
 __all__ = ["Scratch", "active_set", "fista", "huber_objective", "joint_objective", "power_norm"]
