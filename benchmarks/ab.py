@@ -137,7 +137,9 @@ def main(old: Path, label: str, repeat: int = 2, only: str = "") -> str:
     load = os.getloadavg()[0]
     return ("## Two checkouts, alternately, at 1 MP (`python -m benchmarks.ab`)\n\n"
             f"`reblur detect` in a fresh process per run, {labels['old']} and "
-            f"{labels['new']} alternately, {repeat} runs each (means). PSNR of "
+            f"{labels['new']} alternately, {repeat} runs each (means)"
+            + (f", the pairs whose name starts with `{only}` (`--only`)" if only else "")
+            + ". PSNR of "
             "`reblurred.tif` against the observation over the pixels every run of the pair "
             "left known and unflagged; recall and false alarms (flagged unchanged pixels) "
             "against the test bed's truth.\n\n"

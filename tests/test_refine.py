@@ -70,6 +70,36 @@ def test_shifts_match_the_analytic_displacement(reference, search):
     assert max(errs) < 0.05 and np.median(errs) < 0.02, errs
 
 
+def test_colour_probes_are_measured_on_the_reblurred_band_mean(monkeypatch):
+    # a colour pair through a known scale + roll error: its shifts are those of the gray
+    # pair made of the band means (float64 means, computed here), to rounding, and the
+    # reference is reblurred as one band, not three
+    import reblur.tiled
+
+    rgb = np.concatenate([levir_before(0), levir_before(1)], axis=1)[:H, :W]
+    gray = np.ascontiguousarray(rgb.astype(np.float64).mean(axis=2), dtype=np.float32)
+    err = pose_homography(0.0, 0.0, 3e-4, 0.0, 0.0, 0.02, center=C)
+    obs_gray, grid, w = _observe(gray, err)
+    obs = np.repeat(obs_gray[:, :, None], 3, axis=2)
+    boxes = probe_boxes((H, W))
+    bands = []
+    warp = reblur.tiled.warp_source
+
+    def counted(source, *a, **k):
+        bands.append(source[0].shape[2] if source[0].ndim == 3 else 1)
+        return warp(source, *a, **k)
+
+    monkeypatch.setattr(reblur.tiled, "warp_source", counted)
+    colour = measure_shifts(rgb, obs, SparsePoses(w, grid), boxes)
+    assert bands and set(bands) == {1}
+    want = measure_shifts(gray, obs_gray, SparsePoses(w, grid), boxes)
+    assert [s.measured for s in colour] == [s.measured for s in want]
+    assert sum(s.measured for s in colour) >= 12
+    for s, t in zip(colour, want, strict=True):
+        if s.measured:
+            assert abs(s.dx - t.dx) < 1e-3 and abs(s.dy - t.dy) < 1e-3, (s, t)
+
+
 def _streaked_windows(n_scenes: int, seed: int):
     """64 px windows of smooth scenes under a 31 px horizontal motion blur, the
     observation's and the reblurred reference's (exact model, shifted by a known

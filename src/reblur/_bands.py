@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["all_bands", "any_bands", "mean_bands"]
+__all__ = ["BandMean", "all_bands", "any_bands", "mean_bands"]
 
 
 def _planes(b: np.ndarray, op: np.ufunc) -> np.ndarray:
@@ -76,3 +76,31 @@ def mean_bands(a: np.ndarray, dtype=np.float32) -> np.ndarray:
         np.add(out, a[:, :, c], out=out, dtype=dtype)
     out /= a.shape[2]
     return out
+
+
+class BandMean:
+    """Lazy band mean of an ``(H, W, C)`` array-like: slices of it are ``(h, w)`` float32.
+
+    What :func:`reblur.estimate.estimate_motion` solves on with ``bands="mean"``, and
+    what :func:`reblur.align.refine.measure_shifts` reblurs (the blur is linear: the
+    band mean of the reblurred bands is the reblurred band mean).  An ``exclude`` of the
+    array (see :func:`~reblur.estimate.estimate_motion`'s ``observed``) is kept.  Values
+    stay in the array's units (its intensity scale applies).
+
+    Parameters
+    ----------
+    array : array-like
+        ``(H, W, C)``: numpy, zarr, or a view with ``shape``, ``dtype`` and slicing.
+    """
+
+    def __init__(self, array):
+        self.array = array
+        self.shape = tuple(int(v) for v in array.shape[:2])
+        self.dtype = np.dtype(np.float32)
+        self.exclude = getattr(array, "exclude", None)
+
+    def __getitem__(self, key):
+        if isinstance(key, tuple) and len(key) > 2:
+            raise IndexError("a band mean has two axes")
+        a = np.asarray(self.array[key])
+        return mean_bands(a) if a.ndim == 3 else a.mean(axis=-1, dtype=np.float32)

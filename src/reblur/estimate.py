@@ -9,7 +9,7 @@ from collections.abc import Sequence
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from ._bands import mean_bands
+from ._bands import BandMean
 from ._memory import available_cpus, small_pages, thread_map
 from .grid import PoseGrid, carry_weights, edge_share, widen_translations
 from .io import ChunkCache, tile_chunks
@@ -293,7 +293,7 @@ def estimate_motion(
     on_mean = bands == "mean" and not two_d and int(observed.shape[2]) > 1
     ref_bands, obs_bands = reference, observed
     if on_mean:
-        reference, observed = _BandMean(reference), _BandMean(observed)
+        reference, observed = BandMean(reference), BandMean(observed)
     levels = []
     scratch = Scratch()  # the solver's work memory, shared by every solve below
     if threads is None:
@@ -396,27 +396,6 @@ def check_bands(bands, name: str = "bands") -> None:
     ``bands``; ``name`` is the option's name in the message)."""
     if bands not in ("all", "mean"):
         raise ValueError(f"{name} must be 'mean' or 'all', got {bands!r}")
-
-
-class _BandMean:
-    """Lazy band mean of an ``(H, W, C)`` array-like: slices of it are ``(h, w)`` float32.
-
-    What :func:`estimate_motion` solves on with ``bands="mean"``.  An ``exclude`` of the
-    array (see :func:`estimate_motion`'s ``observed``) is kept.  Values stay in the
-    array's units (its intensity scale applies).
-    """
-
-    def __init__(self, array):
-        self.array = array
-        self.shape = tuple(int(v) for v in array.shape[:2])
-        self.dtype = np.dtype(np.float32)
-        self.exclude = getattr(array, "exclude", None)
-
-    def __getitem__(self, key):
-        if isinstance(key, tuple) and len(key) > 2:
-            raise IndexError("a band mean has two axes")
-        a = np.asarray(self.array[key])
-        return mean_bands(a) if a.ndim == 3 else a.mean(axis=-1, dtype=np.float32)
 
 
 def _band_residuals(reference, observed, ops, w, grid, base, s_ref, s_obs, info, threads):

@@ -42,9 +42,9 @@ from typing import Any
 
 import numpy as np
 
+from ._bands import BandMean
 from .estimate import (
     RTOL,
-    _BandMean,
     _shrink,
     check_bands,
     coarse_side,
@@ -486,7 +486,7 @@ def _window_operators(reference, observed, grid: PoseGrid, boxes, base, scale,
     s_ref = intensity_scale(reference.dtype) if scale is None else scale
     s_obs = intensity_scale(observed.dtype) if scale is None else scale
     if band_mean:
-        reference, observed = _BandMean(reference), _BandMean(observed)
+        reference, observed = BandMean(reference), BandMean(observed)
     ops = [BlurOperator(reference, grid, b, base=base, scale=s_ref, spectra=spectra)
            for b in boxes]
     gs = [read_window(observed, b, np.float64) / s_obs for b in boxes]
