@@ -140,6 +140,29 @@ def test_cost_targets_give_the_slope_against_the_decided_pixels():
     assert 1.05 < want < 1.1
 
 
+def test_cost_table_shows_the_time_outside_the_stages_and_targets_by_kind():
+    """The seconds a run spends outside its stages (start-up, imports, exit) are its
+    process time less the pipeline's total, the opening and the writing (by hand here);
+    the 1 MP target lists each kind of pair apart."""
+    from benchmarks.cost import table, targets
+
+    def row(content, seconds):
+        return dict(mp=1, content=content, seconds=seconds,
+                    stages={"open": 0.1, "align": 0.5, "total": 2.0, "report": 0.3})
+
+    rows = [row("unchanged", 3.0), row("real: GoPro GOPR0374", 6.0),
+            row("shake: 20 px", 8.5), row("defocus", 9.0)]
+    assert "| 1 MP | unchanged | 3.0 | 0.10 | 0.50 | - | - | - | - | - | 0.30 | 0.60 |" \
+        in table(rows)
+    text = targets(rows)
+    assert "worst 9.0 s (defocus): NOT met" in text
+    assert "real camera shake (GoPro, colour): 1 pairs, 6.0-6.0 s" in text
+    assert "the issue's contents (one 6 px shake; aerial pairs years apart): 1 pairs, " \
+        "3.0-3.0 s" in text
+    assert "larger blurs (shakes of 6-35 px, a 1.5 degree tilt, defocus): 2 pairs, " \
+        "8.5-9.0 s (worst: defocus)" in text
+
+
 def test_window_side_boxes_are_the_windows_central_parts():
     """``benchmarks.window_side``: the ``--box`` of each window's central part, by hand;
     a window smaller than the side is left out (its part would not be smaller)."""
