@@ -13,6 +13,8 @@ band).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 __all__ = ["BandMean", "all_bands", "any_bands", "mean_bands"]
@@ -93,13 +95,13 @@ class BandMean:
         ``(H, W, C)``: numpy, zarr, or a view with ``shape``, ``dtype`` and slicing.
     """
 
-    def __init__(self, array):
+    def __init__(self, array: Any) -> None:
         self.array = array
         self.shape = tuple(int(v) for v in array.shape[:2])
         self.dtype = np.dtype(np.float32)
         self.exclude = getattr(array, "exclude", None)
 
-    def __getitem__(self, key):
+    def __getitem__(self, key: Any) -> np.ndarray:
         if isinstance(key, tuple) and len(key) > 2:
             raise IndexError("a band mean has two axes")
         a = np.asarray(self.array[key])
