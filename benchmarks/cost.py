@@ -596,8 +596,9 @@ def section(rows: list[dict]) -> str:
 def main(sizes: list[int] | None = None, contents: list[str] | None = None,
          cache: Path | None = None, src: Path | None = None, label: str | None = None,
          out_root: Path | None = None, real: bool = False, shakes: bool = False) -> str:
-    """Run the cases (and with ``real`` the real pairs); return the markdown section (with
-    ``src``: save the "before" rows)."""
+    """Run the cases (with ``real`` also the real pairs, with ``shakes`` the test bed's
+    shakes of growing extent); return the markdown section (with ``src``: save the
+    "before" rows)."""
     sizes = [1, 25] if sizes is None else sizes
     contents = CONTENTS if contents is None else contents
     cache = cache or CACHE
