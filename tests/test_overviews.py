@@ -95,6 +95,14 @@ def _opened(path, count: bool = False):
     if not count:
         return arr, None
     arr.source = counted = _Counted(arr.source)
+    reader = getattr(arr, "chunk_reader", None)
+    if reader is not None:  # a pass over the file's chunks is a full read too
+
+        def chunks(workers: int = 1, func=None):
+            counted.reads += 1
+            return reader(workers, func)
+
+        arr.chunk_reader = chunks
     return arr, counted
 
 
@@ -436,3 +444,77 @@ def test_full_read_in_chunk_rows(monkeypatch, threads):
             stops = sorted(r[1] for r in c.rows)
             assert all(s % chunk == 0 or s == h * k for s in stops)
             assert sum(r[1] - r[0] for r in c.rows) == h * k  # each row once
+
+
+# ------------------------------------------------------- whole-image pass over TIFF chunks
+def _tiff(path, a, **kw):
+    tifffile.imwrite(path, a, compression="zlib", **kw)
+    return open_image(path, lazy=True).array
+
+
+@pytest.mark.parametrize("layout", [dict(tile=(64, 64)), dict(rowsperstrip=16)])
+def test_tiff_block_means_from_the_chunks_equal_the_band_read(tmp_path, monkeypatch, layout):
+    """A lazy TIFF's block means come from its decoded chunks (no window is read) and equal,
+    bit for bit, those read band by band from the same file, and numpy's block mean: 300 x
+    410 px (edge tiles padded in the file), blocks cut by the chunks' edges (k = 5, 10
+    against 64 px tiles and 16-row strips) or not (k = 8, 16)."""
+    from reblur.io import _Guarded  # the lazy file reader: its windows are counted
+
+    rng = np.random.default_rng(5)
+    window = _Guarded.__getitem__
+    reads = []
+    monkeypatch.setattr(_Guarded, "__getitem__",
+                        lambda self, key: reads.append(key) or window(self, key))
+    for a in (rng.integers(0, 65535, (300, 410, 3), dtype=np.uint16),
+              rng.integers(0, 255, (300, 410), dtype=np.uint8),
+              rng.integers(-32768, 32767, (300, 410), dtype=np.int16)):
+        img = _tiff(tmp_path / "a.tif", a, **layout)
+        assert img.chunk_reader is not None
+        info = np.iinfo(a.dtype)
+        for k in (5, 8, 10, 16):
+            reads.clear()
+            monkeypatch.setattr(ov, "_THREADS", 1 + k % 2)  # decoded on one thread, on two
+            g, b = ov.read_block_means(img, k)
+            assert reads == []  # from the chunks alone
+            want = _block_mean(a, k) / info.max
+            np.testing.assert_allclose(b if a.ndim == 3 else g, want, rtol=1e-6, atol=1e-7)
+            reader, img.chunk_reader = img.chunk_reader, None
+            g2, b2 = ov.read_block_means(img, k)  # band by band, through the windows
+            img.chunk_reader = reader
+            assert reads and np.array_equal(b, b2) and np.array_equal(g, g2), (a.dtype, k)
+
+
+def test_tiff_chunks_corrupt_tile_is_one_input_error(tmp_path):
+    """A tile whose compressed data is damaged fails the chunk pass with one InputError
+    naming the file, as a window read of it does."""
+    from reblur.io import InputError
+
+    rng = np.random.default_rng(6)
+    a = rng.integers(0, 255, (256, 256), dtype=np.uint8)
+    path = tmp_path / "a.tif"
+    tifffile.imwrite(path, a, tile=(64, 64), compression="zlib")
+    with tifffile.TiffFile(path) as tif:
+        page = tif.pages[0]
+        off, n = int(page.dataoffsets[5]), int(page.databytecounts[5])
+    raw = bytearray(path.read_bytes())
+    raw[off: off + n] = bytes(n)  # zeros: not a zlib stream
+    path.write_bytes(bytes(raw))
+    img = open_image(path, lazy=True).array
+    # tile 5 of 4 across: rows 64-127, columns 64-127
+    with pytest.raises(InputError, match=r"a\.tif: cannot decode the image data at rows "
+                                         r"64-127, columns 64-127 \(.*\): the file is "
+                                         r"corrupt or truncated"):
+        ov.read_block_means(img, 8)
+
+
+def test_tiff_chunks_of_a_file_changed_since_it_was_opened(tmp_path):
+    """A file replaced by another image after it was opened is refused by the chunk pass,
+    not read as the image it was."""
+    from reblur.io import InputError
+
+    path = tmp_path / "a.tif"
+    tifffile.imwrite(path, np.zeros((256, 256), np.uint8), tile=(64, 64))
+    img = open_image(path, lazy=True).array
+    tifffile.imwrite(path, np.zeros((128, 256, 3), np.uint8), tile=(64, 64))
+    with pytest.raises(InputError, match="changed since it was opened"):
+        ov.read_block_means(img, 8)

@@ -121,6 +121,9 @@ def read_block_means(image, k: int) -> tuple[np.ndarray, np.ndarray]:
     if h < 1 or w < 1:
         raise ValueError(f"image {H}x{W} is smaller than one {k}x{k} overview block")
     norm = _dtype_norm(image.dtype)
+    reader = getattr(image, "chunk_reader", None)
+    if reader is not None and _exact(image.dtype) and h * w * C * 8 <= _SUMS_BYTES:
+        return _chunk_block_means(reader, (H, W, C), k, norm)
     bands = np.empty((h, w, C), np.float32)
 
     def work(y0: int, y1: int, a: np.ndarray):
@@ -142,6 +145,82 @@ def read_block_means(image, k: int) -> tuple[np.ndarray, np.ndarray]:
         pending = tail if tail.shape[0] else None
     grey = bands[:, :, 0] if C == 1 else mean_bands(bands)
     return grey, bands
+
+
+#: Largest accumulator (int64 block sums) :func:`read_block_means` builds from a file's
+#: decoded chunks; a finer overview of a larger image is read in bands.
+_SUMS_BYTES = 256 * 2**20
+
+
+def _exact(dtype) -> bool:
+    """Whether block sums of ``dtype`` are exact in int64 (:func:`_strip_means`' integer
+    path: booleans and integers of at most 4 bytes)."""
+    dt = np.dtype(dtype)
+    return dt.kind == "b" or (dt.kind in "ui" and dt.itemsize <= 4)
+
+
+def _chunk_block_means(reader, shape: tuple[int, int, int], k: int, norm: float
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`read_block_means` of an integer image from its decoded chunks (``reader``, an
+    image's ``chunk_reader``: ``func(y0, x0, chunk)`` in the decoding threads, in any
+    order), without copying them into windows.  Each chunk's pixels are summed by block
+    (its blocks cut at its edges) into exact int64 sums, so the means are those of the
+    band-wise read, bit for bit.
+
+    A block cut by a chunk's edge gets its parts from each chunk it spans."""
+    H, W, C = shape
+    h, w = H // k, W // k
+    acc = np.zeros((h, w, C), np.int64)
+
+    def sums(y0: int, x0: int, a: np.ndarray):  # in the decoding threads
+        a = a.reshape(a.shape[0], a.shape[1], C)
+        y1, x1 = min(y0 + a.shape[0], h * k), min(x0 + a.shape[1], w * k)
+        if y1 <= y0 or x1 <= x0:
+            return None  # the dropped partial blocks at the image's edge
+        return y0 // k, x0 // k, _block_sums(a[: y1 - y0, : x1 - x0], y0, x0, k)
+
+    for got in reader(_THREADS, sums):
+        if got is not None:
+            r, c, t = got
+            acc[r : r + t.shape[0], c : c + t.shape[1]] += t
+    out = acc.astype(np.float64)
+    out *= norm / (k * k)
+    bands = out.astype(np.float32)
+    grey = bands[:, :, 0] if C == 1 else mean_bands(bands)
+    return grey, bands
+
+
+def _block_sums(a: np.ndarray, y0: int, x0: int, k: int) -> np.ndarray:
+    """Exact sums, as int64, of the ``(h, w, C)`` integer chunk ``a`` (at ``y0, x0`` in the
+    image) over the ``k x k`` blocks it touches, those cut at its edges included (their
+    parts here); the vertical sums in :func:`_strip_means`' narrow accumulators."""
+    top = 1 if a.dtype.kind == "b" else int(np.iinfo(a.dtype).max)
+    vert = (np.int64 if a.dtype.kind == "i" else np.uint16 if k * top < 2**16
+            else np.uint32 if k * top < 2**32 else np.uint64)
+    return _axis_sums(_axis_sums(a, 0, y0, k, vert), 1, x0, k, np.int64)
+
+
+def _axis_sums(a: np.ndarray, axis: int, p0: int, k: int, dtype) -> np.ndarray:
+    """Sums of ``a`` along ``axis`` over the ``k``-blocks its entries (from ``p0`` in the
+    image) fall in: a partial block at either end summed alone, the whole ones between
+    by one reshape."""
+    n = a.shape[axis]
+    head = min(-p0 % k, n)
+    end = head + (n - head) // k * k
+
+    def part(i: int, j: int) -> np.ndarray:
+        return a[(slice(None),) * axis + (slice(i, j),)]
+
+    parts = []
+    if head:
+        parts.append(np.add.reduce(part(0, head), axis=axis, keepdims=True, dtype=dtype))
+    if end > head:
+        m = part(head, end)
+        m = m.reshape(m.shape[:axis] + ((end - head) // k, k) + m.shape[axis + 1:])
+        parts.append(np.add.reduce(m, axis=axis + 1, dtype=dtype))
+    if end < n:
+        parts.append(np.add.reduce(part(end, n), axis=axis, keepdims=True, dtype=dtype))
+    return parts[0] if len(parts) == 1 else np.concatenate(parts, axis=axis)
 
 
 def _chunk_rows(image) -> int | None:
