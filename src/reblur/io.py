@@ -645,13 +645,18 @@ class _Guarded(_Sized):
         except (InputError, MemoryError):
             raise
         except Exception as exc:  # noqa: BLE001 - every read failure means a corrupt file
-            raise _fail(self.path, f"cannot decode the image data{_where(key, self.shape)} "
-                                   f"({_first_line(exc)}): the file is corrupt or "
-                                   "truncated") from exc
+            raise _undecodable(self.path, _where(key, self.shape), exc) from exc
 
     def __array__(self, dtype=None, copy=None) -> np.ndarray:
         a = self[...]
         return a if dtype is None else a.astype(dtype, copy=False)
+
+
+def _undecodable(path: Path, where: str, exc: BaseException) -> InputError:
+    """The one-line error of image data that fails to decode (``where``: :func:`_where`'s
+    place of it, or empty)."""
+    return _fail(path, f"cannot decode the image data{where} ({_first_line(exc)}): the "
+                       "file is corrupt or truncated")
 
 
 def _where(key, shape: tuple[int, ...]) -> str:
@@ -1635,9 +1640,7 @@ class _TiffChunks:
         except (InputError, MemoryError):
             raise
         except Exception as exc:  # noqa: BLE001 - every read failure means a corrupt file
-            raise _fail(self.path, f"cannot decode the image data{self._broken()} "
-                                   f"({_first_line(exc)}): the file is corrupt or "
-                                   "truncated") from exc
+            raise _undecodable(self.path, self._broken(), exc) from exc
 
     def _page(self, tif):
         """The image's page in the open file ``tif``, which must still be the one opened."""
