@@ -293,10 +293,16 @@ def measure_real(src: Path | None = None, out_root: Path | None = None,
     cases' folder) through ``reblur detect`` (rows of size 1 MP, content ``real: NAME``); a
     pair whose files are missing is skipped with a line on stderr."""
     _compile_package(src)
+    return _pair_rows([*real_pairs(), *gopro_averages(cache or CACHE)], "real: ", src,
+                      out_root)
+
+
+def _pair_rows(pairs, prefix: str, src: Path | None, out_root: Path | None) -> list[dict]:
+    """Rows of size 1 MP, content ``prefix + NAME``, of ``(NAME, reference, observation)``
+    pairs through :func:`run_pair` (each printed as it ends)."""
     rows = []
-    pairs = [*real_pairs(), *gopro_averages(cache or CACHE)]
     for name, ref_p, obs_p in pairs:
-        row = {"mp": 1, "content": f"real: {name}", "file_create_ms": file_create_ms(out_root),
+        row = {"mp": 1, "content": prefix + name, "file_create_ms": file_create_ms(out_root),
                **run_pair(ref_p, obs_p, src, out_root)}
         print(json.dumps(row, default=float), flush=True)
         rows.append(row)
@@ -317,14 +323,9 @@ def measure_shakes(src: Path | None = None, out_root: Path | None = None) -> lis
     from benchmarks.shake_extent import make_case as shake_case
 
     _compile_package(src)
-    rows = []
-    for name in SHAKES:
-        d = shake_case(name)
-        row = {"mp": 1, "content": SHAKE_PREFIX + name, "file_create_ms": file_create_ms(out_root),
-               **run_pair(d / "ref.tif", d / "obs.tif", src, out_root)}
-        print(json.dumps(row, default=float), flush=True)
-        rows.append(row)
-    return rows
+    pairs = [(name, d / "ref.tif", d / "obs.tif") for name, d in
+             ((name, shake_case(name)) for name in SHAKES)]
+    return _pair_rows(pairs, SHAKE_PREFIX, src, out_root)
 
 
 def run_case(case: Path, src: Path | None = None, out_root: Path | None = None) -> dict:

@@ -1595,7 +1595,7 @@ class _TiffChunks:
 
     def __init__(self, path: Path, series, index: int = 0):
         self.path = path
-        self.series = index
+        self.index = index
         page = series.pages[0]
         #: ``(H, W, C, dtype)`` of the page when opened (a pass checks the file still has it)
         self.layout = (int(page.imagelength), int(page.imagewidth),
@@ -1615,10 +1615,10 @@ class _TiffChunks:
                 and (int(page.samplesperpixel) == 1 or int(page.planarconfig) == 1)
                 and dt.kind in "ui" and int(page.bitspersample) == 8 * dt.itemsize)
 
-    def __call__(self, workers: int = 1,
-                 func: Callable[[int, int, np.ndarray], Any] | None = None) -> Iterator[Any]:
-        """``func(y0, x0, chunk)`` for every chunk (default: the tuple itself), computed in
-        the ``workers`` threads that decode; ``chunk`` is ``(h, w, C)``, cropped to the
+    def __call__(self, workers: int, func: Callable[[int, int, np.ndarray], Any]
+                 ) -> Iterator[Any]:
+        """``func(y0, x0, chunk)`` for every chunk, computed in the ``workers`` threads
+        that decode; ``chunk`` is ``(h, w, C)``, cropped to the
         image (edge tiles are padded in the file).  A chunk that fails to decode raises one
         :class:`InputError` naming the file and the chunk's rows and columns."""
         import tifffile
@@ -1631,7 +1631,7 @@ class _TiffChunks:
                 raise ValueError("a tile or strip has no data")
             y0, x0 = int(index[2]), int(index[3])
             a = seg.reshape(int(shape[1]), int(shape[2]), C)[: H - y0, : W - x0]
-            return (y0, x0, a) if func is None else func(y0, x0, a)
+            return func(y0, x0, a)
 
         try:
             with _tifffile_quiet(), tifffile.TiffFile(self.path) as tif:
@@ -1644,7 +1644,7 @@ class _TiffChunks:
 
     def _page(self, tif):
         """The image's page in the open file ``tif``, which must still be the one opened."""
-        page = tif.series[self.series].pages[0]
+        page = tif.series[self.index].pages[0]
         got = (int(page.imagelength), int(page.imagewidth), int(page.samplesperpixel),
                np.dtype(page.dtype))
         if got != self.layout:

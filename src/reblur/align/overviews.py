@@ -159,6 +159,17 @@ def _exact(dtype) -> bool:
     return dt.kind == "b" or (dt.kind in "ui" and dt.itemsize <= 4)
 
 
+def _sum_dtypes(dtype, k: int) -> tuple[type, type]:
+    """Accumulators of exact ``k x k`` block sums of an :func:`_exact` ``dtype``: of ``k``
+    values down a column, and of the ``k x k`` block (the narrowest that hold them)."""
+    dt = np.dtype(dtype)
+    if dt.kind == "i":
+        return np.int64, np.int64
+    top = 1 if dt.kind == "b" else int(np.iinfo(dt).max)
+    acc = np.uint32 if k * k * top < 2**32 else np.uint64
+    return (np.uint16 if k * top < 2**16 else acc), acc
+
+
 def _chunk_block_means(reader, shape: tuple[int, int, int], k: int, norm: float
                        ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`read_block_means` of an integer image from its decoded chunks (``reader``, an
@@ -194,9 +205,7 @@ def _block_sums(a: np.ndarray, y0: int, x0: int, k: int) -> np.ndarray:
     """Exact sums, as int64, of the ``(h, w, C)`` integer chunk ``a`` (at ``y0, x0`` in the
     image) over the ``k x k`` blocks it touches, those cut at its edges included (their
     parts here); the vertical sums in :func:`_strip_means`' narrow accumulators."""
-    top = 1 if a.dtype.kind == "b" else int(np.iinfo(a.dtype).max)
-    vert = (np.int64 if a.dtype.kind == "i" else np.uint16 if k * top < 2**16
-            else np.uint32 if k * top < 2**32 else np.uint64)
+    vert, _ = _sum_dtypes(a.dtype, k)
     return _axis_sums(_axis_sums(a, 0, y0, k, vert), 1, x0, k, np.int64)
 
 
@@ -279,13 +288,8 @@ def _strip_means(a: np.ndarray, k: int, norm: float) -> np.ndarray:
     """``(r k, w k, C)`` -> ``(r, w, C)`` float32 means of ``k x k`` blocks, times ``norm``."""
     rk, wk, C = a.shape
     r, w = rk // k, wk // k
-    if a.dtype.kind == "b" or (a.dtype.kind in "ui" and a.dtype.itemsize <= 4):
-        top = 1 if a.dtype.kind == "b" else int(np.iinfo(a.dtype).max)
-        if a.dtype.kind == "i":
-            acc, vert = np.int64, np.int64
-        else:
-            acc = np.uint32 if k * k * top < 2**32 else np.uint64
-            vert = np.uint16 if k * top < 2**16 else acc
+    if _exact(a.dtype):
+        vert, acc = _sum_dtypes(a.dtype, k)
         v = np.add.reduce(a.reshape(r, k, wk * C), axis=1, dtype=vert)
         t = np.add.reduce(v.reshape(r, w, k, C), axis=2, dtype=acc)
         out = t.astype(np.float64)
