@@ -1,5 +1,7 @@
 """Solver for eq. 3 / eq. 5 on real imagery with known camera paths (ground truth known)."""
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -241,7 +243,8 @@ def test_coarse_to_fine_keeps_a_long_path():
 def test_huber_optimum_with_many_outliers(changed, one_sided):
     """KKT certificate, from the explicit matrix, of the active-set optimum when a large
     part of the window changed (most residuals in the linear part of the Huber loss), and
-    no worse than a bound-constrained quasi-Newton solve of the same objective."""
+    no worse than a bound-constrained quasi-Newton solve of the same objective; the same
+    from warm starts too strong and far too weak (every pixel an outlier)."""
     import cv2
     from scipy.optimize import minimize
 
@@ -306,6 +309,20 @@ def test_huber_optimum_with_many_outliers(changed, one_sided):
     assert np.all(np.abs(grad_ws[on_ws]) <= 1e-6 * scale)
     assert np.all(grad_ws[~on_ws] >= -1e-6 * scale)
     assert f_ws <= ref.fun * (1 + 1e-9), (f_ws, ref.fun)
+
+    # a warm start 100x too weak leaves every pixel an outlier: no weight has curvature in
+    # its partition's quadratic model, which has no minimiser; the solve must still reach
+    # the optimum (it stalled at the start, its Newton steps NaN)
+    w_far = 0.01 * w_true
+    r_far = gv - A @ w_far.ravel()
+    assert np.all((np.abs(r_far) if sv is None else sv * r_far) > delta)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        w_fs, info_fs = active_set([op], [g[:, :, None]], lam=lam, w0=w_far,
+                                   signs=None if s is None else [s[:, :, None]])
+    assert info_fs["converged"]
+    f_fs = fun(w_fs.ravel())[0]
+    assert f_fs <= ref.fun * (1 + 1e-9), (f_fs, ref.fun)
 
 
 def test_shared_scratch_gives_the_same_solve():

@@ -190,7 +190,10 @@ def test_the_pipeline_widens_its_default_grid_but_not_a_given_one(pair):
     got = _by_translation(wide.motion)
     assert got.keys() == TRUE.keys()
     for t, v in TRUE.items():
-        assert got[t] == pytest.approx(v, abs=0.02)
+        # 0.506 / 0.494 and 8.4 % flagged while a photometric refit's warm start, every
+        # pixel an outlier, stalled (solve._unbounded)
+        assert got[t] == pytest.approx(v, abs=2e-3)
+    assert not wide.change.any()  # nothing changed
     assert not any("beyond the pose grid" in n for n in model_notes(wide))
     given = PoseGrid(ref.shape, tx=range(-2, 3), ty=range(-2, 3))
     kept = detect_changes(ref, obs, grid=given, **kw)

@@ -768,6 +768,8 @@ def _nnls_exchange(G: np.ndarray, b: np.ndarray, ridge: float,
         except np.linalg.LinAlgError:
             return None
         wP = sla.cho_solve(c, b[idx], check_finite=False)
+        if not np.isfinite(wP).all():  # a block that rounds to singular
+            return None
         grad = b - G[:, idx] @ wP  # minus the gradient, off the set
         grad[idx] = 0.0
         pos = wP > 0.0
@@ -889,6 +891,24 @@ def _line_search(ws, res, deltas, dw_sum, lam, iters: int = 40) -> float:
     return lo
 
 
+def _unbounded(G: np.ndarray, c: np.ndarray) -> bool:
+    """Whether the partition's quadratic model has no minimiser: a weight whose columns
+    meet no inlier pixel (no curvature) while its outlier pixels ask for more of it (``c >
+    0``).  Every pixel an outlier does that: a warm start far from the data (a photometric
+    refit's offset step, say)."""
+    flat = np.diag(G) <= 0.0
+    return bool(np.any(c[flat] > 0.0))
+
+
+def _all_inliers(ws, active, res, G, b, d):
+    """Move every window to the all-inlier partition, a cold start's (its Newton step is
+    least squares); the cached ``G, b, d`` updated over the pixels that change."""
+    for _, upd in ws.map(lambda win, r: win.repartition(np.zeros_like(r), active), res):
+        if upd is not None:  # in window order
+            G, b, d = G + upd[0], b + upd[1], d + upd[2]
+    return G, b, d
+
+
 def _huber_newton(ws, active, wa, res, G, b, d, lam, max_steps):
     """Exact Huber NNLS on the active columns: a finite Newton method on the partition.
 
@@ -897,7 +917,11 @@ def _huber_newton(ws, active, wa, res, G, b, d, lam, max_steps):
     non-negative minimiser (NNLS on the Cholesky factor of the cached inlier Gram) gives a
     descent direction, an exact line search the step, and the partition then moves to
     that of the new residuals, updating the cache over the pixels that changed only.  It
-    stops at a full step that changes no pixel: the exact optimum.  Returns the weights,
+    stops at a full step that changes no pixel: the exact optimum.  A partition whose
+    model has no minimiser (:func:`_unbounded`) gives way, for that step, to the
+    all-inlier one of a cold start (least squares; the line search still follows the true
+    objective): from a warm start that left every pixel an outlier, Newton's step was
+    infinite and the solve stalled at its start.  Returns the weights,
     their residuals, the number of steps and the updated ``G, b, d``.
     """
     steps = 0
@@ -906,6 +930,8 @@ def _huber_newton(ws, active, wa, res, G, b, d, lam, max_steps):
     support = np.ones(len(active), bool)
     for steps in range(1, max_steps + 1):  # noqa: B007
         delta = ws.wins[0].delta
+        if delta is not None and _unbounded(G, b + delta * d - lam / 2.0):
+            G, b, d = _all_inliers(ws, active, res, G, b, d)
         c = b - lam / 2.0 if delta is None else b + delta * d - lam / 2.0
         wq = _nnls_gram(G, c, support)
         support = wq > 0.0
