@@ -518,3 +518,30 @@ def test_tiff_chunks_of_a_file_changed_since_it_was_opened(tmp_path):
     tifffile.imwrite(path, np.zeros((128, 256, 3), np.uint8), tile=(64, 64))
     with pytest.raises(InputError, match="changed since it was opened"):
         ov.read_block_means(img, 8)
+
+
+def test_warped_reference_does_not_depend_on_opencv_threads():
+    """A level's warped reference (read by the gradient blocks and the kernel polish) is
+    OpenCV's one-thread warp whatever OpenCV's thread count: threaded, its bilinear warp
+    rounds a few pixels with the number of threads, and on a host whose warp does that
+    the 12 px test-bed shake came out 1e-9 apart in its homography on one core and on
+    two (``python -m benchmarks.cores``)."""
+    from reblur.align.overviews import Level
+
+    rng = np.random.default_rng(41)
+    ref = cv2.GaussianBlur(rng.random((700, 900)).astype(np.float32), (0, 0), 1.2)
+    ones = np.ones(ref.shape, np.uint8)
+    level = Level(ref, ref.copy(), 1.0, ones, ones)
+    Hs = np.array([[1.01, 0.013, 3.7], [-0.008, 0.995, -2.3], [7e-6, -9e-7, 1.0]])
+    saved = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(1)
+        want = cv2.warpPerspective(ref, Hs, (900, 700), flags=cv2.INTER_LINEAR,
+                                   borderMode=cv2.BORDER_CONSTANT)
+        for n in (2, 3, 4):
+            cv2.setNumThreads(n)
+            got, _ = level.warped_reference(Hs)
+            np.testing.assert_array_equal(got, want)
+            assert cv2.getNumThreads() == n  # put back
+    finally:
+        cv2.setNumThreads(saved)

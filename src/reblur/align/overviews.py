@@ -31,6 +31,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .._bands import mean_bands
+from .._memory import opencv_single
 
 log = logging.getLogger(__name__)
 
@@ -638,12 +639,19 @@ class Level:
 
     def warped_reference(self, Hs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The reference warped by the level homography ``Hs`` into the observation frame
-        (bilinear, 0 outside), and where its whole footprint holds reference data."""
+        (bilinear, 0 outside), and where its whole footprint holds reference data.
+
+        OpenCV warps on one thread here: threaded, its rows' coordinates round with the
+        number of threads, and the gradient blocks and kernel polish that read this warp
+        moved the homography by 1e-9 between one core and two (``python -m
+        benchmarks.cores``: the 12 and 20 px shakes' ``reblurred.tif``)."""
         h, w = self.obs.shape
-        ref = cv2.warpPerspective(self.ref, Hs, (w, h), flags=cv2.INTER_LINEAR,
-                                  borderMode=cv2.BORDER_CONSTANT)
-        cover = cv2.warpPerspective(self.ref_mask.astype(np.float32), Hs, (w, h),
-                                    flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+        with opencv_single():
+            ref = cv2.warpPerspective(self.ref, Hs, (w, h), flags=cv2.INTER_LINEAR,
+                                      borderMode=cv2.BORDER_CONSTANT)
+            cover = cv2.warpPerspective(self.ref_mask.astype(np.float32), Hs, (w, h),
+                                        flags=cv2.INTER_LINEAR,
+                                        borderMode=cv2.BORDER_CONSTANT)
         return ref, cover > 0.999
 
 
