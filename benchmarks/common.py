@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import os
 import platform
-import resource
 import subprocess
 import sys
 from pathlib import Path
@@ -57,20 +56,12 @@ def machine() -> str:
 
 
 def peak_rss_mb() -> float:
-    """Peak resident set size of this process so far, MB.
+    """Peak resident set size of this process so far, MB (``VmHWM``: ``ru_maxrss``
+    survives ``exec``, so a case started by a large parent, e.g. ``benchmarks.run`` after
+    in-process benchmarks, would report the parent's size)."""
+    from reblur._memory import peak_rss_mb as own
 
-    Read from ``VmHWM`` (the high-water mark of this program's own memory) where Linux
-    has it: ``ru_maxrss`` survives ``exec``, so a case started by a large parent (e.g.
-    ``benchmarks.run`` after in-process benchmarks) would report the parent's size.
-    """
-    try:
-        with open("/proc/self/status") as f:
-            for line in f:
-                if line.startswith("VmHWM:"):
-                    return float(line.split()[1]) / 1024.0
-    except OSError:
-        pass
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    return own()
 
 
 def run_case(module: str, *args: str, timeout: float = 1800,

@@ -792,6 +792,25 @@ def detected(sim):
     return d, out, args, res, obs
 
 
+def test_report_peak_memory_is_the_runs_own_not_its_parents(detected, tmp_path):
+    """``report.json``'s ``peak_rss_mb`` is the run's own high-water mark.  Started from a
+    process holding more than twice that (touched pages), it reported the parent's size:
+    ``ru_maxrss`` survives ``exec``."""
+    d, out, args, _, _ = detected
+    own = json.loads((out / "report.json").read_text())["memory"]["peak_rss_mb"]
+    held = int(2 * own + 200)  # MB
+    code = ("import subprocess, sys, numpy as np; a = np.ones({n}); "
+            "r = subprocess.run([sys.executable, '-m', 'reblur', *sys.argv[1:]]); "
+            "sys.exit(r.returncode)").format(n=held * 2**20 // 8)
+    big = tmp_path / "from_a_large_parent"
+    res = subprocess.run([sys.executable, "-c", code, *map(str, args), "--out", str(big), "-q"],
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    got = json.loads((big / "report.json").read_text())["memory"]["peak_rss_mb"]
+    assert got < held
+    assert got == pytest.approx(own, rel=0.3)
+
+
 def test_detect_end_to_end(detected):
     d, out, _, res, obs = detected
     line = res.stdout.strip()

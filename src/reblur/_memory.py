@@ -52,6 +52,28 @@ M_TRIM_THRESHOLD, M_MMAP_THRESHOLD = -1, -3
 MMAP_THRESHOLD_MAX = 32 * 2**20
 
 
+def peak_rss_mb() -> float:
+    """Peak resident set size of this process so far, MB.
+
+    Linux's ``VmHWM``, the high-water mark of this program's own memory.  ``ru_maxrss``
+    survives ``exec``: a run started from a large process (a notebook, an orchestration
+    script holding 800 MB) reported that parent's size as its own.  ``ru_maxrss`` where
+    ``/proc`` is missing.
+    """
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return float(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    import resource
+    import sys
+
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / 2**20 if sys.platform == "darwin" else peak / 1024.0
+
+
 def retain_freed_memory(trim_bytes: int = 256 * 2**20) -> bool:
     """Keep freed memory of blocks up to 32 MB in the process for the next allocations
     (glibc only; the command line calls it once, at its start: a library must not change

@@ -55,9 +55,7 @@ import html
 import importlib
 import importlib.metadata
 import os
-import resource
 import shutil
-import sys
 import time
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -66,6 +64,7 @@ from typing import Any
 
 import numpy as np
 
+from ._memory import peak_rss_mb
 from .estimate import T_EDGE_SHARE
 from .gis import (
     FEATURE_KEYS,
@@ -742,9 +741,7 @@ def _version() -> str:
 
 
 def _memory() -> dict[str, float]:
-    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    peak_mb = peak / 2**20 if sys.platform == "darwin" else peak / 1024
-    out = dict(peak_rss_mb=round(peak_mb, 1))
+    out = dict(peak_rss_mb=round(peak_rss_mb(), 1))
     try:
         import psutil
 
