@@ -110,7 +110,7 @@ def load_runs(path: Path) -> list[dict]:
     return json.loads(path.read_text()) if path.exists() else []
 
 
-def save_runs(path: Path, runs: list[dict]) -> None:
+def save_runs(path: Path, runs: list[dict] | dict) -> None:
     """Write ``runs`` to ``path`` through a temporary file (never half-written)."""
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(runs, indent=1))

@@ -603,6 +603,8 @@ def main(sizes: list[int] | None = None, contents: list[str] | None = None,
     sizes = [1, 25] if sizes is None else sizes
     contents = CONTENTS if contents is None else contents
     cache = cache or CACHE
+    if out_root is not None:
+        Path(out_root).mkdir(parents=True, exist_ok=True)
     rows = measure(sizes, contents, cache, src, out_root) if sizes and contents else []
     if real:
         rows += measure_real(src, out_root, cache)

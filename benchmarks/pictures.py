@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-from benchmarks.common import run_case
+from benchmarks.common import REPO, run_case
 
 #: (side, dtype, bands): the overlay of a 16-bit or float image is stretched to its 1-99 %
 #: range, that of a uint8 one shown as is
@@ -77,9 +77,13 @@ def _rows(src: str | None, repeats: int) -> list[str]:
             for (side, dtype, bands), rs in zip(CASES, runs, strict=True)]
 
 
+#: The "before" rows of the last ``--src`` run: ``{"label", "rows"}`` (markdown rows).
+BEFORE = REPO / "docs" / "pictures_before.json"
+
+
 def main(src: str | None = None, label: str | None = None, repeats: int = 2) -> str:
-    """The section: this checkout's rows, and those of ``src`` (named ``label``) first
-    when given."""
+    """The section: this checkout's rows, and first those of ``src`` (named ``label``),
+    saved, or of the last such run."""
     head = ["| image | first call (s) | page faults | traced peak (MB) |", "|---|---|---|---|"]
     lines = [
         "## The overlay picture (`python -m benchmarks.pictures`)",
@@ -90,8 +94,12 @@ def main(src: str | None = None, label: str | None = None, repeats: int = 2) -> 
         "second call.",
         "",
     ]
-    if src:
-        lines += [f"Before (`{label or src}`, `--src`):", "", *head, *_rows(src, repeats),
+    if src:  # kept for the runs without --src (``make bench``)
+        BEFORE.write_text(json.dumps({"label": label or str(src),
+                                      "rows": _rows(src, repeats)}, indent=1))
+    if BEFORE.exists():
+        before = json.loads(BEFORE.read_text())
+        lines += [f"Before (`{before['label']}`, `--src`):", "", *head, *before["rows"],
                   "", "Now:", ""]
     lines += [*head, *_rows(None, repeats)]
     return "\n".join(lines) + "\n"

@@ -50,7 +50,15 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.common import REPO, commit, load_runs, release, run_case, save_runs
+from benchmarks.common import (
+    REPO,
+    commit,
+    load_runs,
+    peak_rss_mb,
+    release,
+    run_case,
+    save_runs,
+)
 
 SIZES_MP = (25, 100, 400, 1000)
 PLOT = REPO / "docs" / "images" / "scale.png"
@@ -114,10 +122,9 @@ class RssSampler:
         self._sample()
 
     def summary(self) -> dict:
-        import resource
-
-        main = max(self.peaks.get(os.getpid(), 0.0),
-                   resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
+        # this program's own high-water mark, not ru_maxrss: that survives exec, and a
+        # case started by `make bench` after in-process benchmarks reported their 1515 MB
+        main = max(self.peaks.get(os.getpid(), 0.0), peak_rss_mb())
         workers = [v for k, v in self.peaks.items() if k != os.getpid()]
         return dict(main_mb=main, worker_mb=max(workers) if workers else 0.0,
                     n_workers=len(workers), total_mb=main + sum(workers))

@@ -207,6 +207,11 @@ def main(src: Path | None = None, label: str | None = None, cache: Path = CACHE)
     runs = [r for r in load_runs(RUNS) if r["label"] != label]
     runs.append({"label": label, "rows": rows})
     save_runs(RUNS, runs)
+    return section(runs)
+
+
+def section(runs: list[dict]) -> str:
+    """The section's markdown from the saved runs."""
     return ("Test-bed pairs of LEVIR test_7 at 1 MP shaken further and further, and the "
             "GoPro pairs (`python -m benchmarks.shake_extent`; `--src OLD/src --label "
             "COMMIT` for another checkout).  Each case is `reblur detect` in a fresh "
@@ -221,7 +226,9 @@ if __name__ == "__main__":
     ap.add_argument("--src", type=Path, default=None, help="another checkout's src folder")
     ap.add_argument("--label", default=None, help="name of the rows (default: the commit)")
     ap.add_argument("--cache", type=Path, default=CACHE, help="folder of the pairs")
+    ap.add_argument("--saved", action="store_true",
+                    help="only rewrite the section from docs/shake_runs.json")
     a = ap.parse_args()
-    body = main(a.src, a.label, a.cache)
+    body = section(load_runs(RUNS)) if a.saved else main(a.src, a.label, a.cache)
     write_section("shake_extent", body)
     print(body)

@@ -240,3 +240,19 @@ def test_ab_scores_both_runs_on_the_pixels_both_left_known_and_unflagged():
         assert "reblurred" not in row and row["seconds"] == 1.0
     assert rows[0]["recall"] == 0.5 and rows[0]["false_alarms"] == 0.0
     assert rows[1]["recall"] == 0.0 and rows[1]["false_alarms"] == pytest.approx(1 / 18)
+
+
+def test_cores_section_keeps_this_run_and_the_saved_befores():
+    """``benchmarks.cores``: the section shows this checkout's run, then every saved
+    "before" run under its label; shares in percent, bytes as same / differ."""
+    from benchmarks.cores import section
+
+    row = {"pair": "p", "flagged_one": 0.01245, "flagged_all": 0.0125, "masks_same": False,
+           "reblurred_same": True, "differing": 7}
+    runs = {"now": {"label": "abc1234", "cpus": [0, 1, 2], "rows": [row]},
+            "before": [{"label": "old", "cpus": [0, 1], "rows": [dict(row, masks_same=True)]}]}
+    lines = section(runs).splitlines()
+    assert lines[0] == "## One core against 3 (`python -m benchmarks.cores`, abc1234)"
+    assert lines[4] == "| p | 1.245 % | 1.250 % | differ | same | 7 |"
+    assert lines[6] == "Before (`python -m benchmarks.cores --src` a checkout of old):"
+    assert lines[10] == "| p | 1.245 % | 1.250 % | same | same | 7 |"
