@@ -799,9 +799,9 @@ def test_report_peak_memory_is_the_runs_own_not_its_parents(detected, tmp_path):
     d, out, args, _, _ = detected
     own = json.loads((out / "report.json").read_text())["memory"]["peak_rss_mb"]
     held = int(2 * own + 200)  # MB
-    code = ("import subprocess, sys, numpy as np; a = np.ones({n}); "
+    code = (f"import subprocess, sys, numpy as np; a = np.ones({held * 2**20 // 8}); "
             "r = subprocess.run([sys.executable, '-m', 'reblur', *sys.argv[1:]]); "
-            "sys.exit(r.returncode)").format(n=held * 2**20 // 8)
+            "sys.exit(r.returncode)")
     big = tmp_path / "from_a_large_parent"
     res = subprocess.run([sys.executable, "-c", code, *map(str, args), "--out", str(big), "-q"],
                          capture_output=True, text=True, timeout=300)
