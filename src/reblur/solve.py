@@ -903,8 +903,15 @@ def _unbounded(G: np.ndarray, c: np.ndarray) -> bool:
 def _all_inliers(ws, active, res, G, b, d):
     """Move every window to the all-inlier partition, a cold start's (its Newton step is
     least squares); the cached ``G, b, d`` updated over the pixels that change."""
-    for _, upd in ws.map(lambda win, r: win.repartition(np.zeros_like(r), active), res):
-        if upd is not None:  # in window order
+    moved = ws.map(lambda win, r: win.repartition(np.zeros_like(r), active), res)
+    return _updated(G, b, d, [upd for _, upd in moved])
+
+
+def _updated(G, b, d, upds):
+    """``G, b, d`` plus the windows' repartition changes ``upds`` (None: no change), added
+    in window order: independent of the threads' timing."""
+    for upd in upds:
+        if upd is not None:
             G, b, d = G + upd[0], b + upd[1], d + upd[2]
     return G, b, d
 
@@ -956,11 +963,8 @@ def _huber_newton(ws, active, wa, res, G, b, d, lam, max_steps):
 
         out = ws.map(step, res, deltas)
         res = [o[0] for o in out]
-        n_changed = 0
-        for _, n, upd in out:  # in window order: independent of the threads' timing
-            n_changed += n
-            if upd is not None:
-                G, b, d = G + upd[0], b + upd[1], d + upd[2]
+        n_changed = sum(n for _, n, _ in out)
+        G, b, d = _updated(G, b, d, [upd for _, _, upd in out])
         if n_changed == 0 and t == 1.0:
             break
     return wa, res, steps, G, b, d
