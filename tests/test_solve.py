@@ -349,6 +349,83 @@ def test_shared_scratch_gives_the_same_solve():
     assert mass_near_truth(shared, w_true) > 0.9
 
 
+def _kkt_of_rows(ops, gs, masks, w, lam, step):
+    """The KKT test of the row-sampled Huber problem on its explicit matrix (see
+    test_row_step_solves_the_sampled_rows_with_the_l1_term_scaled)."""
+    delta = lam / 2
+    A = np.concatenate([np.stack([op.column(k)[::step][m[::step]].ravel()
+                                  for k in range(ops[0].grid.size)], axis=1)
+                        for op, m in zip(ops, masks, strict=True)])
+    gv = np.concatenate([g[::step][m[::step]].ravel() for g, m in zip(gs, masks, strict=True)])
+    r = gv - A @ w.ravel()
+    psi = np.where(np.abs(r) > delta, 2 * delta * np.sign(r), 2 * r)
+    grad = lam / step - A.T @ psi
+    on = w.ravel() > 0
+    scale = np.abs(A.T @ np.where(np.abs(gv) > delta, 2 * delta * np.sign(gv), 2 * gv)).max()
+    return np.all(np.abs(grad[on]) <= 1e-6 * scale) and np.all(grad[~on] >= -1e-6 * scale)
+
+
+def _partition_moves(ops, g_before, g_after, masks, w, lam, step):
+    """Share of the sampled valid pixels whose Huber partition at ``w`` differs between
+    the two observations (explicit sums of the columns)."""
+    moved = total = 0
+    for op, a, b, m in zip(ops, g_before, g_after, masks, strict=True):
+        fw = sum(w.ravel()[k] * op.column(k) for k in np.flatnonzero(w.ravel()))
+        sa = np.sign(a - fw) * (np.abs(a - fw) > lam / 2)
+        sb = np.sign(b - fw) * (np.abs(b - fw) > lam / 2)
+        mm = m[::step]
+        moved += int(np.count_nonzero((sa != sb)[::step][mm]))
+        total += int(mm.sum())
+    return moved / total
+
+
+@pytest.mark.parametrize("offset", [0.004, 0.3])
+def test_a_solve_on_the_same_operators_starts_from_the_carried_gram(offset):
+    """A photometric round's solve (the same operators, the observation less an offset,
+    warm-started from the weights found) starts from the inlier Gram the last solve left in
+    the shared scratch, updated over the pixels whose partition moved, and recomputes
+    ``A^T D g`` and ``A^T s``: it reaches the optimum of its own problem (the KKT test on
+    the explicit matrix; a stale ``A^T D g`` or a missed update fails it) and the fresh
+    solve's weights.  Where most pixels moved (an offset beyond the Huber threshold) the
+    Gram is computed afresh; other operators, or other masks, never take it."""
+    import cv2
+
+    from reblur.solve import Scratch
+
+    rng = np.random.default_rng(33)
+    f = cv2.GaussianBlur(rng.random((160, 160)), (0, 0), 1.5)
+    grid = PoseGrid((160, 160), tx=np.arange(-2, 3), ty=np.arange(-2, 3), rz=[-1.0, 0.0, 1.0])
+    boxes = ((10, 10, 61, 70), (90, 80, 60, 70))
+    ops = [BlurOperator(f, grid, b) for b in boxes]
+    w_true = np.zeros(grid.shape)
+    w_true[0, 2, 2], w_true[2, 1, 3], w_true[1, 3, 1] = 0.5, 0.3, 0.2
+    gs = [op.matvec(w_true) + rng.normal(0, 0.01, op.dimsd) for op in ops]
+    gs[1][:25, :30] += 0.3  # a change in the second window
+    masks = [op.valid.copy() for op in ops]
+    lam, step = 0.05, 2
+    scratch = Scratch()
+    w1, _ = active_set(ops, gs, lam=lam, row_step=step, scratch=scratch)
+    gs2 = [g - offset for g in gs]
+    moved = _partition_moves(ops, gs, gs2, masks, w1, lam, step)
+    w2, info = active_set(ops, gs2, lam=lam, row_step=step, scratch=scratch, w0=w1)
+    fresh, _ = active_set(ops, gs2, lam=lam, row_step=step, w0=w1)
+    assert info["converged"] and _kkt_of_rows(ops, gs2, masks, w2, lam, step)
+    np.testing.assert_allclose(w2, fresh, atol=1e-9)
+    if offset < 0.01:  # some pixels moved across the threshold, far fewer than half
+        assert 0.001 < moved < 0.2
+        assert scratch.carry.used == 1
+    else:
+        assert moved > 0.5 and scratch.carry.used == 0
+    # other operators on the same windows, or other masks: never the held matrix
+    used = scratch.carry.used
+    others = [BlurOperator(f, grid, b) for b in boxes]
+    active_set(others, gs2, lam=lam, row_step=step, scratch=scratch, w0=w2)
+    fewer = [m.copy() for m in masks]
+    fewer[0][40:44] = False
+    active_set(others, gs2, lam=lam, row_step=step, scratch=scratch, w0=w2, masks=fewer)
+    assert scratch.carry.used == used
+
+
 def test_photometric_refit_recovers_the_offset(levir_gray, paper_grid):
     """An observation with another gain and offset than the reference: the refit finds
     the offset (synthetic truth), the weights carry the gain in their sum, and they fit

@@ -28,6 +28,7 @@ problem) is kept as a slow cross-check for small problems.
 from __future__ import annotations
 
 import time
+import weakref
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import ExitStack
@@ -62,6 +63,11 @@ _DENSE_BLOCK = 0.3
 #: old columns) is one SYRK either way: 572 columns 83 ms, against 154 ms for the GEMMs of
 #: 48 new columns each it replaced.
 _SYRK_FROM = 64
+#: Share of a warm start's valid pixels, at most, whose partition may differ from that of
+#: the Gram matrix a :class:`Scratch` carries for the same operators (:class:`_Carry`) for
+#: the solve to start from that matrix: its update over a changed pixel costs one
+#: ``k x k`` outer product, a fresh Gram half of one per pixel (SYRK).
+_CARRY_CHANGED = 0.5
 
 __all__ = ["Scratch", "active_set", "fista", "huber_objective", "joint_objective", "power_norm"]
 
@@ -106,7 +112,9 @@ class Scratch:
     (``active_set(workers=)``) use one buffer per thread (``slot``), each for blocks of
     :data:`_SLOT_CHUNK` pixels.  A caller that solves several related problems (the levels
     of a coarse-to-fine schedule, photometric refits) can pass the same ``Scratch`` to
-    each: the buffer then grows a few times in all instead of once per window and call.
+    each: the buffer then grows a few times in all instead of once per window and call,
+    and a solve warm-started on the operators of the last one starts from the inlier Gram
+    that one ended with (:class:`_Carry`).
     Fresh memory is not free: its pages fault in on first touch, which on some virtual
     machines costs more than the products themselves (2-7 ms per MB on the benchmark
     machine, varying with its host, against 0.1 ms for pages the host still backs:
@@ -115,6 +123,8 @@ class Scratch:
 
     def __init__(self) -> None:
         self._bufs: dict[int, np.ndarray] = {}
+        #: the last solve's inlier Gram (see :class:`_Carry`)
+        self.carry = _Carry()
 
     def take(self, n: int, slot: int = 0) -> np.ndarray:
         """A float64 array of ``n`` elements (contents undefined), valid until the next call
@@ -127,6 +137,94 @@ class Scratch:
     @property
     def nbytes(self) -> int:
         return int(sum(b.nbytes for b in self._bufs.values()))
+
+
+class _Carry:
+    """The inlier Gram ``A^T D A`` a solve ended with, its poses and its windows'
+    partition, for the next solve on the same operators.
+
+    A photometric round (:func:`reblur.estimate._refit_photometry`) solves again on the
+    same windows and operators, against the observation less an offset, from the weights
+    found.  Its warm start's Gram matrix over a few hundred poses was the largest product
+    of the round (the defocus pair's 549 poses: 17.8 of its 42.6 GMAC), while the offset
+    moves few pixels across the Huber threshold (none there; 0.2-4 % on the test bed's
+    shakes; 52 % on the tilt pair's first round).  The carried matrix, restricted to the
+    warm start's poses and updated over the pixels whose partition differs, is the same
+    sum in another order; ``A^T D g`` and ``A^T s`` are computed afresh (one pass over the
+    columns, no products between them).  Operators are held by weak references: a level's
+    stacks and spectra go with the level.
+    """
+
+    def __init__(self) -> None:
+        self.key: tuple | None = None
+        self.active: list[int] = []
+        self.G = np.zeros((0, 0))
+        # per window: its mask, its polarities (or None) and the outlier signs held
+        self.parts: list[tuple[np.ndarray, np.ndarray | None, np.ndarray]] = []
+        self.used = 0  # warm starts that started from a carried matrix (for the tests)
+
+    @staticmethod
+    def _key(ops, step: int, delta) -> tuple | None:
+        try:
+            return (tuple(weakref.ref(op) for op in ops), int(step), delta)
+        except TypeError:  # an operator without weak references: nothing is carried
+            return None
+
+    def keep(self, key: tuple | None, ws, active: list[int], G: np.ndarray) -> None:
+        """Hold ``G`` over ``active`` and the windows' partition (copies)."""
+        self.key = key
+        self.active = list(active) if key is not None else []
+        self.G = G.copy() if key is not None else np.zeros((0, 0))
+        self.parts = ([] if key is None else
+                      [(w.m.copy(), None if w.s is None else w.s.copy(), w.sgn.copy())
+                       for w in ws.wins])
+
+    def matches(self, key: tuple | None, ws) -> bool:
+        """Whether the held matrix belongs to these operators, masks and polarities."""
+        if key is None or self.key is None or len(key[0]) != len(self.key[0]):
+            return False
+        if key[1:] != self.key[1:] or any(a() is None or a() is not b()
+                                          for a, b in zip(self.key[0], key[0], strict=True)):
+            return False
+        for w, (m, sg, _) in zip(ws.wins, self.parts, strict=True):
+            if not np.array_equal(w.m, m):
+                return False
+            if (w.s is None) != (sg is None) or (sg is not None and not np.array_equal(w.s, sg)):
+                return False
+        return True
+
+    def start(self, key: tuple | None, ws, active: list[int], res):
+        """``G, b, d`` of the warm start ``active`` (the windows already in the partition
+        of their residuals ``res``) from the held matrix, or None where it does not apply:
+        other operators, a pose it does not hold, or too many pixels moved."""
+        if not active or not self.matches(key, ws):
+            return None
+        where = {k: i for i, k in enumerate(self.active)}
+        if any(k not in where for k in active):
+            return None
+        moved = sum(int(np.count_nonzero(w.sgn != sg)) for w, (_, _, sg)
+                    in zip(ws.wins, self.parts, strict=True))
+        if moved > _CARRY_CHANGED * sum(int(np.count_nonzero(w.m3)) for w in ws.wins):
+            return None
+        idx = np.array([where[k] for k in active])
+        G = self.G[np.ix_(idx, idx)]
+
+        def move(win, r, sg):
+            # back to the held partition, then to that of ``r``: the Gram's update over
+            # the pixels that differ (its b, d parts are for the old g: recomputed below)
+            win.sgn = sg.copy()
+            win.inl = win.m3 & (sg == 0)
+            upd = win.repartition(r, active)[1]
+            return None if upd is None else upd[0], *win.rhs(active)
+
+        out = ws.map(move, res, [sg for _, _, sg in self.parts])
+        b, d = np.zeros(len(active)), np.zeros(len(active))
+        for dG, bw, dw in out:  # window order: independent of the threads' timing
+            if dG is not None:
+                G = G + dG
+            b, d = b + bw, d + dw
+        self.used += 1
+        return G, b, d
 
 
 class _Window:
@@ -298,6 +396,30 @@ class _Window:
         else:  # one GEMM (without old columns, At is Atn: numpy calls SYRK)
             G += At @ Atn.T
         b += Atn @ gb
+
+    def rhs(self, cols: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """``A^T D g`` and ``A^T s`` over the columns ``cols`` for the current partition
+        (by the row blocks of :meth:`block_products`, without their products between
+        columns)."""
+        h, w, C = self.op.dimsd
+        rows = max(1, _SLOT_CHUNK // (w * C))
+        n = len(cols)
+        b, d = np.zeros(n), np.zeros(n)
+        buf = self.scratch.take(n * rows * w * C, self.slot).reshape(n, rows * w * C)
+        views = [self.op.column(k) for k in cols]
+        dg = np.where(self.inl, self.g, 0.0)
+        for r0 in range(0, h, rows):
+            r1 = min(h, r0 + rows)
+            if not self.m[r0:r1].any():
+                continue
+            At = buf[:, : (r1 - r0) * w * C]
+            for j, v in enumerate(views):
+                np.copyto(At[j].reshape(r1 - r0, w, C), v[r0:r1])
+            b += At @ dg[r0:r1].reshape(-1)
+            sb = self.sgn[r0:r1].reshape(-1)
+            if sb.any():
+                d += At @ sb.astype(float)
+        return b, d
 
     def repartition(self, r: np.ndarray, active: list[int]):
         """Move to the partition of ``r``.  Returns the number of pixels that change and
@@ -524,6 +646,8 @@ def active_set(
         signs = None if signs is None else [
             None if s is None else np.asarray(s, float).reshape(op.dimsd)[::step]
             for op, s in zip(ops, signs, strict=True)]
+    key = _Carry._key(ops, step, delta)  # the caller's operators, before any row view
+    if step > 1:
         ops = [op.rows(step) for op in ops]
     wins = [
         _Window(op, g, op.valid if masks is None else masks[i], delta,
@@ -536,7 +660,8 @@ def active_set(
         # the l1 term over the sampled data term: lam / step (the Huber threshold, a
         # property of each pixel, stays lam / 2)
         w, info = _active_set(ws, grid, lam / step, batch, max_outer, max_irls, tol, w0,
-                              time_limit, callback, t_start, rtol, max_active)
+                              time_limit, callback, t_start, rtol, max_active,
+                              carry=(scratch.carry, key))
     if step > 1:
         info["objective"] = [step * v for v in info["objective"]]
         info["row_step"] = step
@@ -544,9 +669,12 @@ def active_set(
 
 
 def _active_set(ws, grid, lam, batch, max_outer, max_irls, tol, w0, time_limit, callback,
-                t_start, rtol=0.0, max_active=None):
+                t_start, rtol=0.0, max_active=None, carry=None):
     """The loop of :func:`active_set` over the windows ``ws`` (a :class:`_Windows`);
-    ``lam`` is the weights' l1 coefficient (the windows hold the Huber threshold)."""
+    ``lam`` is the weights' l1 coefficient (the windows hold the Huber threshold).
+    ``carry``: a :class:`_Carry` and the key of these operators: a warm start starts from
+    its matrix where it applies, and the solve leaves its own there."""
+    held, key = (None, None) if carry is None else carry
     P = grid.size
 
     active: list[int] = []
@@ -568,7 +696,8 @@ def _active_set(ws, grid, lam, batch, max_outer, max_irls, tol, w0, time_limit, 
             return r
 
         res = ws.map(start)
-        G, b, d = _gram_add(ws, [], active, G, b, d)
+        out = None if held is None else held.start(key, ws, active, res)
+        G, b, d = _gram_add(ws, [], active, G, b, d) if out is None else out
         # the KKT test's scale is the data term's gradient at w = 0, as a cold start has it
         # at its first iteration: a property of the problem, not of the start (scaled by
         # a warm start's own gradient, a better warm start made the test stricter)
@@ -655,6 +784,8 @@ def _active_set(ws, grid, lam, batch, max_outer, max_irls, tol, w0, time_limit, 
         if callback is not None:
             callback(_full(grid, active, wa))
 
+    if held is not None:
+        held.keep(key, ws, active, G)
     w = _full(grid, active, wa)
     info = dict(
         objective=history,
