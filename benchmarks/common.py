@@ -40,8 +40,33 @@ def __getattr__(name: str):
 __all__ = ["DataMissing", "REPO", "data_dir", "require_data"]
 
 
+def dgemm_rate(n: int = 512, repeat: int = 7) -> float:
+    """This host's single-thread DGEMM speed now, GMAC/s: the best of ``repeat`` products
+    of two ``n x n`` float64 matrices (``n^3`` multiply-adds each).
+
+    The machine line carries it because the hosts these benchmarks ran on differed in speed
+    while reporting the same cores and memory: stops 70-71's host ran the estimate's Gram
+    products at 18.3 GMAC/s, stop 72-73's at 11.2 (``benchmarks.gram_work``), and every
+    timing moved with it.
+    """
+    import time
+
+    from threadpoolctl import threadpool_limits
+
+    a = np.random.default_rng(0).random((n, n))
+    best = np.inf
+    with threadpool_limits(1, user_api="blas"):
+        a @ a  # first call: BLAS warm-up
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            a @ a
+            best = min(best, time.perf_counter() - t0)
+    return n**3 / best / 1e9
+
+
 def machine() -> str:
-    """One line describing this machine."""
+    """One line describing this machine, with its single-thread DGEMM speed now
+    (:func:`dgemm_rate`)."""
     try:
         import psutil
 
@@ -50,8 +75,9 @@ def machine() -> str:
         mem = "unknown RAM"
     cpu = platform.processor() or platform.machine()
     return (
-        f"{os.cpu_count()} cores ({cpu}), {mem}, Python {platform.python_version()}, "
-        f"numpy {np.__version__}, OpenCV {cv2.__version__}"
+        f"{os.cpu_count()} cores ({cpu}, single-thread DGEMM {dgemm_rate():.1f} GMAC/s), "
+        f"{mem}, Python {platform.python_version()}, numpy {np.__version__}, "
+        f"OpenCV {cv2.__version__}"
     )
 
 
