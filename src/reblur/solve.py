@@ -629,7 +629,8 @@ def active_set(
         the largest gradient of the data term at ``w = 0``, the same whether the solve
         starts cold or from ``w0``); from ``w0``, ``warm_start``: its non-zero poses
         (``poses``) and those still non-zero once its own weights are optimised, before
-        any pose is added (``kept``).
+        any pose is added (``kept``), and ``carried`` (True) when it started from the
+        Gram matrix the last solve on the same operators left in ``scratch``.
     """
     t_start = time.perf_counter()
     grid = ops[0].grid
@@ -685,6 +686,7 @@ def _active_set(ws, grid, lam, batch, max_outer, max_irls, tol, w0, time_limit, 
     d = np.zeros(0)  # A^T s
     res: list[np.ndarray] | None = None  # residuals of (active, wa), when known
     grad_scale = None  # the KKT test's scale (see below)
+    carried = False  # the warm start's Gram came from ``carry``
     if w0 is not None:
         nz = np.flatnonzero(np.asarray(w0).ravel() > 0)
         active = [int(k) for k in nz]
@@ -697,6 +699,7 @@ def _active_set(ws, grid, lam, batch, max_outer, max_irls, tol, w0, time_limit, 
 
         res = ws.map(start)
         out = None if held is None else held.start(key, ws, active, res)
+        carried = out is not None
         G, b, d = _gram_add(ws, [], active, G, b, d) if out is None else out
         # the KKT test's scale is the data term's gradient at w = 0, as a cold start has it
         # at its first iteration: a property of the problem, not of the start (scaled by
@@ -721,6 +724,8 @@ def _active_set(ws, grid, lam, batch, max_outer, max_irls, tol, w0, time_limit, 
                                                    max_irls)
         keep = wa > 0
         warm = dict(poses=len(active), kept=int(keep.sum()))
+        if carried:
+            warm["carried"] = True
         if not keep.all():
             idx = np.flatnonzero(keep)
             active = [active[i] for i in idx]
