@@ -146,13 +146,14 @@ class _Carry:
     A photometric round (:func:`reblur.estimate._refit_photometry`) solves again on the
     same windows and operators, against the observation less an offset, from the weights
     found.  Its warm start's Gram matrix over a few hundred poses was the largest product
-    of the round (the defocus pair's 549 poses: 17.8 of its 42.6 GMAC), while the offset
-    moves few pixels across the Huber threshold (none there; 0.2-4 % on the test bed's
-    shakes; 52 % on the tilt pair's first round).  The carried matrix, restricted to the
-    warm start's poses and updated over the pixels whose partition differs, is the same
-    sum in another order; ``A^T D g`` and ``A^T s`` are computed afresh (one pass over the
-    columns, no products between them).  Operators are held by weak references: a level's
-    stacks and spectra go with the level.
+    of the round, while an offset small against the Huber threshold moves few pixels
+    across it (a large one, a first round far from the offset, moves most: the matrix is
+    then computed afresh).  ``python -m benchmarks.gram_work --one REF OBS``, the 1 MP
+    defocus pair: 135.7 -> 116.9 GMAC in the whole estimate.  The carried matrix,
+    restricted to the warm start's poses and updated over the pixels whose partition
+    differs, is the same sum in another order; ``A^T D g`` and ``A^T s`` are computed
+    afresh (one pass over the columns, no products between them).  Operators are held by
+    weak references: a level's stacks and spectra go with the level.
     """
 
     def __init__(self) -> None:
@@ -360,16 +361,13 @@ class _Window:
                G: np.ndarray, b: np.ndarray, d: np.ndarray) -> None:
         """Add one row block's products of ``views`` (the last ``n_new`` of them new) to
         ``G``, ``b`` and ``d`` (see :meth:`block_products`)."""
-        w, C = self.op.dimsd[1:]
+        C = self.op.dimsd[2]
         n_all = len(views)
         if mk.mean() >= _DENSE_BLOCK:
             # every pixel of the block, the masked ones included: they are outside the
             # inlier set (``inl``) and carry no sign, so the new columns are zeroed there
             # below and add nothing; ``gm`` is ``g`` zeroed off the mask (no NaN)
-            n_pix = (r1 - r0) * w * C
-            At = buf[:n_all, :n_pix]
-            for j, v in enumerate(views):
-                np.copyto(At[j].reshape(r1 - r0, w, C), v[r0:r1])
+            At = _copy_rows(views, r0, r1, buf, self.op.dimsd[1:])
             gb = self.gm[r0:r1].reshape(-1)
             ib = self.inl[r0:r1].reshape(-1)
             sb = self.sgn[r0:r1].reshape(-1)
@@ -412,9 +410,7 @@ class _Window:
             r1 = min(h, r0 + rows)
             if not self.m[r0:r1].any():
                 continue
-            At = buf[:, : (r1 - r0) * w * C]
-            for j, v in enumerate(views):
-                np.copyto(At[j].reshape(r1 - r0, w, C), v[r0:r1])
+            At = _copy_rows(views, r0, r1, buf, (w, C))
             b += At @ dg[r0:r1].reshape(-1)
             sb = self.sgn[r0:r1].reshape(-1)
             if sb.any():
@@ -452,6 +448,16 @@ class _Window:
             d += A.T @ ds
         self.inl, self.sgn = inl, sgn
         return n, (G, b, d)
+
+
+def _copy_rows(views, r0: int, r1: int, buf: np.ndarray, row: tuple[int, int]) -> np.ndarray:
+    """Rows ``r0:r1`` of the column images ``views`` (rows of shape ``row = (w, C)``),
+    each copied into one row of ``buf`` (one contiguous write per column): the
+    ``(len(views), pixels)`` block of ``A^T``."""
+    At = buf[: len(views), : (r1 - r0) * row[0] * row[1]]
+    for j, v in enumerate(views):
+        np.copyto(At[j].reshape(r1 - r0, *row), v[r0:r1])
+    return At
 
 
 class _Windows:
