@@ -930,6 +930,29 @@ def test_demo(tmp_path):
     assert rep["metrics"] is not None and rep["options"]["command"] == "demo"
 
 
+def test_only_the_command_exits_without_collecting():
+    """At the exit of a process that ran ``reblur.cli.run`` (the console script), every
+    object is frozen out of the collector, so the interpreter's last collections skip them;
+    after ``main`` in a host's process nothing is.  Seen at the very end, by an exit
+    handler registered first (exit handlers run last-registered first); the outputs of a
+    real run are complete before it (the demo, by the command)."""
+    code = textwrap.dedent("""
+        import atexit, gc, sys
+        atexit.register(lambda: print("frozen", gc.get_freeze_count() > 0))
+        from reblur import cli
+        try:
+            getattr(cli, sys.argv[1])(sys.argv[2:])
+        except SystemExit:
+            pass
+        print("before exit", gc.get_freeze_count() > 0)
+    """)
+    for how, want in (("run", True), ("main", False)):
+        r = subprocess.run([sys.executable, "-c", code, how, "--version"],
+                           capture_output=True, text=True, timeout=120)
+        assert r.returncode == 0, r.stderr
+        assert r.stdout.splitlines()[-2:] == ["before exit False", f"frozen {want}"]
+
+
 def test_only_the_command_entry_point_changes_the_allocator(monkeypatch):
     """``reblur.cli.run`` (the console script, ``python -m reblur``) keeps freed memory in
     its own process; ``main`` called inside a host's process (CliRunner here, a test, a

@@ -12,7 +12,9 @@ directory at the end, holding its lock meanwhile (:func:`reblur.outdir.output_se
 
 from __future__ import annotations
 
+import atexit
 import dataclasses
+import gc
 import glob
 import json
 import logging
@@ -495,13 +497,29 @@ def main() -> None:
 def run(args: list[str] | None = None, **kwargs) -> Any:
     """The ``reblur`` command (its console script and ``python -m reblur``): :func:`main`
     in a process of its own, whose allocator keeps freed memory for the later stages
-    (:func:`reblur._memory.retain_freed_memory`).  :func:`main` called in a host's
-    process (a test, a notebook) leaves that process's allocator as it is.
+    (:func:`reblur._memory.retain_freed_memory`), and whose exit skips the interpreter's
+    last garbage collections (:func:`_exit_without_collecting`).  :func:`main` called in
+    a host's process (a test, a notebook) leaves that process's allocator and collector
+    as they are.
 
     ``kwargs`` go to :func:`main` (click's ``standalone_mode`` ...).
     """
     retain_freed_memory()  # this process is the command's: later stages reuse pages
+    atexit.unregister(_exit_without_collecting)  # once, however many runs
+    atexit.register(_exit_without_collecting)
     return main(args=args, prog_name="reblur", **kwargs)
+
+
+def _exit_without_collecting() -> None:
+    """At the command's exit: every object then alive is frozen out of the collector
+    (:func:`gc.freeze`), so the collections the interpreter runs while it tears its modules
+    down do not traverse them all again.  They took 0.18-0.27 s of every run's exit (a
+    1 MP ``reblur detect``, some 70,000 objects; 0.03-0.07 s frozen).  Nothing is left
+    unwritten: the outputs are complete and closed before :func:`main` returns, the exit
+    handlers registered before this one still run after it (logging's flush, Dask's
+    shutdown, ``weakref.finalize``), and objects freed by reference count are freed as
+    before; only objects in reference cycles are left to the process's end."""
+    gc.freeze()
 
 
 def _quiet_libtiff() -> bool:
