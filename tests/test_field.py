@@ -292,3 +292,41 @@ def test_settled_needs_enough_quiet_inliers_or_no_correlation():
     assert quiet["inliers"] >= p.min_points
     assert _settled(lattice(0.1), 100.0, p) is None  # RMS ~0.14 px: the whole lattice decides
     assert _settled(lattice(0.02, n=12), 100.0, p) is None  # fewer than min_points
+
+
+def test_the_later_passes_reblur_the_image_once(monkeypatch):
+    """A distorted 1 MP pair: after the first pass, the rest of the lattice and the check
+    with the field cut their rows from one reblur of the image (its strips are the only
+    reblurs left), and the field is the one measured without it, within the rounding of
+    the warp coordinates."""
+    import reblur.align.field as field_mod
+    import reblur.tiled as tiled
+
+    ref, obs, poses = _distorted_pair(2.5)
+    grid = PoseGrid((1024, 1024), tx=[-1, 0, 1], ty=[0, 1], rz=[0.0])
+    w = np.zeros(grid.shape)
+    w[0, 0, 1], w[0, 1, 2], w[0, 0, 0] = 0.5, 0.3, 0.2
+    poses = SparsePoses(w, grid)
+    obs = tiled.reblur_tile(poses, obs, (0, 0, 1024, 1024))[0][:, :, 0]
+    p = FieldParams(probe_px=64)
+    boxes: list = []
+    real = tiled._reblur_poses
+
+    def counted(ps, reference, box, dtype):
+        boxes.append(box)
+        return real(ps, reference, box, dtype)
+
+    monkeypatch.setattr(tiled, "_reblur_poses", counted)
+    est = estimate_field(ref, obs, poses, params=p)
+    assert est.info["applied"] and "first_pass" not in est.info
+    first = [b for b in boxes if b.h == 64]  # the first pass: 8 rows of tie points
+    strips = [b for b in boxes if b.h != 64]
+    assert len(first) == 8 and len(boxes) == 8 + len(strips)
+    assert sum(b.h for b in strips) == 1024 + 2 * field_mod._WHOLE_MARGIN
+    monkeypatch.setattr(field_mod, "_WHOLE_SPAN", 2.0)  # never: every pass reblurs its rows
+    boxes.clear()
+    alone = estimate_field(ref, obs, poses, params=p)
+    assert len(boxes) > 8 + 16
+    assert alone.info["inliers"] == est.info["inliers"]
+    np.testing.assert_allclose(est.field.d, alone.field.d, rtol=0, atol=1e-4)
+    assert abs(est.info["rms_after_px"] - alone.info["rms_after_px"]) <= 1e-4

@@ -217,3 +217,62 @@ def test_reblur_windows_equal_each_window_reblurred_alone(levir_gray):
     plain = reblur_windows(SparsePoses(w, grid), ref, boxes)
     moved = reblur_windows(SparsePoses(w, grid, field=fld), ref, boxes)
     assert np.max(np.abs(plain[4][0] - moved[4][0])) > 0.05
+
+
+def test_windows_cut_from_the_whole_reblur_equal_their_own(levir_gray):
+    """:func:`reblur.tiled.reblur_whole` (strips on two threads, a margin around the image)
+    serves :func:`reblur.tiled.reblur_windows` the windows of its poses, with and without
+    a displacement field, as each window reblurred alone: the same validity (a window on
+    the border reads outside the reference), values within OpenCV's window-dependent
+    rounding, read only.  Other poses, or a window beyond the margin, are reblurred on
+    their own."""
+    import copy
+
+    import reblur.tiled as tiled
+    from reblur.align.field import DisplacementField
+    from reblur.tiled import SparsePoses, reblur_tile, reblur_whole, reblur_windows
+    from reblur.warp import Box
+
+    ref = levir_gray[:600, :640]
+    grid = PoseGrid((600, 640), tx=np.arange(-4, 5), ty=np.arange(-4, 5),
+                    rz=[-1.5, 0.0, 1.0])
+    w = grid_path(grid, rng=5, n_poses=12)
+    poses = SparsePoses(w, grid)
+    whole = reblur_whole(poses, ref, (600, 640), margin=8, workers=2)
+    assert whole.image.shape[:2] == whole.valid.shape == (616, 656)
+    assert not whole.image.flags.writeable
+    yy, xx = np.mgrid[0:11, 0:11].astype(np.float64)
+    d = np.stack([1.2 * np.sin(xx / 3.0), -0.8 * np.cos(yy / 4.0)], axis=2)
+    moved = copy.copy(poses)  # the field's check: the same poses, with a field
+    moved.field = DisplacementField(0.0, 0.0, 64.0, d)
+    boxes = [Box(0, 0, 64, 64), Box(0, 100, 64, 64), Box(0, 576, 64, 64),
+             Box(300, 200, 90, 130)]
+    calls = []
+    real = tiled._reblur_poses
+
+    def counted(p, reference, box, dtype):
+        calls.append(box)
+        return real(p, reference, box, dtype)
+
+    for p in (poses, moved):
+        want = [reblur_tile(p, ref, b) for b in boxes]
+        tiled._reblur_poses = counted
+        try:
+            got = reblur_windows(p, ref, boxes, whole=whole)
+        finally:
+            tiled._reblur_poses = real
+        assert calls == []  # every window from the whole reblur
+        for (img, ok), (alone, ok_alone) in zip(got, want, strict=True):
+            np.testing.assert_array_equal(ok, ok_alone)
+            assert np.max(np.abs(img - alone)) < 1e-5
+        assert not got[0][1].all()
+    other = SparsePoses(w, grid)  # equal weights, another object: not served
+    far = [Box(0, 0, 64, 64), Box(0, 630, 64, 20)]  # the span ends 10 px beyond the image
+    for p, bs in ((other, boxes), (poses, far)):
+        tiled._reblur_poses = counted
+        try:
+            reblur_windows(p, ref, bs, whole=whole)
+        finally:
+            tiled._reblur_poses = real
+        assert len(calls) == 1
+        calls.clear()

@@ -21,7 +21,8 @@ from ._memory import thread_map
 from .grid import PoseGrid, translation
 from .warp import Box, as_box, read_window, source_box, warp_source
 
-__all__ = ["reblur", "reblur_tile", "reblur_windows", "iter_tiles", "SparsePoses"]
+__all__ = ["reblur", "reblur_tile", "reblur_windows", "reblur_whole", "iter_tiles",
+           "SparsePoses", "WholeReblur"]
 
 
 class SparsePoses:
@@ -76,8 +77,66 @@ def reblur_tile(poses: SparsePoses, reference, box, *, dtype=np.float32):
     return fld.displaced(lambda b: _reblur_poses(poses, reference, b, dtype), box)
 
 
-def reblur_windows(poses: SparsePoses, reference, boxes, *, dtype=np.float32
-                   ) -> list[tuple[np.ndarray, np.ndarray]]:
+class WholeReblur:
+    """The reblur of a whole image (the poses without their displacement field), computed
+    once (:func:`reblur_whole`) for the windows of several :func:`reblur_windows` calls.
+
+    Attributes
+    ----------
+    image : (h, w, C) ndarray
+    valid : (h, w) bool ndarray
+    box : Box
+        What they cover: the image grown by a margin (reblurred there as anywhere else:
+        a pose reading outside the reference leaves its pixels invalid).
+    """
+
+    def __init__(self, poses: SparsePoses, image: np.ndarray, valid: np.ndarray, box: Box):
+        self._groups, self._base_h = poses.groups, poses.base_h
+        self.image, self.valid, self.box = image, valid, box
+
+    def serves(self, poses: SparsePoses, box: Box, dtype=np.float32) -> bool:
+        """Whether ``box`` lies inside :attr:`box`, ``poses`` are the poses reblurred (the
+        same objects, with or without a field: :func:`copy.copy` shares them) and
+        ``dtype`` is the reblur's."""
+        b = self.box
+        return (poses.groups is self._groups and poses.base_h is self._base_h
+                and self.image.dtype == np.dtype(dtype)
+                and b.y0 <= box.y0 and b.x0 <= box.x0 and box.y1 <= b.y1 and box.x1 <= b.x1)
+
+    def cut(self, box: Box) -> tuple[np.ndarray, np.ndarray]:
+        """Views of the reblur and its validity on ``box`` (read only: shared)."""
+        sl = (slice(box.y0 - self.box.y0, box.y1 - self.box.y0),
+              slice(box.x0 - self.box.x0, box.x1 - self.box.x0))
+        return self.image[sl], self.valid[sl]
+
+
+#: Rows :func:`reblur_whole` reblurs at once (a strip per thread).
+_WHOLE_ROWS = 128
+
+
+def reblur_whole(poses: SparsePoses, reference, shape: tuple[int, int], *, margin: int = 0,
+                 workers: int = 1, dtype=np.float32) -> WholeReblur:
+    """The reblur of the whole ``shape`` image grown by ``margin`` pixels on every side,
+    without the poses' displacement field, in strips of :data:`_WHOLE_ROWS` rows on
+    ``workers`` threads: what many windows covering an image read (a 1 MP image's
+    displacement-field lattice, measured in passes) reblurred once.  A window cut from it
+    equals its own reblur up to the rounding of OpenCV's warp coordinates
+    (:func:`reblur_windows`)."""
+    H, W = (int(v) for v in shape)
+    m = int(margin)
+    box = Box(-m, -m, H + 2 * m, W + 2 * m)
+    strips = [Box(y, box.x0, min(_WHOLE_ROWS, box.y1 - y), box.w)
+              for y in range(box.y0, box.y1, _WHOLE_ROWS)]
+    parts = thread_map(lambda b: _reblur_poses(poses, reference, b, dtype), strips, workers)
+    image = np.concatenate([p[0] for p in parts], axis=0)
+    valid = np.concatenate([p[1] for p in parts], axis=0)
+    image.flags.writeable = False
+    valid.flags.writeable = False
+    return WholeReblur(poses, image, valid, box)
+
+
+def reblur_windows(poses: SparsePoses, reference, boxes, *, dtype=np.float32,
+                   whole: WholeReblur | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
     """:func:`reblur_tile` on several windows, reblurred together on the box spanning them.
 
     A window's reblur costs about as much per rotation group of the poses as per pixel,
@@ -89,7 +148,8 @@ def reblur_windows(poses: SparsePoses, reference, boxes, *, dtype=np.float32
     which depend on the window a warp is built for (a sample moved by one 1/32 px step
     here and there; the GoPro pairs' tie points came out bit for bit the same).  Pose
     models with their own tile reblur (:class:`reblur.rolling.RollingPoses`) reblur each
-    window alone.
+    window alone.  With ``whole`` (:func:`reblur_whole` of these poses) the span is cut
+    from it when it lies inside; the results are then read-only views.
 
     Returns
     -------
@@ -104,7 +164,10 @@ def reblur_windows(poses: SparsePoses, reference, boxes, *, dtype=np.float32
     grown = [b.grow(p, p, p, p) for b, p in zip(boxes, pads, strict=True)]
     y0, x0 = min(g.y0 for g in grown), min(g.x0 for g in grown)
     span = Box(y0, x0, max(g.y1 for g in grown) - y0, max(g.x1 for g in grown) - x0)
-    img, ok = _reblur_poses(poses, reference, span, dtype)
+    if whole is not None and whole.serves(poses, span, dtype):
+        img, ok = whole.cut(span)
+    else:
+        img, ok = _reblur_poses(poses, reference, span, dtype)
 
     def cut(g: Box) -> tuple[np.ndarray, np.ndarray]:  # a window's part of the span
         sl = (slice(g.y0 - y0, g.y1 - y0), slice(g.x0 - x0, g.x1 - x0))

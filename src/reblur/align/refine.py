@@ -38,7 +38,7 @@ import numpy as np
 from .._bands import BandMean
 from .._memory import available_cpus, thread_map
 from ..grid import PoseGrid, map_points
-from ..tiled import SparsePoses, reblur_tile, reblur_windows
+from ..tiled import SparsePoses, WholeReblur, reblur_tile, reblur_windows
 from ..warp import Box, read_window
 from .result import AlignmentError
 from .verify import check_plausible, max_corner_shift
@@ -188,6 +188,7 @@ def measure_shifts(
     min_texture: float = 1e-4,
     workers: int | None = None,
     search: bool = False,
+    whole: WholeReblur | None = None,
 ) -> list[ProbeShift]:
     """Sub-pixel displacement between the reblurred reference and the observation per window.
 
@@ -224,6 +225,9 @@ def measure_shifts(
         (:func:`tie_shift`): on GOPR0374's 240 px probes none moved under the change that
         moved a third of its 64 px tie points, but one over GOPR0477's people (16-frame
         average) ends 0.6 or 4.2 px off with the last digits of its input.
+    whole : WholeReblur, optional
+        The whole image already reblurred with these poses (:func:`reblur.tiled.reblur_whole`
+        of :func:`measured_reference`): the rows of probes are cut from it.
 
     Returns
     -------
@@ -249,9 +253,7 @@ def measure_shifts(
     n = available_cpus() if workers is None else int(workers)
     if n < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
-    if len(reference.shape) == 3 and reference.shape[2] > 1:
-        # the measurement compares band means: reblur the reference's band mean, once
-        reference = BandMean(reference)
+    reference = measured_reference(reference)
 
     def measure(b: Box, reblurred=None) -> ProbeShift:
         return _measure_one(reference, observed, poses, b, ref_scale, obs_scale, min_valid,
@@ -260,7 +262,7 @@ def measure_shifts(
     def run(idx: list[int]) -> list[ProbeShift]:
         if len(idx) > 1:
             try:
-                got = reblur_windows(poses, reference, [boxes[i] for i in idx])
+                got = reblur_windows(poses, reference, [boxes[i] for i in idx], whole=whole)
             except (ValueError, np.linalg.LinAlgError, cv2.error):
                 got = None  # each probe says why on its own
             if got is not None:
@@ -273,6 +275,15 @@ def measure_shifts(
         for i, s in zip(idx, part, strict=True):
             shifts[i] = s
     return shifts  # type: ignore[return-value]
+
+
+def measured_reference(reference):
+    """What :func:`measure_shifts` reblurs of ``reference``: its band mean
+    (:class:`~reblur._bands.BandMean`) when it has several bands (the measurement compares
+    band means), else the reference itself."""
+    if len(reference.shape) == 3 and reference.shape[2] > 1:
+        return BandMean(reference)
+    return reference
 
 
 #: Share of a row's span (first probe's left edge to last probe's right edge) that its
