@@ -120,6 +120,19 @@ def release(client, cluster, work: Path) -> None:
     shutil.rmtree(work, ignore_errors=True)
 
 
+def compile_package(src: Path | None = None) -> None:
+    """Write the bytecode of the reblur package that ``PYTHONPATH=src`` (None: this
+    checkout's) imports, as ``pip install`` does: under ``PYTHONDONTWRITEBYTECODE`` (or in
+    a read-only checkout) every fresh process would compile its modules again, about 0.15 s
+    of each run, and a checkout compiled against one that is not would gain that much."""
+    env = dict(os.environ)
+    if src is not None:
+        env["PYTHONPATH"] = str(src)
+    code = ("import compileall, pathlib, reblur; "
+            "compileall.compile_dir(pathlib.Path(reblur.__file__).parent, quiet=1)")
+    subprocess.run([sys.executable, "-c", code], env=env, check=True)
+
+
 def commit() -> str:
     """Short hash of ``HEAD``, with ``+dirty`` when ``src`` has uncommitted changes."""
 

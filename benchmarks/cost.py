@@ -63,7 +63,7 @@ from pathlib import Path
 import numpy as np
 import tifffile
 
-from benchmarks.common import REPO
+from benchmarks.common import REPO, compile_package
 
 SIZES = {1: 1, 25: 5, 100: 10}  # MP -> upsampling factor of the 1024 px scenes
 CONTENTS = ["unchanged", "5%", "45%", "years-whu", "years-levir", "unrelated", "5% rgb16",
@@ -292,7 +292,7 @@ def measure_real(src: Path | None = None, out_root: Path | None = None,
     """:data:`REAL_PAIRS` and :data:`GOPRO_AVERAGES` (written under ``cache``, default the
     cases' folder) through ``reblur detect`` (rows of size 1 MP, content ``real: NAME``); a
     pair whose files are missing is skipped with a line on stderr."""
-    _compile_package(src)
+    compile_package(src)
     return _pair_rows([*real_pairs(), *gopro_averages(cache or CACHE)], "real: ", src,
                       out_root)
 
@@ -322,7 +322,7 @@ def measure_shakes(src: Path | None = None, out_root: Path | None = None) -> lis
     from benchmarks.shake_extent import SHAKES
     from benchmarks.shake_extent import make_case as shake_case
 
-    _compile_package(src)
+    compile_package(src)
     pairs = [(name, d / "ref.tif", d / "obs.tif") for name, d in
              ((name, shake_case(name)) for name in SHAKES)]
     return _pair_rows(pairs, SHAKE_PREFIX, src, out_root)
@@ -383,23 +383,11 @@ def run_pair(ref: Path, obs: Path, src: Path | None = None,
     return res
 
 
-def _compile_package(src: Path | None) -> None:
-    """Write the bytecode of the reblur package the cases run, as ``pip install`` does:
-    under ``PYTHONDONTWRITEBYTECODE`` (or in a read-only checkout) every fresh process
-    would compile its modules again, about 0.15 s of each run."""
-    env = dict(os.environ)
-    if src is not None:
-        env["PYTHONPATH"] = str(src)
-    code = ("import compileall, pathlib, reblur; "
-            "compileall.compile_dir(pathlib.Path(reblur.__file__).parent, quiet=1)")
-    subprocess.run([sys.executable, "-c", code], env=env, check=True)
-
-
 def measure(sizes: list[int], contents: list[str], cache: Path,
             src: Path | None = None, out_root: Path | None = None) -> list[dict]:
     from benchmarks.scale import io_floor
 
-    _compile_package(src)
+    compile_package(src)
     rows = []
     for mp in sizes:
         for content in contents:
