@@ -298,7 +298,7 @@ def test_the_later_passes_reblur_the_image_once(monkeypatch):
     """A distorted 1 MP pair: after the first pass, the rest of the lattice and the check
     with the field cut their rows from one reblur of the image (its strips are the only
     reblurs left), and the field is the one measured without it, within the rounding of
-    the warp coordinates."""
+    the warp coordinates; where the image cannot be reblurred whole, exactly that one."""
     import reblur.align.field as field_mod
     import reblur.tiled as tiled
 
@@ -330,3 +330,13 @@ def test_the_later_passes_reblur_the_image_once(monkeypatch):
     assert alone.info["inliers"] == est.info["inliers"]
     np.testing.assert_allclose(est.field.d, alone.field.d, rtol=0, atol=1e-4)
     assert abs(est.info["rms_after_px"] - alone.info["rms_after_px"]) <= 1e-4
+    # an image that cannot be reblurred whole (a pose beyond the horizon there): the rows
+    # are reblurred on their own, as without it
+    monkeypatch.setattr(field_mod, "_WHOLE_SPAN", 0.75)
+
+    def beyond(*args, **kwargs):
+        raise ValueError("a pose maps the window beyond the horizon")
+
+    monkeypatch.setattr(tiled, "reblur_whole", beyond)
+    fallback = estimate_field(ref, obs, poses, params=p)
+    np.testing.assert_array_equal(fallback.field.d, alone.field.d)

@@ -513,7 +513,8 @@ _WHOLE_MARGIN = 8
 def _whole_reblur(reference, poses, shape: tuple[int, int], boxes: list[Box]):
     """:func:`reblur.tiled.reblur_whole` of ``reference`` (as the tie points measure it)
     for the tie points ``boxes`` left after the first pass, or None when their rows span
-    less than :data:`_WHOLE_SPAN` of the image (or the poses reblur tiles their own way)."""
+    less than :data:`_WHOLE_SPAN` of the image, the poses reblur tiles their own way, or
+    the image cannot be reblurred whole."""
     from .._memory import available_cpus
     from ..tiled import reblur_whole
     from .refine import measured_reference
@@ -527,8 +528,13 @@ def _whole_reblur(reference, poses, shape: tuple[int, int], boxes: list[Box]):
                for (_, h), bs in rows.items())
     if span < _WHOLE_SPAN * shape[0] * shape[1]:
         return None
-    return reblur_whole(poses, measured_reference(reference), shape, margin=_WHOLE_MARGIN,
-                        workers=available_cpus())
+    try:
+        return reblur_whole(poses, measured_reference(reference), shape,
+                            margin=_WHOLE_MARGIN, workers=available_cpus())
+    except (ValueError, np.linalg.LinAlgError, cv2.error):
+        # a pose maps part of the image beyond the horizon, or is singular: the rows are
+        # reblurred on their own, and each tie point that cannot be says why
+        return None
 
 
 def _settled(shifts: list, spacing: float, p: FieldParams) -> dict[str, Any] | None:
