@@ -340,3 +340,33 @@ def test_the_later_passes_reblur_the_image_once(monkeypatch):
     monkeypatch.setattr(tiled, "reblur_whole", beyond)
     fallback = estimate_field(ref, obs, poses, params=p)
     np.testing.assert_array_equal(fallback.field.d, alone.field.d)
+
+
+def test_which_lattices_reblur_the_image_whole(monkeypatch):
+    """The later passes reblur the image whole only where a pass would reblur most of it
+    anyway: a 1 MP lattice's rows (strips spanning the image), not a 4 MP one's (half of
+    it), nor a wide strip image's (its rows' sparse windows are reblurred alone, whatever
+    their span), nor an image above the pixel cap."""
+    import reblur.align.field as field_mod
+    import reblur.tiled as tiled
+    from reblur.align.field import _whole_reblur, lattice_boxes
+
+    made = []
+    monkeypatch.setattr(tiled, "reblur_whole", lambda *a, **k: made.append(a[2]) or "whole")
+    grid = PoseGrid((8, 8), tx=[0], ty=[0])
+    poses = SparsePoses(np.ones(grid.shape), grid)
+    p = FieldParams(probe_px=64)
+
+    def later(shape):  # the lattice less the first pass (every other one of every other row)
+        boxes = lattice_boxes(shape, p)
+        xs, ys = sorted({b.x0 for b in boxes}), sorted({b.y0 for b in boxes})
+        first = {(ys[r], xs[c]) for r in range(0, len(ys), 2) for c in range(0, len(xs), 2)}
+        return [b for b in boxes if (b.y0, b.x0) not in first]
+
+    ref = np.zeros((4, 4), np.float32)  # never read: reblur_whole is replaced
+    assert _whole_reblur(ref, poses, (1024, 1024), later((1024, 1024))) == "whole"
+    assert _whole_reblur(ref, poses, (2048, 2048), later((2048, 2048))) is None
+    assert _whole_reblur(ref, poses, (1024, 16000), later((1024, 16000))) is None  # < cap
+    monkeypatch.setattr(field_mod, "_WHOLE_PIXELS", 1024 * 1024 - 1)
+    assert _whole_reblur(ref, poses, (1024, 1024), later((1024, 1024))) is None
+    assert made == [(1024, 1024)]

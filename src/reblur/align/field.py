@@ -504,6 +504,10 @@ _FIRST_PASS_MIN = 36
 #: span it all; at 4 MP (the same 64 px tie points on a 16 x 16 lattice) half.
 _WHOLE_SPAN = 0.75
 
+#: Most pixels of an image that :func:`_whole_reblur` reblurs whole (64 MB in float32):
+#: beyond, the rows reblur on their own whatever they span.
+_WHOLE_PIXELS = 1 << 24
+
 #: Margin around the image of that reblur: the check with the field grows each window by
 #: the field's reach and the bicubic footprint (a window reaching beyond is reblurred on
 #: its own).
@@ -512,21 +516,25 @@ _WHOLE_MARGIN = 8
 
 def _whole_reblur(reference, poses, shape: tuple[int, int], boxes: list[Box]):
     """:func:`reblur.tiled.reblur_whole` of ``reference`` (as the tie points measure it)
-    for the tie points ``boxes`` left after the first pass, or None when their rows span
-    less than :data:`_WHOLE_SPAN` of the image, the poses reblur tiles their own way, or
-    the image cannot be reblurred whole."""
+    for the tie points ``boxes`` left after the first pass, or None when what a pass
+    reblurs of them (:func:`~reblur.align.refine.measure_shifts`' strips and single
+    windows) is less than :data:`_WHOLE_SPAN` of the image, the image holds more than
+    :data:`_WHOLE_PIXELS`, the poses reblur tiles their own way, or the image cannot be
+    reblurred whole."""
     from .._memory import available_cpus
     from ..tiled import reblur_whole
-    from .refine import measured_reference
+    from .refine import _strip_jobs, measured_reference
 
-    if hasattr(poses, "reblur_tile") or not boxes:
+    H, W = shape
+    if hasattr(poses, "reblur_tile") or not boxes or H * W > _WHOLE_PIXELS:
         return None
-    rows: dict[tuple[int, int], list[Box]] = {}
-    for b in boxes:
-        rows.setdefault((b.y0, b.h), []).append(b)
-    span = sum(h * (max(b.x1 for b in bs) - min(b.x0 for b in bs))
-               for (_, h), bs in rows.items())
-    if span < _WHOLE_SPAN * shape[0] * shape[1]:
+    # what a pass reblurs: the span of each row reblurred as one strip, the other windows
+    # alone (the sparse rows of a wide image's lattice, whose span is no measure of it)
+    span = 0
+    for idx in _strip_jobs(boxes):
+        bs = [boxes[i] for i in idx]
+        span += bs[0].h * (max(b.x1 for b in bs) - min(b.x0 for b in bs))
+    if span < _WHOLE_SPAN * H * W:
         return None
     try:
         return reblur_whole(poses, measured_reference(reference), shape,
