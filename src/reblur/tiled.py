@@ -127,9 +127,15 @@ def reblur_whole(poses: SparsePoses, reference, shape: tuple[int, int], *, margi
     box = Box(-m, -m, H + 2 * m, W + 2 * m)
     strips = [Box(y, box.x0, min(_WHOLE_ROWS, box.y1 - y), box.w)
               for y in range(box.y0, box.y1, _WHOLE_ROWS)]
-    parts = thread_map(lambda b: _reblur_poses(poses, reference, b, dtype), strips, workers)
-    image = np.concatenate([p[0] for p in parts], axis=0)
-    valid = np.concatenate([p[1] for p in parts], axis=0)
+    C = reference.shape[2] if len(reference.shape) == 3 else 1
+    image = np.empty((box.h, box.w, C), dtype)
+    valid = np.empty((box.h, box.w), bool)
+
+    def one(b: Box) -> None:  # each strip into its rows: no strip outlives its copy
+        rows = slice(b.y0 - box.y0, b.y1 - box.y0)
+        image[rows], valid[rows] = _reblur_poses(poses, reference, b, dtype)
+
+    thread_map(one, strips, workers)
     image.flags.writeable = False
     valid.flags.writeable = False
     return WholeReblur(poses, image, valid, box)
