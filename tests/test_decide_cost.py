@@ -17,7 +17,14 @@ import reblur.decide.regions as regions
 from reblur.decide import DecisionParams, Photometry, decide_tile, tile_boxes
 from reblur.grid import PoseGrid
 from reblur.tiled import SparsePoses
-from reblur.tilejob import _ATTEMPTS, TileJob, load_tile, max_region_extent, run_tile
+from reblur.tilejob import (
+    _ATTEMPTS,
+    TileJob,
+    load_tile,
+    max_region_extent,
+    preload_tiles,
+    run_tile,
+)
 
 SHAPE = (1024, 1536)
 TILE = 256
@@ -92,6 +99,41 @@ def test_tiles_equal_the_whole_image_with_thousands_of_regions(many):
     assert all(r["complete"] and r["oversize"] == 0 for r in results)
     assert max(r["attempts"] for r in results) == 2  # some regions do cross tile edges
     np.testing.assert_array_equal(tiled, whole)
+
+
+def test_tiles_started_from_held_loads_equal_their_own(many):
+    """:func:`preload_tiles`' loads (read-only) start the tiles: the mask, the re-runs and
+    the pixels decided are those of tiles that load themselves (re-runs grow from the held
+    arrays), each held tile is handed out once, and a window inside a held tile is a view
+    with the values of its own load (the identity pose: exact); one across two is not
+    served."""
+    ref, obs, _ = many
+    halo = DecisionParams().halo(16)
+    tiled, results, _ = _tiled(ref, obs, halo)
+    job, _ = _job(ref, halo)
+    tiles = list(tile_boxes(SHAPE, TILE, halo))
+
+    def load(box):
+        return load_tile(job.poses, ref, obs, box, s_ref=1.0, s_obs=1.0, gain=job.gain,
+                         offset=job.offset)
+
+    assert preload_tiles(load, [t for t, _ in tiles], 1, max_bytes=2**20) is None
+    held = preload_tiles(load, [t for t, _ in tiles], 1)
+    assert len(held) == len(tiles)
+    inside = (TILE + 10, 20, 100, 120)
+    across = (100, TILE - halo - 10, 50, 2 * halo + 20)  # wider than two tiles' overlap
+    cut, own = held.window(inside), load(inside)
+    assert not cut[0].flags.writeable
+    for a, b in zip(cut, own, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert held.window(across) is None
+    started = [run_tile(job, ref, obs, padded, core, loaded=held.take(padded))
+               for padded, core in tiles]
+    assert len(held) == 0 and held.take(tiles[0][0]) is None
+    np.testing.assert_array_equal(job.change_out, tiled)
+    assert [(r["attempts"], r["pixels"]) for r in started] == \
+        [(r["attempts"], r["pixels"]) for r in results]
+    assert max(r["attempts"] for r in started) == 2  # re-runs grew from held arrays
 
 
 def test_work_per_tile_does_not_grow_with_the_regions(many, monkeypatch):

@@ -230,13 +230,17 @@ class _Tracked(np.ndarray):
 def test_pass1_windows_are_freed_before_the_tile_pass(levir_gray, monkeypatch):
     """The sample windows of pass 1 (and every view of them) are gone when the first tile
     of pass 2 starts: at 100 MP in three 16-bit bands they held 140 MB through the whole
-    tile pass.  Each window pass 1 loads is tracked by a weak reference."""
+    tile pass.  Each window pass 1 loads is tracked by a weak reference.  The image is
+    taken as one above the bound of the tiles held for both passes (PRELOAD_BYTES)."""
     import gc
     import weakref
 
     import reblur.pipeline as pipeline
+    import reblur.tilejob
     from reblur.grid import PoseGrid
     from reblur.tiled import SparsePoses
+
+    monkeypatch.setattr(reblur.tilejob, "PRELOAD_BYTES", 0)
 
     ref = levir_gray[:640, :768].astype(np.float32)
     H, W = ref.shape
@@ -282,3 +286,53 @@ def test_gopro_frame_average_beyond_the_reference_runs():
     rest = ~near & ~res.unknown
     assert np.count_nonzero(res.change & rest) <= 0.02 * np.count_nonzero(rest)
     assert res.change[moving].mean() > 0.02  # the people are found
+
+
+def test_small_image_is_loaded_once_for_both_passes(levir_gray, monkeypatch):
+    """On a small image the decision loads (reads, reblurs, pre-matches) each padded tile
+    once: pass 1 cuts its sample and calibration windows from them and the tile pass
+    decides on them.  Counted: the windows given to ``load_tile`` are exactly the padded
+    tiles (from ``tile_boxes``); before, pass 1 loaded its grown windows and the
+    calibration window, and the tile pass the tiles again.  The decision is the one made with
+    every window loaded on its own (the bound set to 0): the same masks, and the threshold
+    up to the rounding of the warps' coordinates."""
+    import reblur.pipeline as pipeline
+    import reblur.tilejob
+    from reblur.decide import DecisionParams
+    from reblur.decide.tile import tile_boxes
+    from reblur.grid import PoseGrid
+    from reblur.tiled import SparsePoses, reblur_tile
+
+    ref = levir_gray[:600, :700].astype(np.float32)
+    H, W = ref.shape
+    grid = PoseGrid((H, W), tx=[-1, 0, 2], ty=[0, 1], rz=[0.0, 0.3])
+    w = np.zeros(grid.shape)
+    w[0, 0, 1], w[1, 1, 2], w[0, 1, 0] = 0.5, 0.3, 0.2
+    poses = SparsePoses(w, grid)
+    rng = np.random.default_rng(7)
+    obs = reblur_tile(poses, ref, (0, 0, H, W))[0][:, :, 0]
+    obs = obs + rng.normal(0.0, 2.0, (H, W)).astype(np.float32)
+    obs[200:260, 300:380] += 60.0  # a change
+    load = pipeline.load_tile
+    boxes: list = []
+
+    def counted(poses_, ref_, obs_, box, **kw):
+        boxes.append(tuple(int(v) for v in box))
+        return load(poses_, ref_, obs_, box, **kw)
+
+    monkeypatch.setattr(pipeline, "load_tile", counted)  # pass 1
+    monkeypatch.setattr(reblur.tilejob, "load_tile", counted)  # the tile pass
+    kw = dict(s_ref=255.0, s_obs=255.0, gain=np.ones(1), offset=np.zeros(1), tile_size=512,
+              n_sample_tiles=6, calibration=[((300, 20, 250, 250), None, None)])
+    once = pipeline.reblur_and_decide(ref, obs, poses, **kw)
+    halo = DecisionParams().halo(64)
+    padded = sorted(t for t, _ in tile_boxes((H, W), 512, halo))
+    assert sorted(boxes) == padded
+    boxes.clear()
+    monkeypatch.setattr(reblur.tilejob, "PRELOAD_BYTES", 0)
+    apart = pipeline.reblur_and_decide(ref, obs, poses, **kw)
+    assert set(padded) < set(boxes)  # the windows, then the tiles again
+    assert 0.01 < once.change.mean() < 0.05
+    np.testing.assert_array_equal(once.change, apart.change)
+    np.testing.assert_array_equal(once.unknown, apart.unknown)
+    assert once.threshold == pytest.approx(apart.threshold, rel=1e-5)

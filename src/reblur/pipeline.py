@@ -51,7 +51,7 @@ from .robust import inlier_scale, robust_line
 from .rolling import RollingParams, RollingPoses, choose_shutter
 from .select import SelectParams, select_windows
 from .tiled import SparsePoses, run_tiles
-from .tilejob import TileJob, load_tile, pad_box, run_tile, tile_work
+from .tilejob import TileJob, load_tile, pad_box, preload_tiles, run_tile, tile_work
 
 __all__ = ["detect_changes", "ScaledView"]
 
@@ -500,7 +500,11 @@ def reblur_and_decide(
     reference window its poses touch), decided (:func:`reblur.decide.decide_tile`) and its
     core written out; a tile whose regions reach the halo's edge is re-run with a larger
     halo on the edges they reach, up to eight times the first, at most four times
-    (:func:`reblur.tilejob.run_tile`).
+    (:func:`reblur.tilejob.run_tile`).  A small image's padded tiles are loaded once
+    before pass 1 (:func:`reblur.tilejob.preload_tiles`, at most
+    :data:`~reblur.tilejob.PRELOAD_BYTES`): pass 1 cuts its windows from them, and the
+    local tile pass starts each tile from its load (a Dask worker loads it again: the same
+    arrays).
     On-disk images are read through a chunk cache (:func:`reblur.io.chunk_cached`):
     neighbouring windows share chunks.  Nothing full-size is held but the output masks (and
     the reblurred image if ``keep_reblurred``); outputs given as arrays on disk
@@ -542,13 +546,24 @@ def reblur_and_decide(
     # in a function of its own: its windows (and the views of them its fits took) are
     # freed before the tile pass, which they used to outlive
     t_pass1 = time.perf_counter()
+    # a small image's padded tiles are loaded once, for both passes (LoadedTiles)
+    halo = p.halo(max_region)
+    held = preload_tiles(load, [t for t, _ in tile_boxes((H, W), tile_size, halo)], C)
+
+    def load_sample(box):
+        got = None if held is None else held.window(box)
+        return load(box) if got is None else got
+
     p, photometry, threshold, tinfo, cinfo = _fit_decision(
-        load, p, (H, W), n_sample_tiles=n_sample_tiles, tile_size=tile_size, workers=workers,
-        calibration=calibration, edge_error=edge_error, threshold=threshold)
+        load_sample, p, (H, W), n_sample_tiles=n_sample_tiles, tile_size=tile_size,
+        workers=workers, calibration=calibration, edge_error=edge_error, threshold=threshold)
     t_pass1 = time.perf_counter() - t_pass1
     t_pass2 = time.perf_counter()
 
-    # pass 2: every tile with its halo
+    # pass 2: every tile with its halo (the calibrated tolerance may reach farther: the
+    # held tiles then have the wrong halo, and each tile loads its own)
+    if scheduler is not None or p.halo(max_region) != halo:
+        held = None
     halo = p.halo(max_region)
     if scheduler is not None:
         from .dask_backend import decide_tiles
@@ -582,7 +597,8 @@ def reblur_and_decide(
         lock = threading.Lock()
 
         def run(pair) -> None:
-            res = run_tile(job, ref_r, obs_r, *pair)
+            first = None if held is None else held.take(pair[0])
+            res = run_tile(job, ref_r, obs_r, *pair, loaded=first)
             with lock:
                 results.append(res)
                 n_done = len(results)

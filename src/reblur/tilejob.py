@@ -26,8 +26,8 @@ from .decide import DecisionParams, Photometry, decide_tile
 from .tiled import SparsePoses, reblur_tile
 from .warp import as_box, read_window
 
-__all__ = ["TileJob", "grow_tile", "load_tile", "max_region_extent", "run_tile", "pad_box",
-           "tile_work", "tune_worker_malloc"]
+__all__ = ["LoadedTiles", "TileJob", "grow_tile", "load_tile", "max_region_extent",
+           "preload_tiles", "run_tile", "pad_box", "tile_work", "tune_worker_malloc"]
 
 #: Tries per tile: the first halo; twice, then four times it where a region reaches the
 #: edge; eight times it (the largest halo) on every edge a region has reached; and, if a
@@ -205,6 +205,73 @@ def load_tile(poses: SparsePoses, reference, observed, box, *, s_ref: float, s_o
     return obs, reb, unknown
 
 
+#: Most bytes :func:`preload_tiles` holds (the observation and the reblurred reference in
+#: float32, and the unknown mask, over the padded tiles): a colour image of about 2.5 MP,
+#: a gray one of about 7 MP.
+PRELOAD_BYTES = 64 << 20
+
+
+class LoadedTiles:
+    """The first try's :func:`load_tile` of every padded tile of a small image, made once
+    for the decision's two passes (:func:`preload_tiles`).
+
+    Pass 1's windows are cut from them (:meth:`window`) and the local tile pass starts each
+    tile from its own load (:meth:`take`).  The tile pass then decides on the arrays a Dask
+    worker's own :func:`load_tile` of the padded tile gives, bit for bit; pass 1 runs on
+    the client for every backend, so it is the same for all of them too.  A window cut
+    from a padded tile equals the window's own load up to the rounding of OpenCV's warp
+    coordinates (see :func:`reblur.tiled.reblur_windows`).  The arrays are read-only.
+    """
+
+    def __init__(self, loads: dict[tuple[int, int, int, int], tuple[np.ndarray, ...]]):
+        self._loads = dict(loads)
+        self._lock = threading.Lock()
+        for arrays in self._loads.values():
+            for a in arrays:
+                a.flags.writeable = False
+
+    def __len__(self) -> int:
+        return len(self._loads)
+
+    def window(self, box) -> tuple[np.ndarray, ...] | None:
+        """``(obs, reb, unknown)`` on ``box`` as views into a held padded tile that contains
+        it, or None when none does."""
+        y, x, h, w = (int(v) for v in box)
+        with self._lock:
+            items = list(self._loads.items())
+        for (ty, tx, th, tw), arrays in items:
+            if ty <= y and tx <= x and y + h <= ty + th and x + w <= tx + tw:
+                sl = (slice(y - ty, y - ty + h), slice(x - tx, x - tx + w))
+                return tuple(a[sl] for a in arrays)
+        return None
+
+    def take(self, padded) -> tuple[np.ndarray, ...] | None:
+        """The load of the padded tile ``padded``, no longer held (None if not held)."""
+        with self._lock:
+            return self._loads.pop(tuple(int(v) for v in padded), None)
+
+
+def preload_tiles(load, padded: Sequence[Sequence[int]], n_bands: int,
+                  max_bytes: int | None = None) -> LoadedTiles | None:
+    """``load(box)`` (:func:`load_tile` with the decision's poses and photometric
+    pre-match) of every box of ``padded``, as a :class:`LoadedTiles`; None when they would
+    take more than ``max_bytes`` (default :data:`PRELOAD_BYTES`).
+
+    On a small image the decision's pass 1 samples every tile anyway (its 256 px windows
+    grown by the statistic's reach, then the estimation windows: 1.8 times the pixels of a
+    1 MP image), and the tile pass reblurred all of it once more.  The tiles are loaded one
+    after the other, each warp on OpenCV's threads: a small image has a tile or two, of
+    unequal sizes (1280 x 720 px: 0.8 and 0.24 MP), which one thread per tile would
+    leave to one core.
+    """
+    boxes = [tuple(int(v) for v in b) for b in padded]
+    pixels = sum(b[2] * b[3] for b in boxes)
+    cap = PRELOAD_BYTES if max_bytes is None else int(max_bytes)
+    if not boxes or pixels * (8 * int(n_bands) + 1) > cap:
+        return None
+    return LoadedTiles({b: load(b) for b in boxes})
+
+
 def grow_tile(poses: SparsePoses, reference, observed, box, loaded, larger, *, s_ref: float,
               s_obs: float, gain: np.ndarray, offset: np.ndarray) -> tuple[np.ndarray, ...]:
     """:func:`load_tile` on ``larger``, reusing what was loaded on ``box`` inside it.
@@ -245,7 +312,8 @@ def grow_tile(poses: SparsePoses, reference, observed, box, loaded, larger, *, s
 
 
 def run_tile(
-    job: TileJob, reference, observed, padded: Sequence[int], core: Sequence[int]
+    job: TileJob, reference, observed, padded: Sequence[int], core: Sequence[int], *,
+    loaded: tuple[np.ndarray, ...] | None = None,
 ) -> dict[str, Any]:
     """Reblur, decide and write one tile.
 
@@ -270,6 +338,10 @@ def run_tile(
         Full-size images (numpy, zarr or any window reader).
     padded, core : (y0, x0, h, w)
         The tile with its halo and the part it owns.
+    loaded : (obs, reb, unknown), optional
+        :func:`load_tile` of ``padded`` with the job's poses and pre-match, when the caller
+        already has it (:class:`LoadedTiles`; read-only arrays are fine): the first try
+        then reads and reblurs nothing.
 
     Returns
     -------
@@ -291,16 +363,17 @@ def run_tile(
     core = tuple(int(v) for v in core)
     sides = ("top", "bottom", "left", "right")
     halo = dict.fromkeys(sides, int(job.halo))
-    loaded, prev, stat = None, padded, None
+    prev, stat = padded, None
     max_extent = max_region_extent(job.halo, job.params.local_radius)
     pixels = 0
     big = int(job.halo) << _LARGEST
     largest = pad_box(core, big, (H, W))  # no try reads more than this
     for attempt in range(_ATTEMPTS):
         last = attempt == _ATTEMPTS - 1 or padded == largest
-        if loaded is None:
-            loaded = load_tile(job.poses, reference, observed, padded, s_ref=job.s_ref,
-                               s_obs=job.s_obs, gain=gain, offset=offset)
+        if attempt == 0:
+            if loaded is None:
+                loaded = load_tile(job.poses, reference, observed, padded, s_ref=job.s_ref,
+                                   s_obs=job.s_obs, gain=gain, offset=offset)
         else:  # a re-run reads and reblurs only the ring the larger halo adds
             loaded = grow_tile(job.poses, reference, observed, prev, loaded, padded,
                                s_ref=job.s_ref, s_obs=job.s_obs, gain=gain, offset=offset)
