@@ -104,9 +104,9 @@ def test_tiles_equal_the_whole_image_with_thousands_of_regions(many):
 def test_tiles_started_from_held_loads_equal_their_own(many):
     """:func:`preload_tiles`' loads (read-only) start the tiles: the mask, the re-runs and
     the pixels decided are those of tiles that load themselves (re-runs grow from the held
-    arrays), each held tile is handed out once, and a window inside a held tile is a view
-    with the values of its own load (the identity pose: exact); one across two is not
-    served."""
+    arrays), each held tile is handed out once, and a window has the values of its own load
+    (the identity pose: exact), as a view inside a held tile or pieced from two; none is
+    served once the tiles are taken."""
     ref, obs, _ = many
     halo = DecisionParams().halo(16)
     tiled, results, _ = _tiled(ref, obs, halo)
@@ -126,10 +126,13 @@ def test_tiles_started_from_held_loads_equal_their_own(many):
     assert not cut[0].flags.writeable
     for a, b in zip(cut, own, strict=True):
         np.testing.assert_array_equal(a, b)
-    assert held.window(across) is None
+    pieced, own = held.window(across), load(across)
+    assert pieced[0].flags.writeable  # a copy, pieced from two tiles
+    for a, b in zip(pieced, own, strict=True):
+        np.testing.assert_array_equal(a, b)
     started = [run_tile(job, ref, obs, padded, core, loaded=held.take(padded))
                for padded, core in tiles]
-    assert len(held) == 0 and held.take(tiles[0][0]) is None
+    assert len(held) == 0 and held.take(tiles[0][0]) is None and held.window(inside) is None
     np.testing.assert_array_equal(job.change_out, tiled)
     assert [(r["attempts"], r["pixels"]) for r in started] == \
         [(r["attempts"], r["pixels"]) for r in results]

@@ -323,7 +323,7 @@ def test_small_image_is_loaded_once_for_both_passes(levir_gray, monkeypatch):
     monkeypatch.setattr(pipeline, "load_tile", counted)  # pass 1
     monkeypatch.setattr(reblur.tilejob, "load_tile", counted)  # the tile pass
     kw = dict(s_ref=255.0, s_obs=255.0, gain=np.ones(1), offset=np.zeros(1), tile_size=512,
-              n_sample_tiles=6, calibration=[((300, 20, 250, 250), None, None)])
+              n_sample_tiles=6, calibration=[((400, 20, 250, 250), None, None)])  # across two tiles
     once = pipeline.reblur_and_decide(ref, obs, poses, **kw)
     halo = DecisionParams().halo(64)
     padded = sorted(t for t, _ in tile_boxes((H, W), 512, halo))

@@ -215,12 +215,13 @@ class LoadedTiles:
     """The first try's :func:`load_tile` of every padded tile of a small image, made once
     for the decision's two passes (:func:`preload_tiles`).
 
-    Pass 1's windows are cut from them (:meth:`window`) and the local tile pass starts each
-    tile from its own load (:meth:`take`).  The tile pass then decides on the arrays a Dask
-    worker's own :func:`load_tile` of the padded tile gives, bit for bit; pass 1 runs on
-    the client for every backend, so it is the same for all of them too.  A window cut
-    from a padded tile equals the window's own load up to the rounding of OpenCV's warp
-    coordinates (see :func:`reblur.tiled.reblur_windows`).  The arrays are read-only.
+    Pass 1's windows are cut or pieced from them (:meth:`window`) and the local tile pass
+    starts each tile from its own load (:meth:`take`).  The tile pass then decides on the
+    arrays a Dask worker's own :func:`load_tile` of the padded tile gives, bit for bit;
+    pass 1 runs on the client for every backend, so it is the same for all of them too.  A
+    window cut from a padded tile equals the window's own load up to the rounding of
+    OpenCV's warp coordinates (see :func:`reblur.tiled.reblur_windows`).  The arrays are
+    read-only.
     """
 
     def __init__(self, loads: dict[tuple[int, int, int, int], tuple[np.ndarray, ...]]):
@@ -234,8 +235,10 @@ class LoadedTiles:
         return len(self._loads)
 
     def window(self, box) -> tuple[np.ndarray, ...] | None:
-        """``(obs, reb, unknown)`` on ``box`` as views into a held padded tile that contains
-        it, or None when none does."""
+        """``(obs, reb, unknown)`` on ``box``: views into a held padded tile that contains
+        it, else copies pieced together from the held tiles that cover it (a pixel's values
+        do not depend on the tile it was loaded in, but for the warps' rounding); None when
+        they do not cover it."""
         y, x, h, w = (int(v) for v in box)
         with self._lock:
             items = list(self._loads.items())
@@ -243,7 +246,23 @@ class LoadedTiles:
             if ty <= y and tx <= x and y + h <= ty + th and x + w <= tx + tw:
                 sl = (slice(y - ty, y - ty + h), slice(x - tx, x - tx + w))
                 return tuple(a[sl] for a in arrays)
-        return None
+        done = np.zeros((h, w), bool)
+        out: list[np.ndarray] | None = None
+        for (ty, tx, th, tw), arrays in items:
+            y0, x0 = max(y, ty), max(x, tx)
+            y1, x1 = min(y + h, ty + th), min(x + w, tx + tw)
+            if y0 >= y1 or x0 >= x1:
+                continue
+            if out is None:
+                out = [np.empty((h, w, *a.shape[2:]), a.dtype) for a in arrays]
+            mine = (slice(y0 - y, y1 - y), slice(x0 - x, x1 - x))
+            theirs = (slice(y0 - ty, y1 - ty), slice(x0 - tx, x1 - tx))
+            for o, a in zip(out, arrays, strict=True):
+                o[mine] = a[theirs]
+            done[mine] = True
+        if out is None or not done.all():
+            return None
+        return tuple(out)
 
     def take(self, padded) -> tuple[np.ndarray, ...] | None:
         """The load of the padded tile ``padded``, no longer held (None if not held)."""
