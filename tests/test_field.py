@@ -342,6 +342,41 @@ def test_the_later_passes_reblur_the_image_once(monkeypatch):
     np.testing.assert_array_equal(fallback.field.d, alone.field.d)
 
 
+def test_a_whole_reblur_given_serves_every_tie_point(monkeypatch):
+    """The refinement's whole-image reblur (``estimate_field(whole=)``, the same poses
+    object) serves the first pass, the rest and the check: the field reblurs nothing
+    itself, and it is the one it measures alone within the rounding of the warp
+    coordinates.  A reblur of other poses (equal weights, another object) is not used."""
+    import reblur.align.field as field_mod
+    import reblur.tiled as tiled
+
+    ref, obs, _ = _distorted_pair(2.5)
+    grid = PoseGrid((1024, 1024), tx=[-1, 0, 1], ty=[0, 1], rz=[0.0])
+    w = np.zeros(grid.shape)
+    w[0, 0, 1], w[0, 1, 2], w[0, 0, 0] = 0.5, 0.3, 0.2
+    poses = SparsePoses(w, grid)
+    obs = tiled.reblur_tile(poses, obs, (0, 0, 1024, 1024))[0][:, :, 0]
+    p = FieldParams(probe_px=64)
+    alone = estimate_field(ref, obs, poses, params=p)
+    whole = tiled.reblur_whole(poses, ref, (1024, 1024), margin=field_mod._WHOLE_MARGIN)
+    boxes: list = []
+    real = tiled._reblur_poses
+
+    def counted(ps, reference, box, dtype):
+        boxes.append(box)
+        return real(ps, reference, box, dtype)
+
+    monkeypatch.setattr(tiled, "_reblur_poses", counted)
+    given = estimate_field(ref, obs, poses, params=p, whole=whole)
+    assert boxes == []
+    assert given.info["applied"] and given.info["inliers"] == alone.info["inliers"]
+    np.testing.assert_allclose(given.field.d, alone.field.d, rtol=0, atol=1e-4)
+    assert abs(given.info["rms_after_px"] - alone.info["rms_after_px"]) <= 1e-4
+    other = estimate_field(ref, obs, SparsePoses(w, grid), params=p, whole=whole)
+    assert len(boxes) > 8  # its own first pass and whole reblur
+    np.testing.assert_array_equal(other.field.d, alone.field.d)
+
+
 def test_which_lattices_reblur_the_image_whole(monkeypatch):
     """The later passes reblur the image whole only where a pass would reblur most of it
     anyway: a 1 MP lattice's rows (strips spanning the image), not a 4 MP one's (half of

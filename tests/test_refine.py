@@ -8,8 +8,8 @@ from conftest import levir_before
 from reblur.align import measure_shifts, probe_boxes, refine_alignment
 from reblur.align.refine import tie_shift
 from reblur.grid import PoseGrid, map_points, pose_homography
-from reblur.tiled import SparsePoses
-from reblur.warp import warp_window
+from reblur.tiled import SparsePoses, reblur_tile
+from reblur.warp import Box, warp_window
 
 H, W = 900, 1300
 C = ((W - 1) / 2, (H - 1) / 2)
@@ -217,6 +217,14 @@ def test_refinement_removes_a_residual_scale_error(reference):
     corners = np.array([[0.0, 0.0], [W - 1, 0.0], [W - 1, H - 1], [0.0, H - 1]])
     # the refined base maps the reference where the true one does, to a few hundredths
     assert np.abs(map_points(r.base, corners) - map_points(err, corners)).max() < 0.05
+    # the probes covered the image: it was reblurred whole with the refined base, for the
+    # displacement field next; its values are those of an independent reblur
+    np.testing.assert_array_equal(r.poses.base, r.base)
+    assert r.whole is not None and r.whole.serves(r.poses, Box(0, 0, H, W))
+    own, ok = reblur_tile(SparsePoses(w, grid, r.base), reference, (0, 0, H, W))
+    cut, valid = r.whole.cut(Box(0, 0, H, W))
+    np.testing.assert_array_equal(valid, ok)
+    np.testing.assert_allclose(cut[ok], own[ok], rtol=0, atol=1e-3)
 
 
 def test_refinement_leaves_a_correct_base_alone(reference):
@@ -225,6 +233,9 @@ def test_refinement_leaves_a_correct_base_alone(reference):
     assert not r.applied
     np.testing.assert_array_equal(r.base, np.eye(3))
     assert r.info["before"]["max_px"] < 0.02
+    # no corrected base: no whole-image reblur for the field (it reblurs its own)
+    assert r.whole is None
+    np.testing.assert_array_equal(r.poses.base, np.eye(3))
 
 
 def test_no_reliable_probe_no_correction():

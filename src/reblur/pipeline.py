@@ -1016,6 +1016,7 @@ def _estimate_stage(
 
     # 3b. geometric check over the whole image, correcting the base homography
     refine_info: dict[str, Any] = {"applied": False, "model": "off"}
+    ref_res = None
     if refine:
         t = time.perf_counter()
         report("refine", 0.0)
@@ -1031,8 +1032,12 @@ def _estimate_stage(
     if local_field:
         t = time.perf_counter()
         report("field", 0.0)
-        fe = estimate_field(reference, observed, SparsePoses(motion.weights, grid, H0),
-                            ref_scale=s_ref, obs_scale=s_obs)
+        # the refinement's poses and whole-image reblur, where it made one (1 MP)
+        poses = None if ref_res is None else ref_res.poses
+        fe = estimate_field(reference, observed,
+                            SparsePoses(motion.weights, grid, H0) if poses is None else poses,
+                            ref_scale=s_ref, obs_scale=s_obs,
+                            whole=None if ref_res is None else ref_res.whole)
         fld, field_info = fe.field, fe.info
         timings["field"] = time.perf_counter() - t
         report("field", 1.0)

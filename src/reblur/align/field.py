@@ -582,6 +582,7 @@ def estimate_field(
     params: FieldParams | None = None,
     ref_scale: float = 1.0,
     obs_scale: float = 1.0,
+    whole=None,
 ) -> FieldEstimate:
     """Measure tie points between the reblurred reference and the observation, fit a smooth
     field to them and verify it through the reblur.
@@ -595,6 +596,9 @@ def estimate_field(
     params : FieldParams, optional
     ref_scale, obs_scale : float
         Intensity scales of the reference and the observation.
+    whole : reblur.tiled.WholeReblur, optional
+        The image already reblurred with ``poses`` (the same object; the refinement's
+        :attr:`~reblur.align.refine.Refinement.whole`): every tie point is cut from it.
 
     Returns
     -------
@@ -621,6 +625,8 @@ def estimate_field(
     shape = tuple(int(v) for v in poses.grid.image_shape[:2])
     boxes = lattice_boxes(shape, p)
     kw = dict(ref_scale=ref_scale, obs_scale=obs_scale, min_valid=p.min_cover, search=True)
+    if whole is not None and whole.serves(poses, Box(0, 0, *shape)):
+        kw["whole"] = whole
     xs = sorted({b.x0 for b in boxes})
     ys = sorted({b.y0 for b in boxes})
     steps = [b - a for v in (xs, ys) for a, b in zip(v, v[1:], strict=False)]
@@ -643,7 +649,8 @@ def estimate_field(
     rest = [i for i, s in enumerate(before) if s is None]
     # the rest of the lattice and the check with the field: from one reblur of the image
     # where their rows cover most of it (each pass would reblur its rows again)
-    kw["whole"] = _whole_reblur(reference, poses, shape, [boxes[i] for i in rest])
+    if kw.get("whole") is None:
+        kw["whole"] = _whole_reblur(reference, poses, shape, [boxes[i] for i in rest])
     for i, s in zip(rest, measure_shifts(reference, observed, poses, [boxes[i] for i in rest],
                                          **kw), strict=True):
         before[i] = s

@@ -95,6 +95,12 @@ class Refinement:
         Probe displacements with the input and the refined base.
     info : dict
         Summary numbers (RMS / max displacement over reliable probes before and after).
+    poses : SparsePoses or None
+        The weights with :attr:`base`, as the probes measured them.
+    whole : WholeReblur or None
+        The image reblurred whole with :attr:`poses`, when the probes covered it
+        (:func:`reblur.align.field._whole_reblur`): the displacement field's tie points are
+        cut from it (:func:`reblur.align.field.estimate_field`'s ``whole``).
     """
 
     base: np.ndarray
@@ -103,6 +109,8 @@ class Refinement:
     before: list[ProbeShift] = field(default_factory=list)
     after: list[ProbeShift] = field(default_factory=list)
     info: dict[str, Any] = field(default_factory=dict)
+    poses: SparsePoses | None = None
+    whole: WholeReblur | None = None
 
 
 @dataclass(frozen=True)
@@ -533,22 +541,30 @@ def refine_alignment(
         size = int(np.clip(min(grid.image_shape[:2]) // 3, 128, 256))
     boxes = probes if probes is not None else probe_boxes(grid.image_shape, size=size,
                                                           n=p.n_probes)
+    from .field import _whole_reblur
+
     kw = dict(ref_scale=ref_scale, obs_scale=obs_scale)
-    before = measure_shifts(reference, observed, SparsePoses(weights, grid, base), boxes, **kw)
+    shape = tuple(int(s) for s in grid.image_shape[:2])
+    poses0 = SparsePoses(weights, grid, base)
+    before = measure_shifts(reference, observed, poses0, boxes, **kw)
     s0 = _stats(before, p.min_cc)
     good = [s for s in before if s.measured and s.cc >= p.min_cc]
     G, model, n_in = _fit(good, p.ransac_px)
     info: dict[str, Any] = {"probes": len(boxes), "before": s0, "model": model,
                             "inliers": n_in, "probe_shifts": _records(before, p.min_cc)}
     if G is None:
-        return Refinement(base, False, "none", before, before, info)
-    shape = tuple(int(s) for s in grid.image_shape[:2])
+        return Refinement(base, False, "none", before, before, info, poses0)
     new, why = _corrected(G, base, shape, tuple(int(s) for s in reference.shape[:2]),
                           p.max_correction * max(max(b.h, b.w) for b in boxes))
     if new is None:
         info["rejected"], info["applied"] = why, False
-        return Refinement(base, False, model, before, before, info)
-    after = measure_shifts(reference, observed, SparsePoses(weights, grid, new), boxes, **kw)
+        return Refinement(base, False, model, before, before, info, poses0)
+    # where the probes cover the image (1 MP), it is reblurred whole for them with the
+    # corrected base, and that reblur serves the displacement field's tie points next
+    # (Refinement.whole) when the correction is applied
+    poses1 = SparsePoses(weights, grid, new)
+    whole1 = _whole_reblur(reference, poses1, shape, boxes)
+    after = measure_shifts(reference, observed, poses1, boxes, whole=whole1, **kw)
     s1 = _stats(after, p.min_cc)
     info["after"] = s1
     info["probe_shifts_after"] = _records(after, p.min_cc)
@@ -558,8 +574,8 @@ def refine_alignment(
     ok = s0["n"] > 0 and s1["n"] > 0 and s1["rms_px"] <= s0["rms_px"] - p.min_gain_px
     info["applied"] = bool(ok)
     if not ok:
-        return Refinement(base, False, model, before, after, info)
-    return Refinement(new, True, model, before, after, info)
+        return Refinement(base, False, model, before, after, info, poses0)
+    return Refinement(new, True, model, before, after, info, poses1, whole1)
 
 
 def _corrected(G: np.ndarray, base: np.ndarray, obs_shape: tuple[int, int],
