@@ -560,8 +560,8 @@ def reblur_and_decide(
     t_pass1 = time.perf_counter() - t_pass1
     t_pass2 = time.perf_counter()
 
-    # pass 2: every tile with its halo (the calibrated tolerance may reach farther: the
-    # held tiles then have the wrong halo, and each tile loads its own)
+    # pass 2: every tile with its halo (were the calibrated parameters to change the halo,
+    # the held tiles would no longer be these tiles: each would load its own)
     if scheduler is not None or p.halo(max_region) != halo:
         held = None
     halo = p.halo(max_region)

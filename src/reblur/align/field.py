@@ -53,6 +53,7 @@ import numpy as np
 from scipy.interpolate import RBFInterpolator
 from scipy.spatial import cKDTree
 
+from ..tiled import WholeReblur
 from ..warp import Box, as_box
 
 #: Largest geometric reach (pixels) the decision's tolerance takes from a field.
@@ -582,7 +583,7 @@ def estimate_field(
     params: FieldParams | None = None,
     ref_scale: float = 1.0,
     obs_scale: float = 1.0,
-    whole=None,
+    whole: WholeReblur | None = None,
 ) -> FieldEstimate:
     """Measure tie points between the reblurred reference and the observation, fit a smooth
     field to them and verify it through the reblur.
