@@ -294,21 +294,21 @@ def test_settled_needs_enough_quiet_inliers_or_no_correlation():
     assert _settled(lattice(0.02, n=12), 100.0, p) is None  # fewer than min_points
 
 
-def test_the_later_passes_reblur_the_image_once(monkeypatch):
-    """A distorted 1 MP pair: after the first pass, the rest of the lattice and the check
-    with the field cut their rows from one reblur of the image (its strips are the only
-    reblurs left), and the field is the one measured without it, within the rounding of
-    the warp coordinates; where the image cannot be reblurred whole, exactly that one."""
-    import reblur.align.field as field_mod
-    import reblur.tiled as tiled
-
-    ref, obs, poses = _distorted_pair(2.5)
+def _blurred_distorted_pair():
+    """A distorted 1 MP pair whose observation is also blurred by three translations: the
+    reference, the observation, those poses and their weights."""
+    ref, obs, _ = _distorted_pair(2.5)
     grid = PoseGrid((1024, 1024), tx=[-1, 0, 1], ty=[0, 1], rz=[0.0])
     w = np.zeros(grid.shape)
     w[0, 0, 1], w[0, 1, 2], w[0, 0, 0] = 0.5, 0.3, 0.2
     poses = SparsePoses(w, grid)
-    obs = tiled.reblur_tile(poses, obs, (0, 0, 1024, 1024))[0][:, :, 0]
-    p = FieldParams(probe_px=64)
+    return ref, reblur_tile(poses, obs, (0, 0, 1024, 1024))[0][:, :, 0], poses, w
+
+
+def _counted_reblurs(monkeypatch) -> list:
+    """The boxes every reblur (``tiled._reblur_poses``) is asked for from now on."""
+    import reblur.tiled as tiled
+
     boxes: list = []
     real = tiled._reblur_poses
 
@@ -317,6 +317,20 @@ def test_the_later_passes_reblur_the_image_once(monkeypatch):
         return real(ps, reference, box, dtype)
 
     monkeypatch.setattr(tiled, "_reblur_poses", counted)
+    return boxes
+
+
+def test_the_later_passes_reblur_the_image_once(monkeypatch):
+    """A distorted 1 MP pair: after the first pass, the rest of the lattice and the check
+    with the field cut their rows from one reblur of the image (its strips are the only
+    reblurs left), and the field is the one measured without it, within the rounding of
+    the warp coordinates; where the image cannot be reblurred whole, exactly that one."""
+    import reblur.align.field as field_mod
+    import reblur.tiled as tiled
+
+    ref, obs, poses, _ = _blurred_distorted_pair()
+    p = FieldParams(probe_px=64)
+    boxes = _counted_reblurs(monkeypatch)
     est = estimate_field(ref, obs, poses, params=p)
     assert est.info["applied"] and "first_pass" not in est.info
     first = [b for b in boxes if b.h == 64]  # the first pass: 8 rows of tie points
@@ -350,29 +364,17 @@ def test_a_whole_reblur_given_serves_every_tie_point(monkeypatch):
     import reblur.align.field as field_mod
     import reblur.tiled as tiled
 
-    ref, obs, _ = _distorted_pair(2.5)
-    grid = PoseGrid((1024, 1024), tx=[-1, 0, 1], ty=[0, 1], rz=[0.0])
-    w = np.zeros(grid.shape)
-    w[0, 0, 1], w[0, 1, 2], w[0, 0, 0] = 0.5, 0.3, 0.2
-    poses = SparsePoses(w, grid)
-    obs = tiled.reblur_tile(poses, obs, (0, 0, 1024, 1024))[0][:, :, 0]
+    ref, obs, poses, w = _blurred_distorted_pair()
     p = FieldParams(probe_px=64)
     alone = estimate_field(ref, obs, poses, params=p)
     whole = tiled.reblur_whole(poses, ref, (1024, 1024), margin=field_mod._WHOLE_MARGIN)
-    boxes: list = []
-    real = tiled._reblur_poses
-
-    def counted(ps, reference, box, dtype):
-        boxes.append(box)
-        return real(ps, reference, box, dtype)
-
-    monkeypatch.setattr(tiled, "_reblur_poses", counted)
+    boxes = _counted_reblurs(monkeypatch)
     given = estimate_field(ref, obs, poses, params=p, whole=whole)
     assert boxes == []
     assert given.info["applied"] and given.info["inliers"] == alone.info["inliers"]
     np.testing.assert_allclose(given.field.d, alone.field.d, rtol=0, atol=1e-4)
     assert abs(given.info["rms_after_px"] - alone.info["rms_after_px"]) <= 1e-4
-    other = estimate_field(ref, obs, SparsePoses(w, grid), params=p, whole=whole)
+    other = estimate_field(ref, obs, SparsePoses(w, poses.grid), params=p, whole=whole)
     assert len(boxes) > 8  # its own first pass and whole reblur
     np.testing.assert_array_equal(other.field.d, alone.field.d)
 

@@ -185,21 +185,28 @@ def test_sample_windows_cover_the_image_in_both_directions():
     assert np.all(m == 1)
 
 
+def _three_poses(shape: tuple[int, int]):
+    """Three weighted poses over two rolls and three translations (a small blur)."""
+    from reblur.grid import PoseGrid
+    from reblur.tiled import SparsePoses
+
+    grid = PoseGrid(shape, tx=[-1, 0, 2], ty=[0, 1], rz=[0.0, 0.3])
+    w = np.zeros(grid.shape)
+    w[0, 0, 1], w[1, 1, 2], w[0, 1, 0] = 0.5, 0.3, 0.2
+    return SparsePoses(w, grid)
+
+
 def test_pass1_threshold_from_the_tile_pass_statistic(levir_gray):
     """Pass 1 fits the threshold on the statistic as the tile pass computes it: on its
     sample windows, equal to the statistic of the whole image (an explicit slow
     reference), not one truncated at the windows' edges."""
     from reblur.decide import DecisionParams, change_statistic, estimate_threshold, fit_photometry
-    from reblur.grid import PoseGrid
     from reblur.pipeline import _SAMPLE_SIDE, reblur_and_decide, sample_windows
-    from reblur.tiled import SparsePoses, reblur_tile
+    from reblur.tiled import reblur_tile
 
     ref = levir_gray[:768, :896].astype(np.float32)
     H, W = ref.shape
-    grid = PoseGrid((H, W), tx=[-1, 0, 2], ty=[0, 1], rz=[0.0, 0.3])
-    w = np.zeros(grid.shape)
-    w[0, 0, 1], w[1, 1, 2], w[0, 1, 0] = 0.5, 0.3, 0.2
-    poses = SparsePoses(w, grid)
+    poses = _three_poses((H, W))
     full = (0, 0, H, W)
     reb, valid = reblur_tile(poses, ref, full)
     rng = np.random.default_rng(5)
@@ -300,15 +307,11 @@ def test_small_image_is_loaded_once_for_both_passes(levir_gray, monkeypatch):
     import reblur.tilejob
     from reblur.decide import DecisionParams
     from reblur.decide.tile import tile_boxes
-    from reblur.grid import PoseGrid
-    from reblur.tiled import SparsePoses, reblur_tile
+    from reblur.tiled import reblur_tile
 
     ref = levir_gray[:600, :700].astype(np.float32)
     H, W = ref.shape
-    grid = PoseGrid((H, W), tx=[-1, 0, 2], ty=[0, 1], rz=[0.0, 0.3])
-    w = np.zeros(grid.shape)
-    w[0, 0, 1], w[1, 1, 2], w[0, 1, 0] = 0.5, 0.3, 0.2
-    poses = SparsePoses(w, grid)
+    poses = _three_poses((H, W))
     rng = np.random.default_rng(7)
     obs = reblur_tile(poses, ref, (0, 0, H, W))[0][:, :, 0]
     obs = obs + rng.normal(0.0, 2.0, (H, W)).astype(np.float32)
