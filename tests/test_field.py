@@ -325,7 +325,7 @@ def test_the_later_passes_reblur_the_image_once(monkeypatch):
     with the field cut their rows from one reblur of the image (its strips are the only
     reblurs left), and the field is the one measured without it, within the rounding of
     the warp coordinates; where the image cannot be reblurred whole, exactly that one."""
-    import reblur.align.field as field_mod
+    import reblur.align.refine as refine_mod
     import reblur.tiled as tiled
 
     ref, obs, poses, _ = _blurred_distorted_pair()
@@ -336,8 +336,8 @@ def test_the_later_passes_reblur_the_image_once(monkeypatch):
     first = [b for b in boxes if b.h == 64]  # the first pass: 8 rows of tie points
     strips = [b for b in boxes if b.h != 64]
     assert len(first) == 8 and len(boxes) == 8 + len(strips)
-    assert sum(b.h for b in strips) == 1024 + 2 * field_mod._WHOLE_MARGIN
-    monkeypatch.setattr(field_mod, "_WHOLE_SPAN", 2.0)  # never: every pass reblurs its rows
+    assert sum(b.h for b in strips) == 1024 + 2 * refine_mod._WHOLE_MARGIN
+    monkeypatch.setattr(refine_mod, "_WHOLE_SPAN", 2.0)  # never: every pass reblurs its rows
     boxes.clear()
     alone = estimate_field(ref, obs, poses, params=p)
     assert len(boxes) > 8 + 16
@@ -346,7 +346,7 @@ def test_the_later_passes_reblur_the_image_once(monkeypatch):
     assert abs(est.info["rms_after_px"] - alone.info["rms_after_px"]) <= 1e-4
     # an image that cannot be reblurred whole (a pose beyond the horizon there): the rows
     # are reblurred on their own, as without it
-    monkeypatch.setattr(field_mod, "_WHOLE_SPAN", 0.75)
+    monkeypatch.setattr(refine_mod, "_WHOLE_SPAN", 0.75)
 
     def beyond(*args, **kwargs):
         raise ValueError("a pose maps the window beyond the horizon")
@@ -361,13 +361,13 @@ def test_a_whole_reblur_given_serves_every_tie_point(monkeypatch):
     object) serves the first pass, the rest and the check: the field reblurs nothing
     itself, and it is the one it measures alone within the rounding of the warp
     coordinates.  A reblur of other poses (equal weights, another object) is not used."""
-    import reblur.align.field as field_mod
+    import reblur.align.refine as refine_mod
     import reblur.tiled as tiled
 
     ref, obs, poses, w = _blurred_distorted_pair()
     p = FieldParams(probe_px=64)
     alone = estimate_field(ref, obs, poses, params=p)
-    whole = tiled.reblur_whole(poses, ref, (1024, 1024), margin=field_mod._WHOLE_MARGIN)
+    whole = tiled.reblur_whole(poses, ref, (1024, 1024), margin=refine_mod._WHOLE_MARGIN)
     boxes = _counted_reblurs(monkeypatch)
     given = estimate_field(ref, obs, poses, params=p, whole=whole)
     assert boxes == []
@@ -384,9 +384,10 @@ def test_which_lattices_reblur_the_image_whole(monkeypatch):
     anyway: a 1 MP lattice's rows (strips spanning the image), not a 4 MP one's (half of
     it), nor a wide strip image's (its rows' sparse windows are reblurred alone, whatever
     their span), nor an image above the pixel cap."""
-    import reblur.align.field as field_mod
+    import reblur.align.refine as refine_mod
     import reblur.tiled as tiled
-    from reblur.align.field import _whole_reblur, lattice_boxes
+    from reblur.align.field import lattice_boxes
+    from reblur.align.refine import _whole_reblur
 
     made = []
     monkeypatch.setattr(tiled, "reblur_whole", lambda *a, **k: made.append(a[2]) or "whole")
@@ -404,6 +405,6 @@ def test_which_lattices_reblur_the_image_whole(monkeypatch):
     assert _whole_reblur(ref, poses, (1024, 1024), later((1024, 1024))) == "whole"
     assert _whole_reblur(ref, poses, (2048, 2048), later((2048, 2048))) is None
     assert _whole_reblur(ref, poses, (1024, 16000), later((1024, 16000))) is None  # < cap
-    monkeypatch.setattr(field_mod, "_WHOLE_PIXELS", 1024 * 1024 - 1)
+    monkeypatch.setattr(refine_mod, "_WHOLE_PIXELS", 1024 * 1024 - 1)
     assert _whole_reblur(ref, poses, (1024, 1024), later((1024, 1024))) is None
     assert made == [(1024, 1024)]

@@ -498,54 +498,6 @@ def _tie_points(shifts: list, spacing: float, p: FieldParams):
 #: other row); a smaller lattice is measured whole.
 _FIRST_PASS_MIN = 36
 
-#: Share of the image that the rows of :func:`estimate_field`'s second pass must span
-#: for the image to be reblurred once for that pass and the check with the field
-#: (:func:`_whole_reblur`).  Each pass reblurs its rows' spans, so that is at least
-#: 1.5 times the rows' share of the image in reblurs, against one.  At 1 MP the rows
-#: span it all; at 4 MP (the same 64 px tie points on a 16 x 16 lattice) half.
-_WHOLE_SPAN = 0.75
-
-#: Most pixels of an image that :func:`_whole_reblur` reblurs whole (64 MB in float32):
-#: beyond, the rows reblur on their own whatever they span.
-_WHOLE_PIXELS = 1 << 24
-
-#: Margin around the image of that reblur: the check with the field grows each window by
-#: the field's reach and the bicubic footprint (a window reaching beyond is reblurred on
-#: its own).
-_WHOLE_MARGIN = 8
-
-
-def _whole_reblur(reference, poses, shape: tuple[int, int], boxes: list[Box]):
-    """:func:`reblur.tiled.reblur_whole` of ``reference`` (as the tie points measure it)
-    for the tie points ``boxes`` left after the first pass, or None when what a pass
-    reblurs of them (:func:`~reblur.align.refine.measure_shifts`' strips and single
-    windows) is less than :data:`_WHOLE_SPAN` of the image, the image holds more than
-    :data:`_WHOLE_PIXELS`, the poses reblur tiles their own way, or the image cannot be
-    reblurred whole."""
-    from .._memory import available_cpus
-    from ..tiled import reblur_whole
-    from .refine import _strip_jobs, measured_reference
-
-    H, W = shape
-    if hasattr(poses, "reblur_tile") or not boxes or H * W > _WHOLE_PIXELS:
-        return None
-    # what a pass reblurs: the span of each row reblurred as one strip, the other windows
-    # alone (the sparse rows of a wide image's lattice, whose span is no measure of it)
-    span = 0
-    for idx in _strip_jobs(boxes):
-        bs = [boxes[i] for i in idx]
-        span += bs[0].h * (max(b.x1 for b in bs) - min(b.x0 for b in bs))
-    if span < _WHOLE_SPAN * H * W:
-        return None
-    try:
-        return reblur_whole(poses, measured_reference(reference), shape,
-                            margin=_WHOLE_MARGIN, workers=available_cpus())
-    except (ValueError, np.linalg.LinAlgError, cv2.error):
-        # a pose maps part of the image beyond the horizon, or is singular: the rows are
-        # reblurred on their own, and each tie point that cannot be says why
-        return None
-
-
 def _settled(shifts: list, spacing: float, p: FieldParams) -> dict[str, Any] | None:
     """Why no field is needed, judged from the first pass's tie points ``shifts`` (on a
     lattice of ``spacing``), or None when the whole lattice must be measured.
@@ -616,11 +568,12 @@ def estimate_field(
     -----
     Where the rows of tie points left after the first pass span most of the image (a 1 MP
     image's lattice covers it), the image is reblurred once for them and for the check
-    with the field (:func:`_whole_reblur`): each pass reblurred its rows, 2.5 times the
-    image in all.  The 12 px test-bed shake (164 poses): the field 1.30 -> 1.05 s, its tie
-    points, inliers and residuals the same to 4 decimals.
+    with the field (:func:`reblur.align.refine._whole_reblur`), unless ``whole`` is given:
+    each pass reblurred its rows, 2.5 times the image in all.  The 12 px test-bed shake
+    (164 poses): the field 1.30 -> 1.05 s, its tie points, inliers and residuals the same
+    to 4 decimals.
     """
-    from .refine import measure_shifts
+    from .refine import _whole_reblur, measure_shifts
 
     p = params or FieldParams()
     shape = tuple(int(v) for v in poses.grid.image_shape[:2])

@@ -99,7 +99,7 @@ class Refinement:
         The weights with :attr:`base`, as the probes measured them.
     whole : WholeReblur or None
         The image reblurred whole with :attr:`poses`, when the probes covered it
-        (:func:`reblur.align.field._whole_reblur`): the displacement field's tie points are
+        (:func:`_whole_reblur`): the displacement field's tie points are
         cut from it (:func:`reblur.align.field.estimate_field`'s ``whole``).
     """
 
@@ -495,6 +495,52 @@ def _fit(shifts: list[ProbeShift], ransac_px: float) -> tuple[np.ndarray | None,
     return None, "none", 0
 
 
+#: Share of the image that what :func:`measure_shifts` would reblur of some windows must
+#: span for the image to be reblurred once for them (:func:`_whole_reblur`): the
+#: displacement field's second pass and its check reblur their rows' spans, so that is
+#: at least 1.5 times the rows' share of the image in reblurs, against one.  At 1 MP the
+#: field's rows and the refinement's probes span it all; at 4 MP (the same 64 px tie
+#: points on a 16 x 16 lattice) half.
+_WHOLE_SPAN = 0.75
+
+#: Most pixels of an image that :func:`_whole_reblur` reblurs whole (64 MB in float32):
+#: beyond, the rows reblur on their own whatever they span.
+_WHOLE_PIXELS = 1 << 24
+
+#: Margin around the image of that reblur: the displacement field's check grows each
+#: window by the field's reach and the bicubic footprint (a window reaching beyond is
+#: reblurred on its own).
+_WHOLE_MARGIN = 8
+
+
+def _whole_reblur(reference, poses, shape: tuple[int, int], boxes: list[Box]):
+    """:func:`reblur.tiled.reblur_whole` of ``reference`` (as :func:`measure_shifts`
+    measures it) for the windows ``boxes`` (the refinement's probes, the displacement
+    field's tie points left after its first pass), or None when what
+    :func:`measure_shifts` reblurs of them (its strips and single windows) is less than
+    :data:`_WHOLE_SPAN` of the image, the image holds more than :data:`_WHOLE_PIXELS`,
+    the poses reblur tiles their own way, or the image cannot be reblurred whole."""
+    from .. import tiled
+    H, W = shape
+    if hasattr(poses, "reblur_tile") or not boxes or H * W > _WHOLE_PIXELS:
+        return None
+    # what a pass reblurs: the span of each row reblurred as one strip, the other windows
+    # alone (the sparse rows of a wide image's lattice, whose span is no measure of it)
+    span = 0
+    for idx in _strip_jobs(boxes):
+        bs = [boxes[i] for i in idx]
+        span += bs[0].h * (max(b.x1 for b in bs) - min(b.x0 for b in bs))
+    if span < _WHOLE_SPAN * H * W:
+        return None
+    try:
+        return tiled.reblur_whole(poses, measured_reference(reference), shape,
+                                  margin=_WHOLE_MARGIN, workers=available_cpus())
+    except (ValueError, np.linalg.LinAlgError, cv2.error):
+        # a pose maps part of the image beyond the horizon, or is singular: the rows are
+        # reblurred on their own, and each window that cannot be says why
+        return None
+
+
 def refine_alignment(
     reference,
     observed,
@@ -541,8 +587,6 @@ def refine_alignment(
         size = int(np.clip(min(grid.image_shape[:2]) // 3, 128, 256))
     boxes = probes if probes is not None else probe_boxes(grid.image_shape, size=size,
                                                           n=p.n_probes)
-    from .field import _whole_reblur
-
     kw = dict(ref_scale=ref_scale, obs_scale=obs_scale)
     shape = tuple(int(s) for s in grid.image_shape[:2])
     poses0 = SparsePoses(weights, grid, base)
