@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+import time
 
 import numpy as np
 import pytest
@@ -53,10 +54,16 @@ def test_fig5_occluder_inside_the_crop_is_found_and_tolerated(image_1000):
 
 
 def test_measure_sees_an_allocation():
-    """The peak-memory column of Table I: a 200 MB array shows up in the sampled peak."""
+    """The peak-memory column of Table I: a 200 MB array shows up in the sampled peak.
+
+    The peak is sampled every ``interval`` (a spike shorter than that can be missed, as
+    ``measure`` says): the array is held for 50 intervals, asleep (the GIL released), so
+    that the sampler runs while it is resident even on a loaded host; filling and summing
+    it alone took 0.08 s, which a CI run beside a benchmark left unsampled."""
 
     def alloc() -> float:
         a = np.ones(25_000_000)  # 200 MB
+        time.sleep(0.25)
         return float(a.sum())
 
     got = common.measure(alloc, interval=0.005)
