@@ -6,9 +6,9 @@ import pytest
 from conftest import levir_before
 
 from reblur.align import measure_shifts, probe_boxes, refine_alignment
-from reblur.align.refine import tie_shift
+from reblur.align.refine import _in_convex, _largest_rectangle, covered_box, tie_shift
 from reblur.grid import PoseGrid, map_points, pose_homography
-from reblur.tiled import SparsePoses, reblur_tile
+from reblur.tiled import SparsePoses, reblur_tile, valid_polygon
 from reblur.warp import Box, warp_window
 
 H, W = 900, 1300
@@ -48,6 +48,104 @@ def test_probe_boxes_cover_the_image():
     assert min(b.y0 for b in boxes) == 0 and max(b.y1 for b in boxes) == H
     assert min(b.x0 for b in boxes) == 0 and max(b.x1 for b in boxes) == W
     assert probe_boxes((100, 80), size=256) == [probe_boxes((100, 80), size=80)[0]]
+
+
+def test_probe_boxes_span_a_box_within_the_image():
+    within = Box(30, 30, 640, 1210)  # GoPro's 1280 x 720 less a 30 px margin
+    boxes = probe_boxes((720, 1280), size=240, n=5, within=within)
+    assert len(boxes) == len(probe_boxes((720, 1280), size=240, n=5)) == 3 * 5
+    assert min(b.y0 for b in boxes) == 30 and max(b.y1 for b in boxes) == 670
+    assert min(b.x0 for b in boxes) == 30 and max(b.x1 for b in boxes) == 1240
+    # a narrow box: no two windows closer than 3/4 of their side
+    narrow = probe_boxes((H, W), size=256, within=Box(0, 0, H, 565))
+    xs = sorted({b.x0 for b in narrow})
+    assert xs == [0, 565 - 256] and len(narrow) == 3 * 2
+    # a box smaller than a window: the image's lattice
+    assert probe_boxes((H, W), size=256, within=Box(0, 0, 200, W)) == probe_boxes((H, W))
+
+
+def _largest_rectangle_slow(mask: np.ndarray) -> int:
+    """Area of the largest all-true rectangle, by brute force: every pair of rows, the
+    longest run of columns true on all the rows between them."""
+    best = 0
+    for top in range(mask.shape[0]):
+        cols = np.ones(mask.shape[1], bool)
+        for bottom in range(top, mask.shape[0]):
+            cols &= mask[bottom]
+            run = longest = 0
+            for c in cols:
+                run = run + 1 if c else 0
+                longest = max(longest, run)
+            best = max(best, longest * (bottom - top + 1))
+    return best
+
+
+def test_largest_rectangle_is_the_brute_force_one():
+    rng = np.random.default_rng(5)
+    for _ in range(40):
+        shape = tuple(int(v) for v in rng.integers(1, 14, size=2))
+        m = rng.random(shape) < rng.uniform(0.3, 0.95)
+        i, j, h, w = _largest_rectangle(m)
+        assert h * w == _largest_rectangle_slow(m)
+        assert m[i : i + h, j : j + w].all()
+    assert _largest_rectangle(np.zeros((3, 4), bool)) == (0, 0, 0, 0)
+    assert _largest_rectangle(np.ones((3, 4), bool)) == (0, 0, 3, 4)
+
+
+def _viewpoint_poses():
+    """A viewpoint 25 px and 0.4 degree away, a slight perspective, and a blur over two
+    rolls and translations up to 3 px."""
+    base = pose_homography(25.0, -18.0, 0.01, 0.0, 0.0, 0.4, center=C)
+    base = base @ np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [2e-5, -1e-5, 1.0]])
+    grid = PoseGrid.from_ranges((H, W), t_max=3, rz_max=0.5, rz_step=0.5)
+    w = np.zeros(grid.shape)
+    w[1, 3, 3] = 0.4  # rz = 0, t = 0
+    w[1, 0, 6] = 0.2  # tx = 3, ty = -3
+    w[2, 5, 1] = 0.2  # rz = 0.5 degree, tx = -2, ty = 2
+    w[2, 6, 4] = 0.2
+    return SparsePoses(w, grid, base)
+
+
+def test_covered_box_holds_what_every_pose_reads(reference):
+    """The polygon and the box against the warps' own validity (:func:`reblur_tile`)."""
+    poses = _viewpoint_poses()
+    _, valid = reblur_tile(poses, reference, (0, 0, H, W))
+    assert 0.8 < valid.mean() < 0.98  # the viewpoint leaves a margin
+    # the polygon is the validity up to a pixel along its edges
+    poly = valid_polygon(poses, reference.shape)
+    inside = _in_convex(poly, np.arange(W, dtype=float), np.arange(H, dtype=float))
+    near = cv2.dilate((inside != cv2.erode(inside.astype(np.uint8), np.ones((5, 5)))
+                       ).astype(np.uint8), np.ones((5, 5))).astype(bool)
+    assert not (inside & ~valid & ~near).any()  # inside: valid (margin of 1 px)
+    assert not (valid & ~inside & ~near).any()  # valid: inside, but within 2 px of an edge
+    box = covered_box(poses, reference.shape, (H, W))
+    assert valid[box.y0 : box.y1, box.x0 : box.x1].all()
+    # nearly the largest: the brute-force largest rectangle of the validity's 20 px cells
+    cells = valid[: H // 20 * 20, : W // 20 * 20].reshape(H // 20, 20, W // 20, 20)
+    slow = 400 * _largest_rectangle_slow(cells.all(axis=(1, 3)))
+    assert slow <= box.h * box.w < valid.sum()
+
+
+def test_the_probes_lie_where_the_reference_covers(reference):
+    """On a viewpoint that leaves a margin, the lattice over the image loses its border
+    probes to their coverage; laid over the covered box, every probe is measured."""
+    poses = _viewpoint_poses()
+    obs, _ = reblur_tile(poses, reference, (0, 0, H, W))
+    obs = obs[:, :, 0]
+    w, grid = np.zeros(poses.grid.shape), poses.grid
+    for b, tw in poses.groups.items():
+        for tx, ty, v in tw:
+            w[b, grid.ty.index(ty), grid.tx.index(tx)] = v
+    whole = refine_alignment(reference, obs, w, grid, poses.base, probes=probe_boxes((H, W)))
+    lost = [s for s in whole.before if not s.measured]
+    assert len(lost) >= 6 and all("the reference covers" in s.reason for s in lost)
+    r = refine_alignment(reference, obs, w, grid, poses.base)
+    box = Box(*r.info["lattice"])
+    assert r.info["probes"] == len(probe_boxes((H, W))) == 15
+    assert all(s.measured and np.hypot(s.dx, s.dy) < 0.02 for s in r.before)
+    assert all(box.y0 <= s.cy - 127.5 and s.cy + 128.5 <= box.y1 for s in r.before)
+    assert all(box.x0 <= s.cx - 127.5 and s.cx + 128.5 <= box.x1 for s in r.before)
+    assert not r.applied  # the base is the true one
 
 
 @pytest.mark.parametrize("search", [False, True])
@@ -264,8 +362,9 @@ def test_probes_beyond_the_horizon_are_skipped(reference):
         o, _ = warp_window(reference, pose_homography(tx, 0.0, center=C) @ base,
                            (0, 0, H, 990), dtype=np.float32)
         obs[:, :990] += 0.5 * o.reshape(H, 990)
-    r = refine_alignment(reference, obs, w, grid, base)
+    # the lattice over the whole image (by default it lies where the reference covers)
     boxes = probe_boxes((H, W), size=256)
+    r = refine_alignment(reference, obs, w, grid, base, probes=boxes)
     assert len(r.before) == len(boxes)
     inv = np.linalg.inv(base)
     reasons = set()

@@ -18,11 +18,11 @@ import cv2
 import numpy as np
 
 from ._memory import thread_map
-from .grid import PoseGrid, translation
+from .grid import PoseGrid, map_points, translation
 from .warp import Box, as_box, read_window, source_box, warp_source
 
 __all__ = ["reblur", "reblur_tile", "reblur_windows", "reblur_whole", "iter_tiles",
-           "SparsePoses", "WholeReblur"]
+           "SparsePoses", "WholeReblur", "valid_polygon"]
 
 
 class SparsePoses:
@@ -56,6 +56,48 @@ class SparsePoses:
     @property
     def n_poses(self) -> int:
         return sum(len(v) for v in self.groups.values())
+
+
+def valid_polygon(poses: SparsePoses, ref_shape: tuple[int, ...], *,
+                  margin: float = 1.0) -> np.ndarray | None:
+    """Where every pose of ``poses`` reads reference pixels: the convex polygon of the
+    observation inside which :func:`reblur_tile`'s validity is True (its poses only, not
+    their displacement field), shrunk by ``margin`` pixels of the reference.
+
+    A pose ``translation(t) @ B`` reads the reference at ``B^-1 (p - t)``, so it is valid
+    on the quadrilateral ``B(R) + t`` (``R`` the reference's pixel centres less the
+    margin: the bilinear footprint lies inside).  For one base ``B`` the translations'
+    intersection is that of their convex hull's vertices (the quadrilateral is convex), and
+    the polygon is the intersection over the bases.  Returns the ``(k, 2)`` vertices
+    ``(x, y)``, or None when there are no poses, a base maps the reference beyond the
+    horizon (no convex image) or the intersection is empty.
+    """
+    if not poses.groups:
+        return None
+    Hr, Wr = (float(v) for v in ref_shape[:2])
+    m = float(margin)
+    corners = np.array([[m, m], [Wr - 1 - m, m], [Wr - 1 - m, Hr - 1 - m], [m, Hr - 1 - m]])
+    if corners[1, 0] < corners[0, 0] or corners[2, 1] < corners[0, 1]:
+        return None
+    poly = None
+    for b, tw in poses.groups.items():
+        Hb = poses.base_h[b]
+        w = corners @ Hb[2, :2] + Hb[2, 2]
+        if not np.all(w > 0):  # the reference's image crosses the horizon
+            return None
+        quad = map_points(Hb, corners)
+        ts = tw[:, :2].astype(np.float32)
+        hull = cv2.convexHull(ts).reshape(-1, 2) if len(ts) > 2 else ts
+        for t in hull.astype(np.float64):
+            q = np.float32(quad + t)
+            if poly is None:
+                poly = q
+                continue
+            area, got = cv2.intersectConvexConvex(poly, q)
+            if got is None or area <= 0:
+                return None
+            poly = got.reshape(-1, 2)
+    return None if poly is None else np.asarray(poly, np.float64)
 
 
 def reblur_tile(poses: SparsePoses, reference, box, *, dtype=np.float32):

@@ -7,9 +7,10 @@ the windows cannot see shows up far from them as edges that do not line up -- fa
 on every strong edge of the unseen part of the image.
 
 This module measures that error where it matters, on the data: probe windows spread over
-the whole observation are reblurred with the estimated weights and registered to the
-observation by a sub-pixel translation (ECC, :func:`cv2.findTransformECC`, invariant to
-gain and offset; the displacement field's tie points use :func:`tie_shift`).  The probe
+the part of the observation the reference covers under every pose (:func:`covered_box`)
+are reblurred with the estimated weights and registered to the observation by a
+sub-pixel translation (ECC, :func:`cv2.findTransformECC`, invariant to gain and offset;
+the displacement field's tie points use :func:`tie_shift`).  The probe
 displacements ``p_i`` at the probe centres ``c_i`` are fitted by a homography
 ``G: c -> c + p`` (affine with fewer than 12 reliable probes), robustly (RANSAC, then
 least squares on the inliers), and the base homography becomes ``G^-1 @ base``: the
@@ -38,13 +39,13 @@ import numpy as np
 from .._bands import BandMean
 from .._memory import available_cpus, thread_map
 from ..grid import PoseGrid, map_points
-from ..tiled import SparsePoses, WholeReblur, reblur_tile, reblur_windows
+from ..tiled import SparsePoses, WholeReblur, reblur_tile, reblur_windows, valid_polygon
 from ..warp import Box, read_window
 from .result import AlignmentError
 from .verify import check_plausible, max_corner_shift
 
-__all__ = ["ProbeShift", "RefineParams", "Refinement", "measure_shifts", "probe_boxes",
-           "refine_alignment", "tie_shift"]
+__all__ = ["ProbeShift", "RefineParams", "Refinement", "covered_box", "measure_shifts",
+           "probe_boxes", "refine_alignment", "tie_shift"]
 
 
 @dataclass(frozen=True)
@@ -164,20 +165,100 @@ class RefineParams:
                              f"{self.min_gain_px!r}")
 
 
-def probe_boxes(shape: tuple[int, int], *, size: int = 256, n: int = 5) -> list[Box]:
+def probe_boxes(shape: tuple[int, int], *, size: int = 256, n: int = 5,
+                within: Box | None = None) -> list[Box]:
     """Up to ``n x n`` probe windows of ``size`` px on a regular lattice over the image.
 
     The lattice spans the whole image (first and last windows touch the borders); on an
     image smaller than ``n`` windows per side there are as many as fit without overlap
-    (at least one, shrunk to the image).
+    (at least one, shrunk to the image).  With ``within`` (a box of the image at least
+    ``size`` on each side) the windows span that box instead: as many per side as on the
+    image, fewer where they would overlap by more than a quarter of their side.
     """
     H, W = int(shape[0]), int(shape[1])
     s = int(min(size, H, W))
     ny = max(1, min(int(n), H // s))
     nx = max(1, min(int(n), W // s))
-    ys = np.linspace(0, H - s, ny).round().astype(int) if ny > 1 else [(H - s) // 2]
-    xs = np.linspace(0, W - s, nx).round().astype(int) if nx > 1 else [(W - s) // 2]
+    y0, x0, h, w = 0, 0, H, W
+    if within is not None and min(within.h, within.w) >= s:
+        y0, x0, h, w = within.y0, within.x0, within.h, within.w
+        # windows spaced at least 3/4 of their side apart
+        ny = min(ny, 1 + int((h - s) // (0.75 * s)))
+        nx = min(nx, 1 + int((w - s) // (0.75 * s)))
+    ys = np.linspace(y0, y0 + h - s, ny).round().astype(int) if ny > 1 else [y0 + (h - s) // 2]
+    xs = np.linspace(x0, x0 + w - s, nx).round().astype(int) if nx > 1 else [x0 + (w - s) // 2]
     return [Box(int(y), int(x), s, s) for y in ys for x in xs]
+
+
+#: Most cells per side of the coverage mask :func:`covered_box` searches.
+_COVER_CELLS = 128
+
+
+def covered_box(poses: SparsePoses, ref_shape: tuple[int, ...],
+                shape: tuple[int, int]) -> Box | None:
+    """The largest axis-aligned box of the observation ``shape`` where every pose of
+    ``poses`` reads reference pixels (:func:`reblur.tiled.valid_polygon`), on cells of
+    at most :data:`_COVER_CELLS` per side whose four corners lie inside the polygon; None
+    when no cell does.
+
+    The probes' lattice is laid over it: a probe reaching beyond it is refused for its
+    coverage, and with the lattice over the whole image those were the border probes
+    wherever the viewpoint or the blur's reach leaves a margin (GoPro 0477 / 16: 11 of 15
+    refused, an affine fitted through 3 probes).
+    """
+    poly = valid_polygon(poses, ref_shape)
+    if poly is None:
+        return None
+    H, W = int(shape[0]), int(shape[1])
+    u = max(1, -(-max(H, W) // _COVER_CELLS))
+    ny, nx = -(-H // u), -(-W // u)
+    # corner points of the cells (the last ones clipped to the image's last pixel)
+    gy = np.minimum(np.arange(ny + 1) * u, H) - np.r_[np.zeros(ny), 1.0]
+    gx = np.minimum(np.arange(nx + 1) * u, W) - np.r_[np.zeros(nx), 1.0]
+    inside = _in_convex(poly, gx, gy)
+    cells = inside[:-1, :-1] & inside[1:, :-1] & inside[:-1, 1:] & inside[1:, 1:]
+    i0, j0, hc, wc = _largest_rectangle(cells)
+    if hc == 0:
+        return None
+    y0, x0 = i0 * u, j0 * u
+    return Box(y0, x0, min((i0 + hc) * u, H) - y0, min((j0 + wc) * u, W) - x0)
+
+
+def _in_convex(poly: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """``(len(ys), len(xs))``: whether each point of the grid ``xs x ys`` lies inside the
+    convex polygon ``poly`` (``(k, 2)`` vertices in either orientation, its edges
+    included)."""
+    a = poly
+    b = np.roll(poly, -1, axis=0)
+    orient = np.sign(np.sum(a[:, 0] * b[:, 1] - b[:, 0] * a[:, 1])) or 1.0
+    X, Y = np.meshgrid(xs, ys)
+    ok = np.ones(X.shape, bool)
+    for (ax, ay), (bx, by) in zip(a, b, strict=True):
+        cross = (bx - ax) * (Y - ay) - (by - ay) * (X - ax)
+        ok &= orient * cross >= -1e-6 * max(abs(bx - ax) + abs(by - ay), 1.0)
+    return ok
+
+
+def _largest_rectangle(mask: np.ndarray) -> tuple[int, int, int, int]:
+    """``(row, col, height, width)`` of the largest all-true rectangle of ``mask`` (the
+    histogram method: each row's run heights, a stack of increasing heights); zeros when
+    ``mask`` holds no true cell."""
+    ny, nx = mask.shape
+    heights = np.zeros(nx, int)
+    best, best_area = (0, 0, 0, 0), 0
+    for i in range(ny):
+        heights = np.where(mask[i], heights + 1, 0)
+        stack: list[tuple[int, int]] = []  # (first column, height), heights increasing
+        for j in range(nx + 1):
+            h = int(heights[j]) if j < nx else 0
+            start = j
+            while stack and stack[-1][1] >= h:
+                s, sh = stack.pop()
+                if sh * (j - s) > best_area:
+                    best_area, best = sh * (j - s), (i - sh + 1, s, sh, j - s)
+                start = s
+            stack.append((start, h))
+    return best
 
 
 def _gray(a: np.ndarray) -> np.ndarray:
@@ -585,17 +666,24 @@ def refine_alignment(
     size = p.probe_size
     if size is None:
         size = int(np.clip(min(grid.image_shape[:2]) // 3, 128, 256))
-    boxes = probes if probes is not None else probe_boxes(grid.image_shape, size=size,
-                                                          n=p.n_probes)
     kw = dict(ref_scale=ref_scale, obs_scale=obs_scale)
     shape = tuple(int(s) for s in grid.image_shape[:2])
     poses0 = SparsePoses(weights, grid, base)
+    within = None
+    if probes is None:  # the lattice where the reference covers the observation
+        within = covered_box(poses0, reference.shape, shape)
+    boxes = probes if probes is not None else probe_boxes(shape, size=size, n=p.n_probes,
+                                                          within=within)
     before = measure_shifts(reference, observed, poses0, boxes, **kw)
     s0 = _stats(before, p.min_cc)
     good = [s for s in before if s.measured and s.cc >= p.min_cc]
     G, model, n_in = _fit(good, p.ransac_px)
     info: dict[str, Any] = {"probes": len(boxes), "before": s0, "model": model,
                             "inliers": n_in, "probe_shifts": _records(before, p.min_cc)}
+    if probes is None:
+        info["lattice"] = ("the image" if within is None or boxes[0].h > min(within.h, within.w)
+                           else [int(within.y0), int(within.x0), int(within.h),
+                                 int(within.w)])
     if G is None:
         return Refinement(base, False, "none", before, before, info, poses0)
     new, why = _corrected(G, base, shape, tuple(int(s) for s in reference.shape[:2]),
