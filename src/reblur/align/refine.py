@@ -206,6 +206,8 @@ def covered_box(poses: SparsePoses, ref_shape: tuple[int, ...],
     wherever the viewpoint or the blur's reach leaves a margin (GoPro 0477 / 16: 11 of 15
     refused, an affine fitted through 3 probes).
     """
+    import shapely  # as align.georef: on first use
+
     poly = valid_polygon(poses, ref_shape)
     if poly is None:
         return None
@@ -215,28 +217,14 @@ def covered_box(poses: SparsePoses, ref_shape: tuple[int, ...],
     # corner points of the cells (the last ones clipped to the image's last pixel)
     gy = np.minimum(np.arange(ny + 1) * u, H) - np.r_[np.zeros(ny), 1.0]
     gx = np.minimum(np.arange(nx + 1) * u, W) - np.r_[np.zeros(nx), 1.0]
-    inside = _in_convex(poly, gx, gy)
+    # a corner on the polygon's edge counts as inside
+    inside = shapely.intersects_xy(shapely.Polygon(poly), *np.meshgrid(gx, gy))
     cells = inside[:-1, :-1] & inside[1:, :-1] & inside[:-1, 1:] & inside[1:, 1:]
     i0, j0, hc, wc = _largest_rectangle(cells)
     if hc == 0:
         return None
     y0, x0 = i0 * u, j0 * u
     return Box(y0, x0, min((i0 + hc) * u, H) - y0, min((j0 + wc) * u, W) - x0)
-
-
-def _in_convex(poly: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
-    """``(len(ys), len(xs))``: whether each point of the grid ``xs x ys`` lies inside the
-    convex polygon ``poly`` (``(k, 2)`` vertices in either orientation, its edges
-    included)."""
-    a = poly
-    b = np.roll(poly, -1, axis=0)
-    orient = np.sign(np.sum(a[:, 0] * b[:, 1] - b[:, 0] * a[:, 1])) or 1.0
-    X, Y = np.meshgrid(xs, ys)
-    ok = np.ones(X.shape, bool)
-    for (ax, ay), (bx, by) in zip(a, b, strict=True):
-        cross = (bx - ax) * (Y - ay) - (by - ay) * (X - ax)
-        ok &= orient * cross >= -1e-6 * max(abs(bx - ax) + abs(by - ay), 1.0)
-    return ok
 
 
 def _largest_rectangle(mask: np.ndarray) -> tuple[int, int, int, int]:
