@@ -755,6 +755,32 @@ def test_grid_interp_matches_reference():
                                           _ref_grid_interp(grid, y0, x0, h, w, block))
 
 
+@pytest.mark.parametrize("bands", [1, 3])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_field_apply_matches_reference(bands, dtype):
+    """A tile mapped through a smooth photometric field, 32 rows at a time, is the
+    whole-window expression ``g * r + o`` of the four-gather fields, stored in the tile's
+    type, bit for bit (tiles shorter than a chunk and ending mid-chunk included)."""
+    from reblur.decide.photometry import Photometry
+
+    rng = np.random.default_rng(47)
+    ny, nx, block = 9, 13, 40
+    fg = 1.0 + 0.05 * rng.standard_normal((bands, ny, nx))
+    fo = 0.02 * rng.standard_normal((bands, ny, nx))
+    ph = Photometry(gain=np.ones(bands), offset=np.zeros(bands), sigma=np.ones(bands),
+                    image_shape=(ny * block, nx * block), field_block=block,
+                    field_gain=fg, field_offset=fo)
+    for h, w, y0, x0 in [(7, 11, 0, 0), (32, 50, 13, 5), (101, 77, 200, 300),
+                         (ny * block, nx * block, 0, 0)]:
+        r = rng.random((h, w, bands)).astype(dtype)
+        got = ph.apply(r if bands > 1 else r[:, :, 0], (y0, x0, h, w))
+        want = np.stack([(_ref_grid_interp(fg[c], y0, x0, h, w, block) * r[:, :, c]
+                          + _ref_grid_interp(fo[c], y0, x0, h, w, block)).astype(dtype)
+                         for c in range(bands)], axis=2)
+        assert got.dtype == dtype
+        np.testing.assert_array_equal(got if bands > 1 else got[:, :, None], want)
+
+
 @pytest.mark.parametrize("shape", [(37, 29), (37, 29, 1), (37, 29, 3), (37, 29, 4)])
 def test_band_tests_match_numpy(shape):
     """The per-pixel band tests (a tile's known pixels, the photometric inliers, the COG

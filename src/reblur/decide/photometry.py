@@ -99,6 +99,43 @@ def _gain_offset(x: np.ndarray, gain: np.ndarray, offset: np.ndarray, out: np.nd
         dst[y : y + len(t)] = t
 
 
+def _field_gain_offset(x: np.ndarray, field_gain: np.ndarray, field_offset: np.ndarray,
+                       origin: tuple[int, int], block: int, out: np.ndarray) -> None:
+    """``out[..., c] = g_c * x[..., c] + o_c`` for an ``(h, w, C)`` tile at ``origin``,
+    ``g_c`` and ``o_c`` the fields :func:`_grid_interp` gives of ``field_gain[c]`` and
+    ``field_offset[c]`` (``(C, ny, nx)`` block-centre values), in float64, then stored in
+    ``out``'s type: those expressions' values exactly.
+
+    Done :data:`_GAIN_ROWS` rows at a time: the x interpolation once per grid row, then
+    each chunk's fields into two reused buffers.  Over the whole tile, each field was a
+    full-size float64 array built in five passes (a 1188 px tile of the 100 MP pair with
+    45 % changed, whose tiles fit a field: 58 ms gray, 140 ms in three bands).
+    """
+    h, w, C = x.shape
+    iy, iy1, wy = _grid_coords((np.arange(origin[0], origin[0] + h) + 0.5) / block - 0.5,
+                               field_gain.shape[1])
+    ix, ix1, wx = _grid_coords((np.arange(origin[1], origin[1] + w) + 0.5) / block - 0.5,
+                               field_gain.shape[2])
+    n = min(_GAIN_ROWS, h)
+    g, o, t = (np.empty((n, w)) for _ in range(3))
+    for c in range(C):
+        # the fields along x at every grid row, as _grid_interp forms them
+        rows = [(1 - wx)[None, :] * f[c][:, ix] + wx[None, :] * f[c][:, ix1]
+                for f in (field_gain, field_offset)]
+        for y in range(0, h, _GAIN_ROWS):
+            k = min(_GAIN_ROWS, h - y)
+            a = wy[y : y + k, None]
+            b = 1 - a
+            for buf, r in zip((g, o), rows, strict=True):
+                # (1 - wy) * rows[iy] + wy * rows[iy1], as in _grid_interp
+                np.multiply(b, r[iy[y : y + k]], out=buf[:k])
+                np.multiply(a, r[iy1[y : y + k]], out=t[:k])
+                buf[:k] += t[:k]
+            g[:k] *= x[y : y + k, :, c]
+            g[:k] += o[:k]
+            out[y : y + k, :, c] = g[:k]
+
+
 @dataclass(frozen=True, eq=False)
 class Photometry:
     """Per-band photometric model ``observed ~ gain(x) * reblurred + offset(x)``.
@@ -175,12 +212,11 @@ class Photometry:
         if (h, w) != rc.shape[:2]:
             raise ValueError(f"box size {(h, w)} does not match the tile shape {rc.shape[:2]}")
         out = np.empty(rc.shape, dtype=r.dtype)
-        if not self.has_field:
+        if self.has_field:
+            _field_gain_offset(rc, self.field_gain, self.field_offset, (y0, x0),
+                               self.field_block, out)
+        else:
             _gain_offset(rc, np.asarray(self.gain), np.asarray(self.offset), out)
-        for c in range(rc.shape[2] if self.has_field else 0):
-            g = _grid_interp(self.field_gain[c], y0, x0, h, w, self.field_block)
-            o = _grid_interp(self.field_offset[c], y0, x0, h, w, self.field_block)
-            out[:, :, c] = g * rc[:, :, c] + o
         if self.clip is not None:
             for c, (lo, hi) in enumerate(np.asarray(self.clip, np.float64)):
                 if np.isfinite(lo) or np.isfinite(hi):
