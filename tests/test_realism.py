@@ -106,16 +106,20 @@ def test_the_tolerance_is_measured_and_reported(case):
     _, _, res = case
     cal = res.decision["calibration"]
     assert cal["calibrated"] and cal["n"] >= 50_000
-    # the chosen rung is the first of the ladder that meets the target (or the last)
-    tried = cal["tried"]
-    assert [t[:2] for t in tried] == [list(r) for r in
-                                      reblur.decide.DecisionParams().tolerance_ladder][:len(tried)]
-    assert all(t[2] > cal["target"] for t in tried[:-1])
-    assert cal["met"] == (tried[-1][2] <= cal["target"])
+    # the chosen rung is the first of the ladder that meets the target (or the last): the
+    # rungs evaluated, in ladder order, meet it from that one on, and the one before it was
+    # evaluated and failed
     ladder = [list(r) for r in reblur.decide.DecisionParams().tolerance_ladder]
+    idx = [ladder.index(t[:2]) for t in cal["tried"]]
+    assert idx == sorted(set(idx))
+    meets = {i: t[2] <= cal["target"] for i, t in zip(idx, cal["tried"], strict=True)}
     if cal["met"]:  # the margin's rungs beyond the first that meets the target
-        want = ladder[min(len(tried) - 1 + cal["margin"], len(ladder) - 1)]
+        first = ladder.index(cal["first_met"])
+        assert first == 0 or meets[first - 1] is False
+        assert all(m == (i >= first) for i, m in meets.items())
+        want = ladder[min(first + cal["margin"], len(ladder) - 1)]
     else:
+        assert not any(meets.values()) and len(ladder) - 1 in meets
         want = ladder[-1]
     assert [cal["shift"], cal["contrast"]] == want
 

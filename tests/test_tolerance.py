@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import scipy.ndimage as ndi
@@ -193,6 +195,75 @@ def test_calibration_picks_the_first_rung_that_explains_the_windows():
     q9, _ = _calibrate_tolerance(DecisionParams(calibration_margin=9),
                                  [(b, None) for b in boxes], load, ph, shape)
     assert (q9.shift_tolerance, q9.contrast_tolerance) == p.tolerance_ladder[-1]
+
+
+def test_first_meeting_rung_of_a_nested_ladder_is_bisected():
+    """On a monotone ladder the search finds the rung a scan in order finds, evaluating
+    at most 2 + ceil(log2 n) rungs; a ladder that is not nested is scanned in order."""
+    from reblur.decide.calibrate import _first_meeting
+
+    for n in range(1, 9):
+        for k in range(n + 1):  # rungs k.. meet (k == n: none)
+            asked = []
+
+            def meets(i, k=k, asked=asked):
+                asked.append(i)
+                return i >= k
+
+            got = _first_meeting(n, meets, nested=True)
+            assert got == (k if k < n else None)
+            assert len(asked) == len(set(asked)) <= 2 + math.ceil(math.log2(n))
+    flags = [False, True, False, True]
+    asked = []
+    assert _first_meeting(4, lambda i: asked.append(i) or flags[i], nested=False) == 1
+    assert asked == [0, 1]
+
+
+def _scan_calibration(obs, mat, kn, ev, sigma, ladder, threshold, target, margin):
+    # the calibration as a plain scan of the ladder in order (the reference)
+    from reblur.decide.statistic import change_statistic
+
+    n = sum(int(e.sum()) for e in ev)
+    for i, tol in enumerate(ladder):
+        vals = [change_statistic(o, m, k, sigma, tolerance=tol)[e]
+                for o, m, k, e in zip(obs, mat, kn, ev, strict=True)]
+        if sum(int((v > threshold).sum()) for v in vals) <= target * n:
+            return ladder[min(i + margin, len(ladder) - 1)], float(threshold)
+    return ladder[-1], max(float(np.quantile(np.concatenate(vals), 1 - target)), threshold)
+
+
+@pytest.mark.parametrize("shift", [0.0, 0.4, 0.8, 1.6])
+def test_calibration_search_chooses_what_a_scan_chooses(shift):
+    """The calibration's rung and floor, on windows of a pair moved by ``shift`` px (met at
+    the first, a middle or no rung), equal those of a scan of the ladder in order, for the
+    default ladder, a finer nested one and one that is not nested."""
+    from reblur.decide.calibrate import calibrate_tolerance
+
+    rng = np.random.default_rng(11)
+    m = ndi.gaussian_filter(rng.random((300, 300)), 1.5).astype(np.float32)
+    m = (m - m.min()) / np.ptp(m)
+    o = ndi.shift(m, (shift, 0.3 * shift), order=3, mode="nearest").astype(np.float32)
+    o += rng.normal(0, 0.002, o.shape).astype(np.float32)
+    obs, mat = [o[:150, :, None], o[150:, :, None]], [m[:150, :, None], m[150:, :, None]]
+    kn = [np.ones((150, 300), bool)] * 2
+    ev = [k.copy() for k in kn]
+    for e in ev:
+        e[:20], e[-20:], e[:, :20], e[:, -20:] = False, False, False, False
+    sigma = np.array([0.002])
+    ladders = [
+        tuple(DecisionParams().ladder),
+        tuple(ModelTolerance(s, c) for s, c in [(0.1, 0.0), (0.25, 0.0), (0.25, 0.01),
+                                                 (0.5, 0.01), (0.5, 0.02), (0.75, 0.02),
+                                                 (1.0, 0.02), (1.0, 0.04), (1.0, 0.08)]),
+        tuple(ModelTolerance(s, c) for s, c in [(1.0, 0.0), (0.25, 0.05), (0.5, 0.0)]),
+    ]
+    for ladder in ladders:
+        for margin in (0, 2):
+            tol, info = calibrate_tolerance(obs, mat, kn, ev, sigma, ladder=ladder,
+                                            threshold=2.0, target=2e-4, margin=margin)
+            want, floor = _scan_calibration(obs, mat, kn, ev, sigma, ladder, 2.0, 2e-4,
+                                            margin)
+            assert (tol, info["floor"]) == (want, floor)
 
 
 def test_windows_marked_as_change_drop_the_noise_floor():

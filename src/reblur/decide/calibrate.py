@@ -96,7 +96,10 @@ def calibrate_tolerance(
     sigma : (C,) array_like
         Residual scale per band (:attr:`Photometry.sigma`).
     ladder : sequence of ModelTolerance
-        Tolerances tried, in order (from tight to loose).
+        Tolerances from tight to loose.  A nested ladder (each rung's shift and contrast
+        at least the previous one's, as the default) is searched by bisection after its
+        first and last rungs, any other scanned in order (:func:`_first_meeting`): the
+        same rung either way.
     threshold : float
         The statistic's floor (``DecisionParams.min_threshold``).
     target : float
@@ -114,7 +117,8 @@ def calibrate_tolerance(
         The chosen tolerance: ``margin`` rungs after the first that meets the target (the
         ladder's last one when none does).
     info : dict
-        ``n`` (pixels evaluated), ``tried`` (shift, contrast, fraction above the threshold),
+        ``n`` (pixels evaluated), ``tried`` (shift, contrast, fraction above the threshold
+        of each rung evaluated, in ladder order),
         ``met`` (whether the chosen value meets the target), ``floor``: ``threshold``,
         or where even the last tolerance does not meet the target, the ``1 - target``
         quantile of the unchanged pixels' statistic under it (the decision's threshold
@@ -131,21 +135,66 @@ def calibrate_tolerance(
     n = int(sum(int(np.count_nonzero(e)) for e in evaluate))
     if n == 0:
         raise ValueError("no unchanged pixel to calibrate the tolerance on")
-    tried = []
-    values: list[np.ndarray] = []
-    for tol in lad:
-        values = [change_statistic(o, m, k, sigma, smooth=smooth, truncate=truncate,
-                                   tolerance=tol)[e]
-                  for o, m, k, e in zip(observed, matched, known, evaluate, strict=True)]
-        above = sum(int(np.count_nonzero(v > threshold)) for v in values)
-        tried.append([tol.shift, tol.contrast, above / n])
-        if above <= target * n:
-            pick = lad[min(len(tried) - 1 + int(margin), len(lad) - 1)]
-            return pick, {"n": n, "tried": tried, "met": True, "target": float(target),
-                          "floor": float(threshold), "margin": int(margin),
-                          "first_met": [tol.shift, tol.contrast]}
+    tried: dict[int, list[float]] = {}
+    last = len(lad) - 1
+    values: list[np.ndarray] = []  # the last rung's, for the floor
+
+    def meets(i: int) -> bool:
+        """Whether rung ``i`` meets the target (its statistic computed once)."""
+        tol = lad[i]
+        got = [change_statistic(o, m, k, sigma, smooth=smooth, truncate=truncate,
+                                tolerance=tol)[e]
+               for o, m, k, e in zip(observed, matched, known, evaluate, strict=True)]
+        if i == last:
+            values[:] = got
+        above = sum(int(np.count_nonzero(v > threshold)) for v in got)
+        tried[i] = [tol.shift, tol.contrast, above / n]
+        return above <= target * n
+
+    first = _first_meeting(len(lad), meets, nested=_nested(lad))
+    record = [tried[i] for i in sorted(tried)]
+    if first is not None:
+        pick = lad[min(first + int(margin), len(lad) - 1)]
+        return pick, {"n": n, "tried": record, "met": True, "target": float(target),
+                      "floor": float(threshold), "margin": int(margin),
+                      "first_met": [lad[first].shift, lad[first].contrast]}
     # the model's error exceeds even the largest tolerance: the statistic's floor rises
     # to what the unchanged pixels reach but for the target fraction
     floor = float(np.quantile(np.concatenate(values), 1.0 - target))
-    return lad[-1], {"n": n, "tried": tried, "met": False, "target": float(target),
+    return lad[-1], {"n": n, "tried": record, "met": False, "target": float(target),
                      "floor": max(floor, float(threshold))}
+
+
+def _nested(ladder: Sequence[ModelTolerance]) -> bool:
+    """Whether every rung's tolerance contains the previous one's (shift and contrast both
+    non-decreasing): then the interval of :func:`~reblur.decide.tolerance.tolerance_interval`
+    only widens up the ladder (a square of shifts contains the smaller ones, a wider
+    contrast band the narrower), every pixel's distance from it only shrinks, and so does
+    the fraction of pixels above the threshold."""
+    return all(b.shift >= a.shift and b.contrast >= a.contrast
+               for a, b in zip(ladder[:-1], ladder[1:], strict=True))
+
+
+def _first_meeting(n: int, meets, *, nested: bool) -> int | None:
+    """Index of the first of ``n`` rungs for which ``meets(i)`` holds, or None.
+
+    A ladder that is not nested is scanned in order.  On a nested one ``meets`` is
+    monotone (once a rung meets the target every looser one does), so after the first rung
+    the last is tried (a model error beyond the ladder, the GoPro pairs': two statistics
+    instead of six), then the first meeting rung is bisected between them: the rung a scan
+    in order finds, in at most ``2 + log2(n)`` evaluations.
+    """
+    if not nested:
+        return next((i for i in range(n) if meets(i)), None)
+    if meets(0):
+        return 0
+    if n == 1 or not meets(n - 1):
+        return None
+    lo, hi = 0, n - 1  # lo fails, hi meets
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if meets(mid):
+            hi = mid
+        else:
+            lo = mid
+    return hi
