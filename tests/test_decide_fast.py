@@ -726,7 +726,7 @@ def test_decision_params_refuse_non_finite_settings(name, value):
 
 
 def _ref_grid_interp(grid, y0, x0, h, w, block):
-    # the previous implementation: four gathers over the whole window
+    # the bilinear field on a window by four gathers over the whole window
     from reblur.decide.photometry import _grid_coords
 
     ny, nx = grid.shape
@@ -738,40 +738,26 @@ def _ref_grid_interp(grid, y0, x0, h, w, block):
     return (1 - wy) * ((1 - wx) * g00 + wx * g01) + wy * ((1 - wx) * g10 + wx * g11)
 
 
-def test_grid_interp_matches_reference():
-    """The illumination field on a window, interpolated along x once per grid row, is the
-    four-gather bilinear interpolation bit for bit (grids of one row / column included)."""
-    from reblur.decide.photometry import _grid_interp
-
-    rng = np.random.default_rng(31)
-    for ny, nx in [(1, 1), (1, 7), (6, 1), (9, 13), (40, 25)]:
-        grid = rng.standard_normal((ny, nx)) + 1.0
-        block = int(rng.integers(8, 80))
-        H, W = ny * block, nx * block
-        for _ in range(4):
-            y0, x0 = int(rng.integers(0, H)), int(rng.integers(0, W))
-            h, w = int(rng.integers(1, H - y0 + 1)), int(rng.integers(1, W - x0 + 1))
-            np.testing.assert_array_equal(_grid_interp(grid, y0, x0, h, w, block),
-                                          _ref_grid_interp(grid, y0, x0, h, w, block))
-
-
 @pytest.mark.parametrize("bands", [1, 3])
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 def test_field_apply_matches_reference(bands, dtype):
     """A tile mapped through a smooth photometric field, 32 rows at a time, is the
-    whole-window expression ``g * r + o`` of the four-gather fields, stored in the tile's
-    type, bit for bit (tiles shorter than a chunk and ending mid-chunk included)."""
+    whole-window expression ``g * r + o`` of the four-gather bilinear fields, stored in the
+    tile's type, bit for bit (tiles shorter than a chunk and ending mid-chunk, grids of one
+    row or column included)."""
     from reblur.decide.photometry import Photometry
 
     rng = np.random.default_rng(47)
-    ny, nx, block = 9, 13, 40
-    fg = 1.0 + 0.05 * rng.standard_normal((bands, ny, nx))
-    fo = 0.02 * rng.standard_normal((bands, ny, nx))
-    ph = Photometry(gain=np.ones(bands), offset=np.zeros(bands), sigma=np.ones(bands),
-                    image_shape=(ny * block, nx * block), field_block=block,
-                    field_gain=fg, field_offset=fo)
-    for h, w, y0, x0 in [(7, 11, 0, 0), (32, 50, 13, 5), (101, 77, 200, 300),
-                         (ny * block, nx * block, 0, 0)]:
+    cases = [((9, 13), (7, 11, 0, 0)), ((9, 13), (32, 50, 13, 5)),
+             ((9, 13), (101, 77, 200, 300)), ((9, 13), (360, 520, 0, 0)),
+             ((1, 1), (40, 40, 0, 0)), ((1, 7), (33, 90, 2, 100)), ((6, 1), (75, 40, 90, 0))]
+    block = 40
+    for (ny, nx), (h, w, y0, x0) in cases:
+        fg = 1.0 + 0.05 * rng.standard_normal((bands, ny, nx))
+        fo = 0.02 * rng.standard_normal((bands, ny, nx))
+        ph = Photometry(gain=np.ones(bands), offset=np.zeros(bands), sigma=np.ones(bands),
+                        image_shape=(ny * block, nx * block), field_block=block,
+                        field_gain=fg, field_offset=fo)
         r = rng.random((h, w, bands)).astype(dtype)
         got = ph.apply(r if bands > 1 else r[:, :, 0], (y0, x0, h, w))
         want = np.stack([(_ref_grid_interp(fg[c], y0, x0, h, w, block) * r[:, :, c]

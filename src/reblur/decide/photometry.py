@@ -46,24 +46,9 @@ def _grid_coords(f: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndar
     return i, i1, wgt
 
 
-def _grid_interp(grid: np.ndarray, y0: int, x0: int, h: int, w: int, block: int) -> np.ndarray:
-    """Bilinear interpolation of block-centre values on a pixel window (per pixel exact).
-
-    The interpolation along x is done once per grid row (``ny x w`` values), then gathered
-    for the window's rows: the same floating-point operations, per pixel, as
-    ``(1 - wy) * ((1 - wx) * g00 + wx * g01) + wy * ((1 - wx) * g10 + wx * g11)`` with
-    four full-window gathers, at a third of the full-window passes.
-    """
-    ny, nx = grid.shape
-    iy, iy1, wy = _grid_coords((np.arange(y0, y0 + h) + 0.5) / block - 0.5, ny)
-    ix, ix1, wx = _grid_coords((np.arange(x0, x0 + w) + 0.5) / block - 0.5, nx)
-    wy = wy[:, None]
-    rows = (1 - wx)[None, :] * grid[:, ix] + wx[None, :] * grid[:, ix1]  # (ny, w)
-    return (1 - wy) * rows[iy] + wy * rows[iy1]
-
-
 def _grid_sample(grid: np.ndarray, ys: np.ndarray, xs: np.ndarray, block: int) -> np.ndarray:
-    """The same interpolation at scattered full-image points ``(ys, xs)``."""
+    """The bilinear interpolation of block-centre values (:func:`_grid_coords`) at
+    scattered full-image points ``(ys, xs)``; on a window: :func:`_field_gain_offset`."""
     ny, nx = grid.shape
     iy, iy1, wy = _grid_coords((ys + 0.5) / block - 0.5, ny)
     ix, ix1, wx = _grid_coords((xs + 0.5) / block - 0.5, nx)
@@ -102,14 +87,16 @@ def _gain_offset(x: np.ndarray, gain: np.ndarray, offset: np.ndarray, out: np.nd
 def _field_gain_offset(x: np.ndarray, field_gain: np.ndarray, field_offset: np.ndarray,
                        origin: tuple[int, int], block: int, out: np.ndarray) -> None:
     """``out[..., c] = g_c * x[..., c] + o_c`` for an ``(h, w, C)`` tile at ``origin``,
-    ``g_c`` and ``o_c`` the fields :func:`_grid_interp` gives of ``field_gain[c]`` and
-    ``field_offset[c]`` (``(C, ny, nx)`` block-centre values), in float64, then stored in
-    ``out``'s type: those expressions' values exactly.
+    ``g_c`` and ``o_c`` the bilinear interpolations of the block-centre values
+    ``field_gain[c]`` and ``field_offset[c]`` (``(C, ny, nx)``; :func:`_grid_coords`:
+    linear between the centres, extrapolated to the image edge), in float64, then stored
+    in ``out``'s type.
 
-    Done :data:`_GAIN_ROWS` rows at a time: the x interpolation once per grid row, then
-    each chunk's fields into two reused buffers.  Over the whole tile, each field was a
-    full-size float64 array built in five passes (a 1188 px tile of the 100 MP pair with
-    45 % changed, whose tiles fit a field: 58 ms gray, 140 ms in three bands).
+    Per pixel ``(1 - wy) * rows[iy] + wy * rows[iy1]`` with ``rows`` the fields
+    interpolated along x once per grid row: the same floating-point operations as
+    ``(1 - wy) * ((1 - wx) * g00 + wx * g01) + wy * ((1 - wx) * g10 + wx * g11)``, at a
+    fraction of the passes.  Done :data:`_GAIN_ROWS` rows at a time in reused buffers:
+    over the whole tile each field was a full-size float64 array built in five passes.
     """
     h, w, C = x.shape
     iy, iy1, wy = _grid_coords((np.arange(origin[0], origin[0] + h) + 0.5) / block - 0.5,
@@ -119,7 +106,7 @@ def _field_gain_offset(x: np.ndarray, field_gain: np.ndarray, field_offset: np.n
     n = min(_GAIN_ROWS, h)
     g, o, t = (np.empty((n, w)) for _ in range(3))
     for c in range(C):
-        # the fields along x at every grid row, as _grid_interp forms them
+        # the fields along x at every grid row
         rows = [(1 - wx)[None, :] * f[c][:, ix] + wx[None, :] * f[c][:, ix1]
                 for f in (field_gain, field_offset)]
         for y in range(0, h, _GAIN_ROWS):
@@ -127,7 +114,7 @@ def _field_gain_offset(x: np.ndarray, field_gain: np.ndarray, field_offset: np.n
             a = wy[y : y + k, None]
             b = 1 - a
             for buf, r in zip((g, o), rows, strict=True):
-                # (1 - wy) * rows[iy] + wy * rows[iy1], as in _grid_interp
+                # (1 - wy) * rows[iy] + wy * rows[iy1]
                 np.multiply(b, r[iy[y : y + k]], out=buf[:k])
                 np.multiply(a, r[iy1[y : y + k]], out=t[:k])
                 buf[:k] += t[:k]
@@ -374,7 +361,7 @@ def _fit_field(
     """Joint robust fit of gain and offset grids, interpolated exactly as applied.
 
     Model: ``y_i = sum_k phi_k(i) (g_k x_i + o_k)`` with ``phi`` the bilinear weights of
-    :func:`_grid_interp`.  Huber IRLS; the penalty ``smoothness * (n / N)`` times the
+    :func:`_field_gain_offset`.  Huber IRLS; the penalty ``smoothness * (n / N)`` times the
     squared second differences of the node values (gain scaled by the reference spread so
     that both are intensities) does not penalise linear trends, and keeps nodes with little
     data or a flat reference (no gain to fit) in line with their neighbours.
@@ -568,7 +555,7 @@ def _weighted_lstsq(A: np.ndarray, y: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 def _poly_grid(coef: np.ndarray, shape: tuple[int, int], block: int) -> np.ndarray:
-    """A polynomial field at the centres of ``block``-pixel blocks (``_grid_interp`` form)."""
+    """A polynomial field at the centres of ``block``-pixel blocks (``_field_gain_offset`` form)."""
     ny, nx = -(-shape[0] // block), -(-shape[1] // block)
     cy = (np.arange(ny) + 0.5) * block - 0.5
     cx = (np.arange(nx) + 0.5) * block - 0.5
