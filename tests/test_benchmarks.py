@@ -140,6 +140,26 @@ def test_cost_targets_give_the_slope_against_the_decided_pixels():
     assert 1.05 < want < 1.1
 
 
+def test_cost_slope_counts_the_tiles_a_small_image_loads_ahead():
+    """A small image's padded tiles are read and reblurred in the decision's fit
+    (``seconds.preload``): the per-pixel stage is that plus the tile pass, so a 1 MP row
+    whose tile pass read nothing does not bend the slope (computed here from the rows'
+    own numbers)."""
+    from benchmarks.cost import targets
+
+    rows, mps, secs = [], [1, 25, 100], []
+    for mp in mps:
+        t = 0.12 * mp
+        secs.append(t)
+        dec = {"tiles": 0.1 * t, "preload": 0.9 * t} if mp == 1 else {"tiles": t, "preload": 0.0}
+        rows.append(dict(mp=mp, content="unchanged", seconds=3.0 + t,
+                         stages={"report": 0.5, "reblur_decide": t + 0.1},
+                         decide_seconds=dec, tile_work={"pixels": mp * 2**20}))
+    text = targets(rows)
+    want = np.polyfit(np.log(mps), np.log(secs), 1)[0]
+    assert f"log-log slope 0.9-1.1: {want:.2f} over 1, 25, 100 MP: met" in text
+
+
 def test_cost_table_shows_the_time_outside_the_stages_and_targets_by_kind():
     """The seconds a run spends outside its stages (start-up, imports, exit) are its
     process time less the pipeline's total, the opening and the writing (by hand here);

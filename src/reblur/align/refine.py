@@ -660,6 +660,8 @@ def refine_alignment(
     within = None
     if probes is None:  # the lattice where the reference covers the observation
         within = covered_box(poses0, reference.shape, shape)
+        if within is not None and min(within.h, within.w) < min(size, *shape):
+            within = None  # narrower than a probe: probe_boxes lays it over the image
     boxes = probes if probes is not None else probe_boxes(shape, size=size, n=p.n_probes,
                                                           within=within)
     before = measure_shifts(reference, observed, poses0, boxes, **kw)
@@ -669,9 +671,8 @@ def refine_alignment(
     info: dict[str, Any] = {"probes": len(boxes), "before": s0, "model": model,
                             "inliers": n_in, "probe_shifts": _records(before, p.min_cc)}
     if probes is None:
-        info["lattice"] = ("the image" if within is None or boxes[0].h > min(within.h, within.w)
-                           else [int(within.y0), int(within.x0), int(within.h),
-                                 int(within.w)])
+        info["lattice"] = ("the image" if within is None else
+                           [int(within.y0), int(within.x0), int(within.h), int(within.w)])
     if G is None:
         return Refinement(base, False, "none", before, before, info, poses0)
     new, why = _corrected(G, base, shape, tuple(int(s) for s in reference.shape[:2]),
