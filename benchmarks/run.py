@@ -49,6 +49,8 @@ BENCHES = {
     "pictures": ("benchmarks.pictures", "main"),
     # camera shake beyond the pose grid: time and accuracy against its extent (#28)
     "shake_extent": ("benchmarks.shake_extent", "main"),
+    # the estimate's first level at half resolution, on and off (#28)
+    "half_start": ("benchmarks.half_start", "main"),
     # the estimate's Gram products at 1 MP: work, rate, share of the estimate (#28)
     "gram_work": ("benchmarks.gram_work", "main"),
     # the 1 MP pairs on one core and on all: the same bytes out (#28)

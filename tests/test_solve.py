@@ -994,12 +994,14 @@ def test_row_step_rule():
     assert row_step([op(500), rolling]) == 1  # an operator without row views
 
 
-@pytest.mark.parametrize("one_sided", [False, True])
-def test_row_step_solves_the_sampled_rows_with_the_l1_term_scaled(one_sided):
-    """``active_set(row_step=s)`` fits the windows' rows ``0, s, 2s, ...`` with the
-    weights' l1 term divided by ``s``: its result passes the KKT test of that problem on
-    the explicit matrix of those rows (the Huber threshold still ``lam / 2``), and the
-    objective it reports is ``s`` times that problem's, the whole windows' units."""
+@pytest.mark.parametrize(("one_sided", "step", "weight"),
+                         [(False, 3, 1.0), (True, 3, 1.0), (False, 1, 4.0), (True, 3, 4.0)])
+def test_row_step_solves_the_sampled_rows_with_the_l1_term_scaled(one_sided, step, weight):
+    """``active_set(row_step=s, pixel_weight=p)`` fits the windows' rows ``0, s, 2s, ...``
+    with the weights' l1 term divided by ``s p``: its result passes the KKT test of that
+    problem on the explicit matrix of those rows (the Huber threshold still ``lam / 2``),
+    and the objective it reports is ``s p`` times that problem's, the whole windows' (or
+    the full resolution's) units."""
     import cv2
 
     rng = np.random.default_rng(21)
@@ -1013,10 +1015,11 @@ def test_row_step_solves_the_sampled_rows_with_the_l1_term_scaled(one_sided):
     masks = [op.valid.copy() for op in ops]
     masks[0][30:34] = False  # pixels left out of the data term
     signs = [np.ones(op.dimsd) for op in ops] if one_sided else None
-    lam, step = 0.05, 3
+    lam = 0.05
     delta = lam / 2
-    w, info = active_set(ops, gs, lam=lam, masks=masks, signs=signs, row_step=step)
-    assert info["converged"] and info["row_step"] == step
+    w, info = active_set(ops, gs, lam=lam, masks=masks, signs=signs, row_step=step,
+                         pixel_weight=weight)
+    assert info["converged"] and info.get("row_step", 1) == step
     A = np.concatenate([np.stack([op.column(k)[::step][m[::step]].ravel()
                                   for k in range(grid.size)], axis=1)
                         for op, m in zip(ops, masks, strict=True)])
@@ -1026,16 +1029,20 @@ def test_row_step_solves_the_sampled_rows_with_the_l1_term_scaled(one_sided):
     out = np.abs(r) > delta if sv is None else sv * r > delta
     assert out.sum() > 100  # the change is in the linear part of the loss
     psi = np.where(out, 2 * delta * np.sign(r), 2 * r)
-    grad = lam / step - A.T @ psi
+    grad = lam / (step * weight) - A.T @ psi
     on = w.ravel() > 0
     scale = np.abs(A.T @ np.where(np.abs(gv) > delta, 2 * delta * np.sign(gv), 2 * gv)).max()
     assert np.all(np.abs(grad[on]) <= 1e-6 * scale)
     assert np.all(grad[~on] >= -1e-6 * scale)
     loss = np.where(out, 2 * delta * np.abs(r) - delta * delta, r * r).sum()
-    assert info["objective"][-1] == pytest.approx(step * loss + lam * w.sum(), rel=1e-6)
+    assert info["objective"][-1] == pytest.approx(step * weight * loss + lam * w.sum(),
+                                                  rel=1e-6)
     assert mass_near_truth(w, w_true) > 0.9
     with pytest.raises(ValueError, match="row_step"):
         active_set(ops, gs, lam=lam, row_step=0)
+    for bad in (0.5, True, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="pixel_weight"):
+            active_set(ops, gs, lam=lam, pixel_weight=bad)
 
 
 def _dense_blur_problem():

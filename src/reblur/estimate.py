@@ -159,8 +159,12 @@ def estimate_motion(
         quarter of the translation range): finer shifts cannot be told apart there.
         Levels before the last solve on the windows' central :func:`coarse_side` pixels;
         at the finest stride those are solved first and the full windows then start from
-        their solution (:data:`_FINE_ON_CENTRES`).  ``info["levels"]`` lists the levels
-        (with the solver's ``warm_start`` record where a level starts from weights).
+        their solution (:data:`_FINE_ON_CENTRES`).  Where the first level's translations
+        reach :data:`HALF_MIN_T` px and its parts are at least twice
+        :data:`HALF_MIN_SIDE`, it is solved at half resolution (:data:`HALF_START`).
+        ``info["levels"]`` lists the levels (with the solver's ``warm_start`` record where
+        a level starts from weights, and ``resolution`` 0.5 on a half-resolution one,
+        whose ``t_max`` is in full-resolution pixels and ``side`` in its own).
         ``"auto"``: when the grid varies only ``rz`` and has more than ``max_bases`` angles.
         This keeps fine rotation grids (a step that moves the farthest pixel of a huge
         image by one pixel) affordable.
@@ -630,7 +634,7 @@ def row_step(ops) -> int:
 
 def _solve(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, occlusion,
            solver, max_outer, time_limit, fista_iter, w0, gs=None, scratch=None, threads=None,
-           rtol=0.0, max_active=None):
+           rtol=0.0, max_active=None, pixel_weight=1.0):
     ops = _build_operators(reference, grid, boxes, base, engine, s_ref, threads)
     if gs is None:
         gs = [read_window(observed, b, np.float64) / s_obs for b in boxes]
@@ -644,7 +648,7 @@ def _solve(reference, observed, grid, boxes, base, engine, s_ref, s_obs, lam, oc
         w, info = active_set(
             ops, gs, lam=lam, occlusion=occlusion, max_outer=max_outer, time_limit=time_limit,
             w0=w0, scratch=scratch, workers=1 if threads is None else threads, rtol=rtol,
-            row_step=row_step(ops), max_active=max_active,
+            row_step=row_step(ops), max_active=max_active, pixel_weight=pixel_weight,
         )
     elif solver == "fista":
         if len(ops) != 1:
@@ -967,6 +971,53 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
         else:
             idx, stride, tx, ty = advance(w_prev, int(resume["stride"]), int(resume["t_stride"]))
     first = resume is None
+
+    def run(part, w0, bx, gs, *, stride, ts, lv_rtol=None, views=None, scale=1):
+        """One level's solve on ``part`` (at ``lv_rtol``, default ``rtol``) and its record;
+        ``views`` (reference, observation, base) replace the full-resolution ones on a level
+        ``scale`` times coarser."""
+        lv_rtol = rtol if lv_rtol is None else lv_rtol
+        ref_v, obs_v, base_v = (reference, observed, base) if views is None else views
+        out = _solve(ref_v, obs_v, part, bx, base_v, engine, s_ref, s_obs, lam, occlusion,
+                     "active-set", max_outer, time_limit, 0, w0, gs=gs, scratch=scratch,
+                     threads=threads, rtol=lv_rtol, max_active=max_active,
+                     pixel_weight=scale * scale)
+        info = out[1]
+        rec = dict(stride=stride, t_stride=ts, n_angles=len(part.rz),
+                   n_t=len(part.tx) * len(part.ty), side=int(max(bx[0].h, bx[0].w)),
+                   t_max=scale * _t_max(part), n_outer=info["n_outer"], time_s=info["time_s"],
+                   n_active=info["n_active"], rtol=lv_rtol,
+                   row_step=int(info.get("row_step", 1)), capped=bool(info["capped"]))
+        if scale != 1:
+            rec["resolution"] = 1.0 / scale
+        if "warm_start" in info:
+            rec["warm_start"] = info["warm_start"]
+        levels.append(rec)
+        total["objective"] += info["objective"]
+        total["n_outer"] += info["n_outer"]
+        total["time_s"] += info["time_s"]
+        total["capped"] += int(bool(info["capped"]))
+        return out
+
+    if first and _half_start_applies(grid, small):
+        # the full-resolution levels go on from its weights (and grid, if it widened)
+        w_prev, grid, info = _half_first_level(
+            reference, observed, base, grid, small, idx, stride, s_obs, t_grow, t_limit, log,
+            run, stop_occluded if occlusion else None, lam)
+        if info.get("stopped_early"):  # a part came out changed: stop there
+            sub = PoseGrid(grid.image_shape, tx=grid.tx, ty=grid.ty,
+                           rz=[grid.rz[i] for i in idx], center=grid.center)
+            ops = _build_operators(reference, sub, small, base, engine, s_ref, threads)
+            gs = _exclude(ops, small, getattr(observed, "exclude", None), g_small)
+            total.update({k: v for k, v in info.items() if k not in total})
+            total["resume"] = dict(weights=w_prev, stride=stride, t_stride=1,
+                                   angles=list(idx), tx=list(grid.tx), ty=list(grid.ty))
+            return carry_weights(w_prev, grid, sub), total, ops, gs, sub, grid
+        x0 = int(np.argmin(np.abs(np.asarray(grid.tx))))
+        y0 = int(np.argmin(np.abs(np.asarray(grid.ty))))
+        t_cap = max(1, min(len(grid.tx), len(grid.ty)) // 4)
+        idx, stride, tx, ty = advance(w_prev, stride, t_stride(stride))
+        first = False
     while True:
         last = stride == 1 and not (on_centres and centres_first)
         ts = t_stride(stride)
@@ -979,24 +1030,8 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
         ops = None  # the previous level's stacks and spectra go before the next's come
 
         def solve(part, w0, bx=bx, gs=gs, stride=stride, ts=ts, last=last):
-            lv_rtol = fine_rtol if last else rtol
-            out = _solve(reference, observed, part, bx, base, engine, s_ref, s_obs, lam,
-                         occlusion, "active-set", max_outer, time_limit, 0, w0, gs=gs,
-                         scratch=scratch, threads=threads, rtol=lv_rtol, max_active=max_active)
-            info = out[1]
-            rec = dict(stride=stride, t_stride=ts, n_angles=len(part.rz),
-                       n_t=len(part.tx) * len(part.ty), side=int(max(bx[0].h, bx[0].w)),
-                       t_max=_t_max(part), n_outer=info["n_outer"], time_s=info["time_s"],
-                       n_active=info["n_active"], rtol=lv_rtol,
-                       row_step=int(info.get("row_step", 1)), capped=bool(info["capped"]))
-            if "warm_start" in info:
-                rec["warm_start"] = info["warm_start"]
-            levels.append(rec)
-            total["objective"] += info["objective"]
-            total["n_outer"] += info["n_outer"]
-            total["time_s"] += info["time_s"]
-            total["capped"] += int(bool(info["capped"]))
-            return out
+            return run(part, w0, bx, gs, stride=stride, ts=ts,
+                       lv_rtol=fine_rtol if last else rtol)
 
         w, info, ops, gs = solve(sub, w0)
         if first and t_grow > 1:
@@ -1027,3 +1062,156 @@ def _rz_coarse_to_fine(reference, observed, grid, boxes, base, engine, s_ref, s_
             on_centres = False
             continue
         idx, stride, tx, ty = advance(w_full, stride, ts)
+
+
+# ---------------------------------------------------- the first level at half resolution
+#: Solve the first coarse-to-fine level at half resolution (METHOD.md: "consider a
+#: coarse-to-fine start (half resolution, coarser grid)").  The first level is the
+#: costliest of a wide blur: at full resolution a 35 px shake's first level solved 2401
+#: translations per angle, widened to 9409, 27 outer iterations with ~290 poses.  At half
+#: resolution the same blur spans half as many pixels each way: a quarter of the
+#: translations, of the pixels and of the poses carrying weight.  Each block mean stands
+#: for four pixels (``active_set(pixel_weight=4)``), so the l1 term and the widening's
+#: gains weigh as at full resolution.  Its weights, each carried to twice its translation
+#: (:func:`_full_weights`), start the next level, which keeps the translations that carry
+#: weight (plus a margin) at full resolution; the levels after it are as before.
+#: ``python -m benchmarks.half_start`` (estimate medians, off -> on): the test bed's 20 /
+#: 35 px shakes 5.28 -> 4.78, 5.68 -> 3.65 s, the 1.5 degree tilt 18.2 -> 12.0 s, with
+#: the same masks and fits; GoPro 0374, which starts at 24 px, 3.73 -> 2.72 s with the
+#: same mask (``python -m benchmarks.shake_extent``).
+HALF_START = True
+#: The least translation half-range (px, full resolution) of the first level's grid for
+#: which it runs at half resolution: the grids the alignment found the blur wide for.
+#: On the default +-12 px too (``T >= 6`` in ``python -m benchmarks.half_start``) the 6 /
+#: 12 px shakes and the defocus pair gained 0.5-1.2 s with the same masks, but real
+#: shake moved (GoPro 0477 / 16 152 px fewer flagged, 0374 0.06 % more) and content that
+#: differs paid: at half resolution a misfit gains from wider translations (four times
+#: fewer pixels for the same poses): unrelated windows (LEVIR test_7 against WHU 000213)
+#: widened twice, and the years-apart WHU 000213 pair of ``tests/test_cost.py`` took 45
+#: outer iterations where that test bounds them at 40.
+HALF_MIN_T = 16.0
+#: The least side (px) of a half-resolution central part (a full-resolution part of
+#: twice that): two windows' 256 px parts qualify, four windows' 128 px (25 MP and up)
+#: do not; the benchmarks have no wide blur above 1 MP to measure them on.
+HALF_MIN_SIDE = 96
+
+
+class _Halved:
+    """2 x 2 block means of an array-like image (``(H, W)`` or ``(H, W, C)``), read window
+    by window as float32 (``read_window`` slices it with whole-pixel bounds).
+
+    Half-resolution pixel ``(i, j)`` is the mean of full pixels ``2i .. 2i + 1``, ``2j ..
+    2j + 1``; an odd last row or column repeats its pixel.  A non-finite pixel (no data)
+    makes its block's mean non-finite.  An ``exclude`` of the array (see
+    :func:`estimate_motion`'s ``observed``) is halved too: a half-resolution pixel is
+    excluded where any of its four pixels is.
+    """
+
+    def __init__(self, array) -> None:
+        self.array = array
+        self._hw = (int(array.shape[0]), int(array.shape[1]))
+        H, W = self._hw
+        self.shape = ((H + 1) // 2, (W + 1) // 2, *(int(v) for v in array.shape[2:]))
+        self.dtype = np.dtype(np.float32)
+        ex = getattr(array, "exclude", None)
+        if ex is not None:
+            def exclude(box):
+                b = as_box(box)
+                m = np.asarray(ex(as_box((2 * b.y0, 2 * b.x0, 2 * b.h, 2 * b.w))), bool)
+                return m[0::2, 0::2] | m[1::2, 0::2] | m[0::2, 1::2] | m[1::2, 1::2]
+            self.exclude = exclude
+
+    def __getitem__(self, key) -> np.ndarray:
+        ys, xs = key[:2]
+        H, W = self._hw
+        y0, y1 = 2 * ys.start, min(2 * ys.stop, H)
+        x0, x1 = 2 * xs.start, min(2 * xs.stop, W)
+        a = np.asarray(self.array[y0:y1, x0:x1], np.float32)
+        if a.shape[0] % 2:
+            a = np.concatenate([a, a[-1:]], axis=0)
+        if a.shape[1] % 2:
+            a = np.concatenate([a, a[:, -1:]], axis=1)
+        return 0.25 * ((a[0::2, 0::2] + a[1::2, 0::2]) + (a[0::2, 1::2] + a[1::2, 1::2]))
+
+
+#: Full-resolution pixel coordinates -> :class:`_Halved` ones (pixel centres at whole
+#: numbers: half-resolution pixel 0 is the mean of full pixels 0 and 1, centred at 0.5).
+_HALF = np.array([[0.5, 0.0, -0.25], [0.0, 0.5, -0.25], [0.0, 0.0, 1.0]])
+
+
+def _half_grid(grid: PoseGrid, idx: Sequence[int]) -> PoseGrid:
+    """The half-resolution counterpart of ``grid``'s angles ``idx``: the same rolls about
+    ``grid``'s centre mapped by :data:`_HALF`, and the whole-pixel translations ``t`` with
+    ``2 t`` in ``grid``'s range.  Its pose ``(rz, t)`` is ``_HALF @ H @ inv(_HALF)`` for
+    ``grid``'s pose ``(rz, 2 t)``."""
+    def half(vals) -> list[float]:
+        lo, hi = int(np.ceil(min(vals) / 2.0)), int(np.floor(max(vals) / 2.0))
+        return [float(v) for v in range(lo, hi + 1)]
+    cx, cy = grid.center
+    H, W = grid.image_shape
+    return PoseGrid(((H + 1) // 2, (W + 1) // 2), tx=half(grid.tx), ty=half(grid.ty),
+                    rz=[grid.rz[i] for i in idx], center=(cx / 2.0 - 0.25, cy / 2.0 - 0.25))
+
+
+def _full_weights(w_h: np.ndarray, sub_h: PoseGrid, grid: PoseGrid,
+                  idx: Sequence[int]) -> np.ndarray:
+    """Weights on ``sub_h`` (:func:`_half_grid` of ``grid``'s angles ``idx``) carried to
+    ``grid``: each pose's weight to ``grid``'s pose of the same angle at twice its
+    translation (the nearest ``grid`` holds)."""
+    out = np.zeros(grid.shape)
+    tyf, txf = np.asarray(grid.ty, float), np.asarray(grid.tx, float)
+    iy = np.abs(tyf[None, :] - 2.0 * np.asarray(sub_h.ty, float)[:, None]).argmin(axis=1)
+    ix = np.abs(txf[None, :] - 2.0 * np.asarray(sub_h.tx, float)[:, None]).argmin(axis=1)
+    w_h = sub_h.check_weights(w_h)
+    for a, b in enumerate(idx):
+        np.add.at(out[b], (iy[:, None], ix[None, :]), w_h[a])
+    return out
+
+
+def _half_start_applies(grid: PoseGrid, small: Sequence) -> bool:
+    """Whether the first level runs at half resolution (:data:`HALF_START`)."""
+    return (HALF_START and _t_max(grid) >= HALF_MIN_T
+            and min(min(b.h, b.w) for b in small) >= 2 * HALF_MIN_SIDE)
+
+
+def _half_first_level(reference, observed, base, grid: PoseGrid, small: Sequence,
+                      idx: Sequence[int], stride: int, s_obs: float, t_grow: int,
+                      t_limit: float, log: list, run, stop_occluded: float | None,
+                      lam: float) -> tuple[np.ndarray, PoseGrid, dict]:
+    """The first level of :func:`_rz_coarse_to_fine` (angles ``idx``, ``stride``) on the
+    central parts ``small`` at half resolution (:data:`HALF_START`), widened as
+    :func:`_widen_first` does (``t_limit`` in full-resolution px; ``log``'s records in
+    them too); ``run`` is the schedule's solve.  Returns its weights carried to ``grid``,
+    widened as far, that grid and its last solve's info, with ``stopped_early`` where a
+    part comes out more than ``stop_occluded`` change (the paper's rejection, decided at
+    half resolution as it is on the full-resolution first level)."""
+    views = (_Halved(reference), _Halved(observed),
+             _HALF @ (np.eye(3) if base is None else np.asarray(base, float))
+             @ np.linalg.inv(_HALF))
+    bh = [as_box((-(-b.y0 // 2), -(-b.x0 // 2), b.h // 2, b.w // 2)) for b in small]
+    gh = [read_window(views[1], b, np.float64) / s_obs for b in bh]
+
+    def solve(part, w0):
+        return run(part, w0, bh, gh, stride=stride, ts=1, views=views, scale=2)
+
+    sub = _half_grid(grid, idx)
+    first = (sub, *solve(sub, None))
+    if t_grow > 1:
+        n_log = len(log)
+        wide, first = _widen_first(_half_grid(grid, range(grid.n_bases)), 1, first, solve,
+                                   t_limit / 2.0, log)
+        for rec in log[n_log:]:
+            rec["t_max"] *= 2
+            rec["resolution"] = 0.5
+        while _t_max(grid) < 2.0 * _t_max(wide) - 1.0:
+            wider = widen_translations(grid)
+            if wider is None or wider.size > MAX_WIDENED_POSES:
+                break
+            grid = wider
+    sub, w, info, ops, gs = first
+    info = dict(info)
+    if stop_occluded is not None:
+        shares = [_occluded_share(soft_threshold(g - op.matvec(w), lam / 2.0), op.valid)
+                  for op, g in zip(ops, gs, strict=True)]
+        info["stopped_early"] = max(shares) > stop_occluded
+    return _full_weights(w, sub, grid, idx), grid, info

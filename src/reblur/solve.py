@@ -551,6 +551,7 @@ def active_set(
     workers: int = 1,
     row_step: int = 1,
     max_active: int | None = None,
+    pixel_weight: float = 1.0,
 ) -> tuple[np.ndarray, dict]:
     """Solve eq. 5 (or eq. 3) over one or more windows sharing one set of pose weights.
 
@@ -623,6 +624,13 @@ def active_set(
         products grow as the square of the active poses and the Newton steps' NNLS as
         their cube, so the bound caps a solve's cost whatever the blur; a warm start
         holding more poses keeps them (the bound limits growth only).
+    pixel_weight : float
+        How many pixels of the problem each pixel fitted stands for (>= 1): 4 for the
+        2 x 2 block means of a half-resolution level.  As with ``row_step``, the weights'
+        l1 term is divided by it (the Huber threshold, a property of each pixel, stays
+        ``lam / 2``) and the objective reported multiplied by it, so the balance of the
+        two terms, and objectives compared across resolutions, are those of the problem
+        at full resolution.  1 (default).
 
     Returns
     -------
@@ -645,6 +653,10 @@ def active_set(
     step = int(row_step)
     if step < 1:
         raise ValueError(f"row_step must be at least 1, got {row_step}")
+    if isinstance(pixel_weight, bool) or not (
+            isinstance(pixel_weight, (int, float, np.number)) and 1 <= pixel_weight < np.inf):
+        raise ValueError(f"pixel_weight must be a finite number >= 1, got {pixel_weight!r}")
+    units = step * float(pixel_weight)  # problem pixels per pixel fitted
     check_max_active(max_active)
     if step > 1:
         gs = [np.ascontiguousarray(np.asarray(g, dtype=float).reshape(op.dimsd)[::step])
@@ -664,13 +676,14 @@ def active_set(
     if sum(int(w.m.sum()) for w in wins) == 0:
         raise ValueError("no valid pixel to estimate the motion from")
     with _Windows(wins, workers) as ws:
-        # the l1 term over the sampled data term: lam / step (the Huber threshold, a
+        # the l1 term over the sampled data term: lam / units (the Huber threshold, a
         # property of each pixel, stays lam / 2)
-        w, info = _active_set(ws, grid, lam / step, batch, max_outer, max_irls, tol, w0,
+        w, info = _active_set(ws, grid, lam / units, batch, max_outer, max_irls, tol, w0,
                               time_limit, callback, t_start, rtol, max_active,
                               carry=(scratch.carry, key))
+    if units != 1:
+        info["objective"] = [units * v for v in info["objective"]]
     if step > 1:
-        info["objective"] = [step * v for v in info["objective"]]
         info["row_step"] = step
     return w, info
 
